@@ -1,0 +1,186 @@
+"""The ``navcrafter`` command line."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a resumable batch workflow.",
+                  no_args_is_help=True, add_completion=False)
+console = Console()
+err = Console(stderr=True)
+
+EXIT_USAGE = 2
+EXIT_PARTIAL = 3
+
+
+def _prefect_env() -> None:
+    """Offline-friendly Prefect defaults (each can be overridden from the environment)."""
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "navcrafter")
+
+
+def _parse_sets(values: list[str]) -> dict:
+    out = {}
+    for item in values:
+        if "=" not in item:
+            raise typer.BadParameter(f"--set expects KEY=VALUE (e.g. synthesis.num_frames=9), got {item!r}")
+        key, value = item.split("=", 1)
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+@app.command("demo-data")
+def demo_data(
+    folder: Annotated[Path, typer.Argument(help="Folder to write the demo photos into.")],
+    kinds: Annotated[str, typer.Option(help="Comma-separated scene kinds: room, street, tabletop.")] =
+        "room,street,tabletop",
+    per_kind: Annotated[int, typer.Option(min=1, help="Photos (different seeds) per kind.")] = 1,
+    seed: Annotated[int, typer.Option(help="First generator seed.")] = 0,
+    width: Annotated[int, typer.Option(min=64)] = 640,
+    height: Annotated[int, typer.Option(min=64)] = 480,
+) -> None:
+    """Write a demo collection: photo-like renders of generated scenes, with hidden ground truth."""
+    from navcrafter.models.simulation.demo import write_demo_collection
+    from navcrafter.models.simulation.scenes import KINDS
+
+    chosen = tuple(k.strip() for k in kinds.split(",") if k.strip())
+    bad = [k for k in chosen if k not in KINDS]
+    if bad:
+        err.print(f"[red]unknown scene kind(s) {bad}; choose from {list(KINDS)}[/red]")
+        raise typer.Exit(EXIT_USAGE)
+    photos = write_demo_collection(folder, chosen, per_kind, seed, width, height)
+    console.print(f"wrote {len(photos)} demo photos to {folder} (ground truth in {folder}/.groundtruth/)")
+    for p in photos:
+        console.print(f"  {p}")
+
+
+@app.command()
+def explore(
+    photos: Annotated[Path, typer.Argument(help="A folder of images (searched recursively) or one image.")],
+    store: Annotated[str, typer.Option("--store", help="Store directory (or fsspec URL) for all outputs.")],
+    preset: Annotated[str, typer.Option(help="Config preset: 'paper' (defaults of the paper) or 'tiny'.")] =
+        "paper",
+    config: Annotated[Optional[Path], typer.Option(help="YAML/JSON config file applied over the preset.")] = None,
+    set_: Annotated[list[str], typer.Option("--set", help="Override, e.g. --set synthesis.num_frames=25.")] = [],
+    backend: Annotated[Optional[str], typer.Option(help="'simulation' or 'onnx'.")] = None,
+    models: Annotated[Optional[Path], typer.Option(help="Directory of exported ONNX models.")] = None,
+    parallel: Annotated[Optional[int], typer.Option(min=1, help="Scenes processed at once.")] = None,
+) -> None:
+    """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
+    from pydantic import ValidationError
+
+    from navcrafter.models.backends import ONNX_NOT_BUILT
+    from navcrafter.models.simulation import LABEL
+    from navcrafter.schemas.config import RunConfig
+
+    overrides = _parse_sets(set_)
+    if backend is not None:
+        overrides["backend"] = backend
+    if models is not None:
+        overrides["model_dir"] = str(models)
+    if parallel is not None:
+        overrides["max_parallel_scenes"] = parallel
+    try:
+        cfg = RunConfig.load(config, preset=preset, overrides=overrides)
+    except (ValidationError, ValueError, FileNotFoundError) as exc:
+        err.print(f"[red]invalid configuration:[/red] {exc}")
+        raise typer.Exit(EXIT_USAGE) from None
+    if cfg.backend == "onnx":
+        err.print(f"[red]{ONNX_NOT_BUILT}[/red]")
+        raise typer.Exit(EXIT_USAGE)
+    if not photos.exists():
+        err.print(f"[red]{photos} does not exist[/red]; make a demo collection with "
+                  f"`navcrafter demo-data {photos}`")
+        raise typer.Exit(EXIT_USAGE)
+    if cfg.backend == "simulation":
+        console.print(f"[bold yellow]{LABEL}.[/bold yellow]")
+    _prefect_env()
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    from navcrafter.flows.explore import explore_collection
+
+    flow_ = explore_collection.with_options(task_runner=ThreadPoolTaskRunner(max_workers=cfg.max_parallel_scenes))
+    run = flow_(str(photos), store, cfg)
+    results = run.scenes
+    from navcrafter.tasks.report import SUMMARY_COLUMNS, summary_header, summary_rows
+
+    table = Table(title="navcrafter run summary")
+    for col in SUMMARY_COLUMNS:
+        table.add_column(col, overflow="fold")
+    for row in summary_rows(results):
+        table.add_row(*row)
+    console.print(table)
+    for line in summary_header(run.run_id, cfg, results):
+        console.print(line)
+    failed = [r for r in results if r.status != "done"]
+    console.print(f"summary: {store}/{run.summary}   status: navcrafter status {store}")
+    if failed:
+        err.print(f"[red]{len(failed)} of {len(results)} images failed[/red] (see the error column); "
+                  f"completed work is kept, rerun the same command to retry.")
+        raise typer.Exit(EXIT_PARTIAL)
+
+
+@app.command()
+def status(
+    store: Annotated[str, typer.Argument(help="Store directory or URL.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the manifest as JSON lines.")] = False,
+    compact: Annotated[bool, typer.Option(help="Merge the store's table files first.")] = False,
+) -> None:
+    """Show the manifest: one row per image with its status, last step, metrics and error."""
+    from navcrafter.schemas.store import Store, StoreError
+    from navcrafter.tasks.report import read_manifest
+
+    try:
+        st = Store(store, create=False)
+    except StoreError as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(EXIT_USAGE) from None
+    if compact:
+        for name in ("manifest", "steps", "metrics"):
+            st.tables.compact(name)
+    rows = read_manifest(st).to_pylist()
+    if as_json:
+        for r in rows:
+            r["updated_at"] = r["updated_at"].isoformat()
+            r["timings"] = dict(r["timings"] or [])
+            r["metrics"] = dict(r["metrics"] or [])
+            print(json.dumps(r))
+        return
+    if not rows:
+        console.print(f"{store}: no images yet")
+        return
+    table = Table(title=f"navcrafter store {store}")
+    for col in ("image", "scene", "status", "step", "backend", "points", "median dist.", "seconds", "error"):
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        metrics = dict(r["metrics"] or [])
+        med = metrics.get("cloud_median_dist_m")
+        colour = {"done": "green", "failed": "red", "running": "yellow"}.get(r["status"], "")
+        table.add_row(Path(r["source"]).name, (r["scene_id"] or "")[:12], f"[{colour}]{r['status']}[/{colour}]",
+                      r["step"] or "", r["backend"] or "", "" if r["n_points"] is None else str(r["n_points"]),
+                      "" if med is None else f"{med:.4f} m", f"{r['seconds'] or 0:.1f}", r["error"] or "")
+    console.print(table)
+    if any(r["backend"] == "simulation" for r in rows):
+        from navcrafter.models.simulation import LABEL
+
+        console.print(f"[yellow]backend 'simulation': {LABEL}.[/yellow]")
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "running", "failed", "pending")}
+    console.print(", ".join(f"{v} {k}" for k, v in counts.items() if v))
+
+
+def main() -> None:
+    _prefect_env()
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,118 @@
+"""Procedural materials for simulated scenes, evaluated at ray hit points.
+
+Textures are functions of the 3D hit position (projected onto the plane of the dominant normal axis,
+i.e. tri-planar without blending), so they need no UV unwrapping and are identical from every
+viewpoint, which is what multi-view consistency (and later COLMAP in evaluation) needs.
+All noise is hash-based lattice noise: deterministic, vectorised, seed-able.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+PATTERNS = ("plain", "checker", "stripes", "wood", "brick", "tiles", "windows", "noise")
+
+
+@dataclass(frozen=True)
+class Material:
+    """A procedural surface: ``pattern`` mixes ``color_a`` and ``color_b`` (sRGB in [0, 1])."""
+
+    pattern: str
+    color_a: tuple[float, float, float]
+    color_b: tuple[float, float, float]
+    scale: float = 0.5  # characteristic feature size in scene units (metres)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.pattern not in PATTERNS:
+            raise ValueError(f"unknown pattern {self.pattern!r}; choose from {PATTERNS}")
+        if self.scale <= 0:
+            raise ValueError("material scale must be positive")
+
+
+def _hash2(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
+    """Integer lattice hash to [0, 1)."""
+    h = (ix.astype(np.int64) * 374761393 + iy.astype(np.int64) * 668265263 + seed * 2147483647) & 0xFFFFFFFF
+    h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    return (h & 0xFFFFFF).astype(np.float64) / float(0x1000000)
+
+
+def value_noise(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
+    """Smooth value noise in [0, 1)."""
+    ix, iy = np.floor(x), np.floor(y)
+    fx, fy = x - ix, y - iy
+    sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+    a = _hash2(ix, iy, seed)
+    b = _hash2(ix + 1, iy, seed)
+    c = _hash2(ix, iy + 1, seed)
+    d = _hash2(ix + 1, iy + 1, seed)
+    return (a * (1 - sx) + b * sx) * (1 - sy) + (c * (1 - sx) + d * sx) * sy
+
+
+def fbm(x: np.ndarray, y: np.ndarray, seed: int, octaves: int = 4) -> np.ndarray:
+    """Fractal sum of value noise, normalised to [0, 1)."""
+    total = np.zeros_like(x, dtype=np.float64)
+    amp, norm, freq = 1.0, 0.0, 1.0
+    for o in range(octaves):
+        total += amp * value_noise(x * freq, y * freq, seed + 97 * o)
+        norm += amp
+        amp *= 0.5
+        freq *= 2.03
+    return total / norm
+
+
+def planar_coords(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """2D coordinates on the plane perpendicular to each point's dominant normal axis."""
+    axis = np.argmax(np.abs(normals), axis=1)
+    u = np.where(axis == 0, points[:, 1], points[:, 0])
+    v = np.where(axis == 2, points[:, 1], points[:, 2])
+    return u, v
+
+
+def albedo(material: Material, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Surface colour ``[N, 3]`` in [0, 1] of ``material`` at world ``points`` with ``normals``."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    u, v = planar_coords(points, normals)
+    s, seed = material.scale, material.seed
+    a = np.asarray(material.color_a)
+    b = np.asarray(material.color_b)
+    grain = fbm(u / (0.15 * s), v / (0.15 * s), seed + 11)  # fine detail present everywhere
+    p = material.pattern
+    if p == "plain":
+        mix = 0.25 * fbm(u / s, v / s, seed)
+    elif p == "noise":
+        mix = fbm(u / s, v / s, seed, octaves=5)
+    elif p == "checker":
+        mix = ((np.floor(u / s) + np.floor(v / s)) % 2).astype(np.float64)
+    elif p == "stripes":
+        mix = (np.floor(u / s) % 2).astype(np.float64)
+    elif p == "wood":
+        warp = 0.8 * fbm(u / s, v / (4 * s), seed)
+        rings = np.sin((v / s * 6.0 + warp * 6.0) * np.pi)
+        mix = 0.5 + 0.5 * rings
+    elif p == "brick":
+        h, w = 0.5 * s, s
+        row = np.floor(v / h)
+        uu = u / w + 0.5 * (row % 2)
+        fu, fv = uu - np.floor(uu), v / h - row
+        mortar = (fu < 0.06) | (fv < 0.1)
+        jitter = _hash2(np.floor(uu), row, seed) * 0.3
+        mix = np.where(mortar, 1.0, jitter)
+    elif p == "tiles":
+        fu, fv = u / s - np.floor(u / s), v / s - np.floor(v / s)
+        grout = (fu < 0.04) | (fv < 0.04)
+        mix = np.where(grout, 1.0, 0.25 * _hash2(np.floor(u / s), np.floor(v / s), seed))
+    elif p == "windows":
+        fu, fv = u / s - np.floor(u / s), v / (1.3 * s) - np.floor(v / (1.3 * s))
+        window = (fu > 0.25) & (fu < 0.75) & (fv > 0.2) & (fv < 0.75)
+        lit = _hash2(np.floor(u / s), np.floor(v / (1.3 * s)), seed) > 0.8
+        mix = np.where(window, np.where(lit, 0.55, 1.0), 0.15 * fbm(u / s, v / s, seed))
+    else:  # pragma: no cover - guarded in Material
+        raise AssertionError(p)
+    col = a[None] * (1 - mix[:, None]) + b[None] * mix[:, None]
+    col *= (0.88 + 0.24 * grain)[:, None]
+    return np.clip(col, 0.0, 1.0)

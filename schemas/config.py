@@ -1,0 +1,228 @@
+"""Run configuration: one pydantic model per pipeline step, with the paper's defaults.
+
+Every number that changes a stored output lives here, so that a step's cache key can be derived from
+the part of the config it reads (``RunConfig.step_config``). Defaults follow the NavCrafter paper
+(N=3 iterations, K=3 candidates, 81-frame clips at 256x256, DPM-solver 40 steps, CFG 6.5, LoRA weight
+0.7); the ``tiny`` preset shrinks sizes for tests and quick looks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Backend = Literal["simulation", "onnx"]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class IngestConfig(_Section):
+    """Validation and normalisation of input photos."""
+
+    max_file_bytes: int = Field(64 * 2**20, gt=0, description="Reject files larger than this.")
+    max_pixels: int = Field(
+        100_000_000, gt=0, description="Reject images with more pixels (decompression-bomb guard)."
+    )
+    min_side: int = Field(64, gt=0, description="Reject images whose shorter side is smaller.")
+    max_side: int = Field(
+        1024, gt=0, description="The stored normalised input is downscaled to this longer side."
+    )
+    alpha_background: tuple[int, int, int] = Field(
+        (255, 255, 255), description="Colour that transparent pixels are composited onto."
+    )
+
+
+class SynthesisConfig(_Section):
+    """Video synthesis (paper: Wan2.1 DiT sampled with DPM-solver, 81-frame 256x256 clips)."""
+
+    num_frames: int = Field(81, ge=2, description="Frames per synthesized clip (trajectory length).")
+    height: int = Field(256, ge=16)
+    width: int = Field(256, ge=16)
+    steps: int = Field(40, ge=1, description="DPM-solver steps (onnx backend).")
+    guidance_scale: float = Field(6.5, description="Classifier-free guidance scale (onnx backend).")
+    lora_scale: float = Field(0.7, description="Camera LoRA weight alpha at inference (onnx backend).")
+    fps: int = Field(16, ge=1, description="Frame rate of exported videos (Wan2.1 native rate).")
+
+
+class PlanConfig(_Section):
+    """Camera trajectory planning.
+
+    ``orbit`` is the simple planner of the foundation: each iteration orbits the scene centre by an
+    azimuth offset (alternating sides, growing). ``collision_aware`` is the paper's Algorithm 1.
+    """
+
+    strategy: Literal["orbit", "collision_aware"] = "orbit"
+    num_candidates: int = Field(3, ge=1, description="K candidate poses per iteration (paper: 3).")
+    orbit_step_deg: float = Field(20.0, gt=0, le=90, description="Azimuth step of the orbit planner.")
+    orbit_max_shift: float = Field(
+        1.0, gt=0, description="Cap on the camera displacement of one orbit step, in scene units: the "
+        "azimuth shrinks for far-away centres (the orbit planner does not see obstacles)."
+    )
+    orbit_radius_scale: float = Field(
+        0.85, gt=0, description="Target distance to the centre as a fraction of the initial one."
+    )
+    centre_depth_quantile: float = Field(
+        0.5, gt=0, lt=1, description="Scene centre o = point at this depth quantile on the optical axis."
+    )
+
+
+class LiftConfig(_Section):
+    """Lifting synthesized frames to points and fusing them into the scene cloud."""
+
+    max_views: int = Field(12, ge=1, description="Frames of a clip passed to the geometry model.")
+    pixel_stride: int = Field(2, ge=1, description="Unproject every n-th pixel in each direction.")
+    confidence_threshold: float = Field(0.5, ge=0, le=1)
+    voxel_size: float = Field(0.02, gt=0, description="Fusion voxel edge, in scene units (metres).")
+    max_depth: float = Field(50.0, gt=0, description="Ignore predicted depth beyond this.")
+
+
+class FitConfig(_Section):
+    """3D Gaussian Splatting fit (its own issue; disabled until built)."""
+
+    enabled: bool = False
+
+
+class SimulationConfig(_Section):
+    """Noise model of the simulation backend's Geometry and MonoDepth roles.
+
+    The geometry prediction is returned like VGGT's: in the first view's camera frame at an unknown
+    scale, so the lifting code must recover the scale exactly as with a real model.
+    """
+
+    supersample: int = Field(1, ge=1, le=4, description="Anti-aliasing factor of synthesized frames.")
+    scale_sigma: float = Field(
+        0.2, ge=0, description="Log-sigma of the arbitrary global scale of each geometry call "
+        "(the first call's scale becomes the scene's world scale)."
+    )
+    depth_noise: float = Field(0.004, ge=0, description="Relative per-pixel depth noise (sigma).")
+    pose_rot_deg: float = Field(0.1, ge=0, description="Rotation jitter of predicted poses.")
+    pose_trans: float = Field(
+        0.003, ge=0, description="Translation jitter of predicted poses, in scene units."
+    )
+    focal_noise: float = Field(0.0, ge=0, description="Relative error of predicted focal length.")
+    edge_confidence: float = Field(
+        0.2, ge=0, le=1, description="Confidence assigned at depth discontinuities."
+    )
+
+
+class RunConfig(BaseModel):
+    """Everything a run needs besides its inputs and its store."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    backend: Backend = Field(
+        "simulation",
+        description="'simulation' renders procedural ground truth in place of learned models; "
+        "'onnx' runs exported models from model_dir.",
+    )
+    model_dir: Path | None = Field(None, description="Directory of exported ONNX models (onnx backend).")
+    iterations: int = Field(3, ge=0, description="N: plan/synthesize/lift iterations (paper: 3).")
+    seed: int = Field(0, description="Base seed; each step derives its own from scene, step and config.")
+    max_parallel_scenes: int = Field(2, ge=1, description="Scenes processed at once in one process.")
+    ingest: IngestConfig = IngestConfig()
+    synthesis: SynthesisConfig = SynthesisConfig()
+    plan: PlanConfig = PlanConfig()
+    lift: LiftConfig = LiftConfig()
+    fit: FitConfig = FitConfig()
+    simulation: SimulationConfig = SimulationConfig()
+
+    @field_validator("model_dir")
+    @classmethod
+    def _expand(cls, v: Path | None) -> Path | None:
+        return None if v is None else Path(v).expanduser()
+
+    @model_validator(mode="after")
+    def _check_backend(self) -> RunConfig:
+        if self.backend == "onnx" and self.model_dir is None:
+            raise ValueError("backend 'onnx' needs model_dir (a directory of exported ONNX models)")
+        return self
+
+    # -- hashing ---------------------------------------------------------------------------------
+    def step_config(self, step: str) -> dict[str, Any]:
+        """The part of the config that a step's output depends on (feeds its cache key)."""
+        common = {"backend": self.backend, "model_dir": str(self.model_dir) if self.model_dir else None,
+                  "seed": self.seed}
+        sim = self.simulation.model_dump(mode="json") if self.backend == "simulation" else None
+        parts: dict[str, dict[str, Any]] = {
+            "ingest": {"ingest": self.ingest.model_dump(mode="json"),
+                       "resolution": [self.synthesis.height, self.synthesis.width]},
+            "geometry": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},
+            "plan": {**common, "plan": self.plan.model_dump(mode="json"),
+                     "num_frames": self.synthesis.num_frames},
+            "synthesize": {**common, "synthesis": self.synthesis.model_dump(mode="json"),
+                           "simulation": sim},
+            "lift": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},
+            "fit": {**common, "fit": self.fit.model_dump(mode="json")},
+            "export": {"fps": self.synthesis.fps, "iterations": self.iterations},
+        }
+        if step not in parts:
+            raise KeyError(f"unknown step {step!r}; known: {sorted(parts)}")
+        return parts[step]
+
+    def config_hash(self) -> str:
+        return stable_hash(self.model_dump(mode="json"))
+
+    # -- loading ---------------------------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | Path | None = None, preset: str = "paper",
+             overrides: dict[str, Any] | None = None) -> RunConfig:
+        """Preset, then a YAML/JSON file, then dotted overrides (``{"synthesis.num_frames": 9}``)."""
+        data = PRESETS[preset]() if preset in PRESETS else _unknown_preset(preset)
+        if path is not None:
+            p = Path(path)
+            if not p.is_file():
+                raise FileNotFoundError(f"config file {p} does not exist")
+            loaded = yaml.safe_load(p.read_text()) or {}
+            if not isinstance(loaded, dict):
+                raise ValueError(f"config file {p} must hold a mapping, got {type(loaded).__name__}")
+            data = _deep_merge(data, loaded)
+        for dotted, value in (overrides or {}).items():
+            data = _deep_merge(data, _dotted_to_nested(dotted, value))
+        return cls.model_validate(data)
+
+
+def stable_hash(obj: Any, length: int = 16) -> str:
+    """sha256 of canonical JSON, truncated: stable across processes and Python versions."""
+    blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:length]
+
+
+def _paper() -> dict[str, Any]:
+    return {}
+
+
+def _tiny() -> dict[str, Any]:
+    return {
+        "iterations": 2,
+        "synthesis": {"num_frames": 9, "height": 64, "width": 64},
+        "lift": {"max_views": 4, "pixel_stride": 1, "voxel_size": 0.03},
+    }
+
+
+PRESETS = {"paper": _paper, "tiny": _tiny}
+
+
+def _unknown_preset(name: str) -> dict[str, Any]:
+    raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+
+
+def _deep_merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _dotted_to_nested(dotted: str, value: Any) -> dict[str, Any]:
+    keys = dotted.split(".")
+    nested: dict[str, Any] = {keys[-1]: value}
+    for k in reversed(keys[:-1]):
+        nested = {k: nested}
+    return nested

@@ -1,0 +1,203 @@
+"""Zarr v3 layout of a scene: the single source of truth for every stored array.
+
+A store holds ``scenes/<scene_id>/`` (``scene_id`` = sha256 of the input image's bytes). Each pipeline
+step owns one group, described by a ``StepSpec``: its arrays (dtype, symbolic shape, chunking) and the
+attributes it must set. A step writes a fresh group, and sets ``complete = true`` in the group's
+attributes last; readers trust a group only when it is complete (see ``schemas.store``).
+
+Symbolic dimensions:
+
+====  =========================================================================
+H0,W0 normalised input image (longer side <= ``ingest.max_side``)
+H,W   working resolution (``synthesis.height`` x ``synthesis.width``)
+T     frames of one synthesized clip (``synthesis.num_frames``)
+S     views passed to the geometry model by one lift step (``<= lift.max_views``)
+N     points of the fused scene cloud after a step
+C     candidate poses considered by the planner
+====  =========================================================================
+
+Scene tree::
+
+    scenes/<scene_id>/            attrs: scene_id, source
+      input/                      step "ingest"
+      iter_0/geometry/            step "geometry": initial cameras, depth and cloud of the input view
+      iter_<k>/plan/              step "plan" (k = 1..N): trajectory for iteration k
+      iter_<k>/synthesize/        step "synthesize": frames along the trajectory
+      iter_<k>/lift/              step "lift": geometry of the frames, fused cloud after iteration k
+      gaussians/                  step "fit" (3DGS; not built yet)
+      exports/                    step "export": files (cloud.ply, video.mp4, trajectory.json/.parquet)
+
+The scene cloud after iteration k is the ``cloud_*`` arrays of ``iter_k/lift`` (``iter_0/geometry`` for
+k = 0): each step carries the cumulative cloud it produced, so resuming never needs a separate merge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+SCHEMA_VERSION = 1
+CLOUD_CHUNK_ROWS = 262_144
+
+COMMON_ATTRS = ("step", "complete", "key", "exec_id", "backend", "started_at", "finished_at",
+                "seconds", "schema_version")
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    name: str
+    dtype: str
+    shape: tuple[str | int, ...]
+    chunks: tuple[str | int, ...]
+    doc: str
+    optional: bool = False
+
+    def resolve(self, dims: dict[str, int]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """Concrete ``(shape, chunks)`` given the sizes of symbolic dimensions."""
+        shape = tuple(d if isinstance(d, int) else dims[d] for d in self.shape)
+        chunks = []
+        for c, s in zip(self.chunks, shape):
+            size = c if isinstance(c, int) else s
+            if c == "N":
+                size = min(s, CLOUD_CHUNK_ROWS)
+            chunks.append(max(1, min(size, s) if s else 1))
+        return shape, tuple(chunks)
+
+
+@dataclass(frozen=True)
+class StepSpec:
+    name: str
+    path: str  # may contain "{k}"
+    doc: str
+    arrays: tuple[ArraySpec, ...] = ()
+    attrs: tuple[str, ...] = ()
+    iterative: bool = False
+    extra: dict[str, str] = field(default_factory=dict)
+
+    def group_path(self, k: int | None = None) -> str:
+        if self.iterative:
+            if k is None or k < 1:
+                raise ValueError(f"step {self.name!r} needs an iteration k >= 1, got {k}")
+            return self.path.format(k=k)
+        if k not in (None, 0):
+            raise ValueError(f"step {self.name!r} is not iterative, got k={k}")
+        return self.path
+
+    def array(self, name: str) -> ArraySpec:
+        for a in self.arrays:
+            if a.name == name:
+                return a
+        raise KeyError(f"step {self.name!r} has no array {name!r}; it has {[a.name for a in self.arrays]}")
+
+
+def _cloud() -> tuple[ArraySpec, ...]:
+    return (
+        ArraySpec("cloud_points", "float32", ("N", 3), ("N", 3), "fused scene cloud, world frame"),
+        ArraySpec("cloud_colors", "uint8", ("N", 3), ("N", 3), "RGB of each point"),
+        ArraySpec("cloud_confidence", "float32", ("N",), ("N",), "fused confidence in [0, 1]"),
+    )
+
+
+INGEST = StepSpec(
+    "ingest", "input",
+    "The validated, normalised input photo and the working image the models see.",
+    arrays=(
+        ArraySpec("image", "uint8", ("H0", "W0", 3), ("H0", "W0", 3),
+                  "input photo: EXIF-oriented, RGB8, longer side <= ingest.max_side"),
+        ArraySpec("work_image", "uint8", ("H", "W", 3), ("H", "W", 3),
+                  "centre crop of `image` to the working aspect, resized to H x W"),
+    ),
+    attrs=("source", "sha256", "original_size", "original_mode", "exif_orientation", "crop_box",
+           "normalised_size", "work_size"),
+    extra={"simulation_truth": "optional: hidden ground-truth record of demo images (simulation mode)"},
+)
+
+GEOMETRY = StepSpec(
+    "geometry", "iter_0/geometry",
+    "Initial geometry of the input view; defines the world frame (input camera = identity).",
+    arrays=(
+        ArraySpec("c2w", "float64", (4, 4), (4, 4), "input camera pose (identity by definition)"),
+        ArraySpec("K", "float64", (3, 3), (3, 3), "estimated intrinsics of the working image"),
+        ArraySpec("depth", "float32", ("H", "W"), ("H", "W"), "z-depth, world units, 0 = invalid"),
+        ArraySpec("confidence", "float32", ("H", "W"), ("H", "W"), "per-pixel confidence"),
+        *_cloud(),
+    ),
+    attrs=("n_points",),
+    extra={"simulation_world_scale": "simulation only: world units per metre (hidden truth)"},
+)
+
+PLAN = StepSpec(
+    "plan", "iter_{k}/plan",
+    "Camera trajectory of iteration k, from the current pose to the next view.",
+    arrays=(
+        ArraySpec("trajectory", "float64", ("T", 4, 4), ("T", 4, 4), "world c2w of every frame"),
+        ArraySpec("K", "float64", (3, 3), (3, 3), "intrinsics of every frame"),
+        ArraySpec("centre", "float64", (3,), (3,), "scene centre o the cameras look at"),
+        ArraySpec("candidates", "float64", ("C", 4, 4), ("C", 4, 4), "candidate poses considered"),
+        ArraySpec("candidate_scores", "float64", ("C",), ("C",), "score of each candidate (higher is better)",
+                  optional=True),
+    ),
+    attrs=("strategy", "chosen"),
+    iterative=True,
+)
+
+SYNTHESIZE = StepSpec(
+    "synthesize", "iter_{k}/synthesize",
+    "The video clip synthesized along the trajectory of iteration k.",
+    arrays=(ArraySpec("frames", "uint8", ("T", "H", "W", 3), (1, "H", "W", 3), "RGB frames"),),
+    iterative=True,
+)
+
+LIFT = StepSpec(
+    "lift", "iter_{k}/lift",
+    "Geometry of selected frames aligned to the world, and the scene cloud after iteration k.",
+    arrays=(
+        ArraySpec("view_index", "int32", ("S",), ("S",), "frame index (into the clip) of each view"),
+        ArraySpec("c2w", "float64", ("S", 4, 4), ("S", 4, 4), "estimated world pose of each view"),
+        ArraySpec("K", "float64", ("S", 3, 3), ("S", 3, 3), "estimated intrinsics of each view"),
+        ArraySpec("depth", "float32", ("S", "H", "W"), (1, "H", "W"), "aligned z-depth, 0 = invalid"),
+        ArraySpec("confidence", "float32", ("S", "H", "W"), (1, "H", "W"), "per-pixel confidence"),
+        *_cloud(),
+    ),
+    attrs=("scale", "n_new_points", "n_points"),
+    iterative=True,
+)
+
+FIT = StepSpec("fit", "gaussians", "3D Gaussian Splatting scene (not built yet).")
+
+EXPORT = StepSpec(
+    "export", "exports",
+    "User-facing files, stored beside the group's zarr.json; attrs list them with checksums.",
+    attrs=("files",),
+)
+
+STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, EXPORT)}
+
+
+def scene_group(scene_id: str) -> str:
+    return f"scenes/{scene_id}"
+
+
+def cloud_step(k: int) -> tuple[StepSpec, int | None]:
+    """Which step holds the scene cloud after iteration ``k``."""
+    return (GEOMETRY, None) if k == 0 else (LIFT, k)
+
+
+def dependencies(step: str, k: int | None, iterations: int) -> list[tuple[StepSpec, int | None]]:
+    """Upstream steps whose outputs a step reads (their keys enter its cache key)."""
+    if step == "ingest":
+        return []
+    if step == "geometry":
+        return [(INGEST, None)]
+    if step == "plan":
+        deps = [cloud_step(k - 1)]
+        return deps + ([(PLAN, k - 1)] if k and k > 1 else [(GEOMETRY, None)])
+    if step == "synthesize":
+        return [(INGEST, None), (PLAN, k), cloud_step(k - 1)]
+    if step == "lift":
+        return [(INGEST, None), (GEOMETRY, None), (PLAN, k), (SYNTHESIZE, k), cloud_step(k - 1)]
+    if step in ("fit", "export"):
+        deps: list[tuple[StepSpec, int | None]] = [(INGEST, None), (GEOMETRY, None)]
+        for i in range(1, iterations + 1):
+            deps += [(PLAN, i), (SYNTHESIZE, i), (LIFT, i)]
+        return deps
+    raise KeyError(f"unknown step {step!r}")

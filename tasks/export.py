@@ -1,0 +1,116 @@
+"""Export: the user-facing files of a scene, stored in its ``exports/`` directory.
+
+* ``cloud.ply``          the fused cloud (binary PLY: x y z, RGB, confidence), world frame;
+* ``video.mp4``          every synthesized clip, in iteration order (H.264, ``synthesis.fps``);
+* ``trajectory.json``    per frame: iteration, index, OpenCV camera-to-world pose, intrinsics;
+* ``trajectory.parquet`` the same rows with the ``schemas.tables.TRAJECTORIES`` schema.
+
+Outputs of the simulation backend say so: a PLY header comment, a label burnt into the video, a
+``backend``/``label`` field in the JSON and a ``backend`` column in the table.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.pointcloud import ply_bytes
+from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import EXPORT, PLAN, SYNTHESIZE
+from navcrafter.schemas.tables import to_table
+from navcrafter.tasks.common import StepRef, load_cloud, open_store, run_step
+
+
+
+def encode_mp4(frames: np.ndarray, fps: int) -> bytes:
+    """H.264 MP4 (yuv420p) of ``[T, H, W, 3]`` uint8 frames, via the ffmpeg of imageio-ffmpeg."""
+    import imageio_ffmpeg
+
+    T, H, W, _ = frames.shape
+    fd, path = tempfile.mkstemp(suffix=".mp4")
+    os.close(fd)
+    try:
+        writer = imageio_ffmpeg.write_frames(path, (W, H), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                             quality=8, macro_block_size=1, ffmpeg_log_level="error",
+                                             output_params=["-threads", "1", "-fflags", "+bitexact",
+                                                            "-map_metadata", "-1"])
+        writer.send(None)
+        for f in frames:
+            writer.send(np.ascontiguousarray(f))
+        writer.close()
+        with open(path, "rb") as fh:
+            return fh.read()
+    finally:
+        os.unlink(path)
+
+
+def label_frames(frames: np.ndarray, text: str = "SIMULATION") -> np.ndarray:
+    """Burn a small label into the top-left corner of every frame."""
+    H = frames.shape[1]
+    font = ImageFont.load_default(size=max(8, H // 18))
+    out = np.empty_like(frames)
+    for i, f in enumerate(frames):
+        im = Image.fromarray(f)
+        draw = ImageDraw.Draw(im)
+        box = draw.textbbox((2, 1), text, font=font)
+        draw.rectangle(box, fill=(0, 0, 0))
+        draw.text((2, 1), text, fill=(255, 220, 0), font=font)
+        out[i] = np.asarray(im)
+    return out
+
+
+def trajectory_rows(scene, scene_id: str, iterations: int, backend: str, width: int, height: int) -> list[dict]:
+    rows = []
+    for k in range(1, iterations + 1):
+        plan = scene.read_all(PLAN, k)
+        K = Intrinsics.from_matrix(plan["K"], width, height)
+        for i, c2w in enumerate(plan["trajectory"]):
+            rows.append({"scene_id": scene_id, "iteration": k, "frame": i, "c2w": c2w,
+                         "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": width, "height": height,
+                         "backend": backend})
+    return rows
+
+
+def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
+    N = config.iterations
+
+    def body(writer, seed: int, _) -> dict:
+        store = open_store(store_uri)
+        scene = store.scene(scene_id)
+        sim = config.backend == "simulation"
+        cloud = load_cloud(scene, N)
+        comments = [f"navcrafter scene {scene_id}", f"backend {config.backend}",
+                    "frame: world = input camera (OpenCV: x right, y down, z forward)"]
+        if sim:
+            comments.append(SIM_LABEL)
+        writer.write_file("cloud.ply", ply_bytes(cloud, comments))
+        H, W = config.synthesis.height, config.synthesis.width
+        rows = trajectory_rows(scene, scene_id, N, config.backend, W, H)
+        if N > 0:
+            frames = np.concatenate([scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)])
+            writer.write_file("video.mp4", encode_mp4(label_frames(frames) if sim else frames, config.synthesis.fps))
+        doc = {"scene_id": scene_id, "backend": config.backend,
+               "convention": "OpenCV camera-to-world (x right, y down, z forward); world = input camera",
+               "frames": [{"iteration": r["iteration"], "frame": r["frame"], "c2w": r["c2w"].tolist(),
+                           "intrinsics": {k: r[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}}
+                          for r in rows]}
+        if sim:
+            doc["label"] = SIM_LABEL
+        writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
+        table = to_table("trajectories", rows)
+        buf = io.BytesIO()
+        import pyarrow.parquet as pq
+
+        pq.write_table(table, buf)
+        writer.write_file("trajectory.parquet", buf.getvalue())
+        store.tables.write("trajectories", table, part=f"scene-{scene_id}")
+        return {"n_points": len(cloud), "num_frames": len(rows), "label": SIM_LABEL if sim else ""}
+
+    return run_step(store_uri, scene_id, EXPORT, None, config, run_id, body)

@@ -1,0 +1,142 @@
+"""Manifest rows, run summaries and status views (what users read about a run)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import PurePath
+from typing import Any
+
+import pyarrow as pa
+
+from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import EXPORT, GEOMETRY, LIFT, PLAN, SYNTHESIZE, StepSpec
+from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.schemas.tables import utcnow
+from navcrafter.tasks.common import open_store
+
+
+@dataclass
+class SceneResult:
+    """What a scene run reports back (small: no arrays)."""
+
+    scene_id: str
+    sources: list[str]
+    status: str  # done | failed
+    step: str | None = None
+    error: str | None = None
+    backend: str = ""
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, float] = field(default_factory=dict)
+    outputs: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def pipeline_steps(iterations: int) -> list[tuple[StepSpec, int | None]]:
+    steps: list[tuple[StepSpec, int | None]] = [(GEOMETRY, None)]
+    for k in range(1, iterations + 1):
+        steps += [(PLAN, k), (SYNTHESIZE, k), (LIFT, k)]
+    return steps + [(EXPORT, None)]
+
+
+def step_timings(scene: SceneStore, iterations: int) -> dict[str, float]:
+    """Execution seconds of every completed step of a scene, from the groups' attributes."""
+    out = {}
+    for spec, k in pipeline_steps(iterations):
+        st = scene.status(spec, k)
+        if st.complete:
+            out[st.path] = float(st.attrs.get("seconds", 0.0))
+    return out
+
+
+def last_step(scene: SceneStore, iterations: int) -> str | None:
+    done = None
+    for spec, k in pipeline_steps(iterations):
+        st = scene.status(spec, k)
+        if not st.complete:
+            return done
+        done = st.path
+    return done
+
+
+def write_manifest(store_uri: str, rows: list[dict[str, Any]]) -> None:
+    now = utcnow()
+    open_store(store_uri).tables.write("manifest", [{"updated_at": now, **r} for r in rows])
+
+
+def manifest_rows_for(result: SceneResult, run_id: str) -> list[dict[str, Any]]:
+    return [{"source": s, "scene_id": result.scene_id, "status": result.status, "step": result.step,
+             "error": result.error, "backend": result.backend, "run_id": run_id, "seconds": result.seconds,
+             "timings": result.timings, "metrics": result.metrics,
+             "n_points": int(result.metrics["n_points"]) if "n_points" in result.metrics else None,
+             "outputs": result.outputs} for s in result.sources]
+
+
+def read_manifest(store: Store) -> pa.Table:
+    return store.tables.latest("manifest", key=("source",), order="updated_at")
+
+
+# --------------------------------------------------------------------------------------------------
+# Summaries
+# --------------------------------------------------------------------------------------------------
+def _fmt(v: float | None, unit: str = "", digits: int = 3) -> str:
+    return "" if v is None else f"{v:.{digits}f}{unit}"
+
+
+SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "within 2 cm",
+                   "camera error", "seconds", "outputs / error")
+
+
+def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
+    """One row of display strings per result, in ``SUMMARY_COLUMNS`` order."""
+    rows = []
+    for r in results:
+        m = r.metrics
+        note = r.outputs if r.status == "done" else (r.error or "")
+        within = 100 * m["cloud_within_2cm"] if "cloud_within_2cm" in m else None
+        rows.append((PurePath(r.sources[0]).name, r.scene_id[:12] if r.scene_id else "-", r.status,
+                     str(int(m["n_points"])) if "n_points" in m else "", _fmt(m.get("cloud_median_dist_m"), " m", 4),
+                     _fmt(within, " %", 1), _fmt(m.get("camera_median_err_m"), " m", 4), f"{r.seconds:.1f}",
+                     note or ""))
+    return rows
+
+
+def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -> list[str]:
+    done = sum(r.status == "done" for r in results)
+    lines = []
+    if config.backend == "simulation":
+        lines.append(f"{SIM_LABEL}. Distances are measured against the true scene surfaces.")
+    lines.append(f"Run {run_id}: {done} of {len(results)} images done; backend '{config.backend}', "
+                 f"{config.iterations} iterations of {config.synthesis.num_frames} frames at "
+                 f"{config.synthesis.width}x{config.synthesis.height}.")
+    return lines
+
+
+def summary_markdown(run_id: str, config: RunConfig, results: list[SceneResult]) -> str:
+    header = summary_header(run_id, config, results)
+    lines = ["# navcrafter run summary", ""]
+    if config.backend == "simulation":
+        lines += [f"> **{header.pop(0)}**", ""]
+    lines += header + ["", "| " + " | ".join(SUMMARY_COLUMNS) + " |",
+                       "|---|---|---|---:|---:|---:|---:|---:|---|"]
+    for row in summary_rows(results):
+        cells = [c.replace("|", "/").replace("\n", " ") for c in row]
+        cells[1] = f"`{cells[1]}`"
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_summary(store_uri: str, run_id: str, config: RunConfig, results: list[SceneResult]) -> str:
+    store = open_store(store_uri)
+    md = summary_markdown(run_id, config, results)
+    doc = {"run_id": run_id, "backend": config.backend, "config": config.model_dump(mode="json"),
+           "scenes": [r.to_dict() for r in results]}
+    if config.backend == "simulation":
+        doc["label"] = SIM_LABEL
+    store.write_bytes(f"runs/{run_id}/summary.json", json.dumps(doc, indent=1, default=str).encode())
+    store.write_bytes(f"runs/{run_id}/summary.md", md.encode())
+    return md

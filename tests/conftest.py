@@ -1,0 +1,76 @@
+"""Shared fixtures. One Prefect test server per pytest session (it takes ~15 s to start)."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+import io  # noqa: E402
+import shutil  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import pytest  # noqa: E402
+
+from navcrafter.schemas.config import RunConfig  # noqa: E402
+
+TINY = RunConfig.load(preset="tiny")
+DEMO = ("room-0.png", "street-0.png", "tabletop-0.png")
+# file -> (what the error says, the fix it suggests)
+BAD = {"notes.txt": ("not an image", "remove it"), "empty.png": ("empty", "remove it"),
+       "truncated.png": ("corrupt or truncated", "re-export"),
+       "no-groundtruth.png": ("no simulation ground truth", "navcrafter demo-data")}
+
+
+@pytest.fixture(scope="session")
+def prefect_api_url() -> str:
+    """A real Prefect API (temporary SQLite server) for the whole session; its URL is also handed to
+    subprocesses so they do not start servers of their own."""
+    from prefect.settings import PREFECT_API_URL
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=120):
+        yield PREFECT_API_URL.value()
+
+
+@pytest.fixture(scope="session")
+def demo_photos(tmp_path_factory) -> Path:
+    """The three demo scenes (small photos to keep the suite fast)."""
+    from navcrafter.models.simulation.demo import write_demo_collection
+
+    folder = tmp_path_factory.mktemp("demo") / "photos"
+    write_demo_collection(folder, width=320, height=240, supersample=1)
+    return folder
+
+
+@pytest.fixture
+def tiny() -> RunConfig:
+    return RunConfig.load(preset="tiny")
+
+
+@pytest.fixture(scope="session")
+def collection(demo_photos, tmp_path_factory) -> Path:
+    """The demo photos plus one file of each kind of trouble."""
+    folder = tmp_path_factory.mktemp("collection")
+    shutil.copytree(demo_photos, folder, dirs_exist_ok=True)
+    (folder / "notes.txt").write_text("shopping list")
+    (folder / "empty.png").write_bytes(b"")
+    (folder / "truncated.png").write_bytes((demo_photos / "room-0.png").read_bytes()[:3000])
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    buf = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)).save(buf, format="PNG")
+    (folder / "no-groundtruth.png").write_bytes(buf.getvalue())  # a "real photo": valid, no ground truth
+    return folder
+
+
+@pytest.fixture(scope="session")
+def full_run(prefect_api_url, collection, tmp_path_factory):
+    from navcrafter.flows.explore import explore_collection
+
+    store = tmp_path_factory.mktemp("full") / "store"
+    run = explore_collection(str(collection), str(store), TINY)
+    return store, run

@@ -1,0 +1,41 @@
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from navcrafter.schemas.config import RunConfig
+
+
+def test_paper_defaults():
+    c = RunConfig()
+    assert c.iterations == 3 and c.plan.num_candidates == 3
+    assert (c.synthesis.num_frames, c.synthesis.height, c.synthesis.width) == (81, 256, 256)
+    assert (c.synthesis.steps, c.synthesis.guidance_scale, c.synthesis.lora_scale) == (40, 6.5, 0.7)
+    assert c.backend == "simulation" and c.fit.enabled is False
+
+
+def test_presets_files_and_overrides(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("iterations: 1\nlift:\n  voxel_size: 0.05\n")
+    c = RunConfig.load(f, preset="tiny", overrides={"synthesis.num_frames": 5})
+    assert c.iterations == 1 and c.lift.voxel_size == 0.05 and c.synthesis.num_frames == 5
+    assert c.synthesis.height == 64  # from the tiny preset
+    with pytest.raises(ValueError, match="unknown preset"):
+        RunConfig.load(preset="huge")
+    with pytest.raises(ValidationError):
+        RunConfig.load(overrides={"synthesis.num_frames": 1})
+    with pytest.raises(ValidationError):
+        RunConfig.load(overrides={"no_such_field": 1})
+    with pytest.raises(ValidationError, match="model_dir"):
+        RunConfig.load(overrides={"backend": "onnx"})
+
+
+def test_step_config_isolates_sections():
+    a = RunConfig()
+    b = RunConfig.load(overrides={"lift.voxel_size": 0.05})
+    assert a.step_config("plan") == b.step_config("plan")
+    assert a.step_config("lift") != b.step_config("lift")
+    assert a.config_hash() != b.config_hash()
+    assert RunConfig().config_hash() == a.config_hash()
+    with pytest.raises(KeyError):
+        a.step_config("nope")
