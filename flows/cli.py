@@ -111,16 +111,18 @@ def explore(
     flow_ = explore_collection.with_options(task_runner=ThreadPoolTaskRunner(max_workers=cfg.max_parallel_scenes))
     run = flow_(str(photos), store, cfg)
     results = run.scenes
-    from navcrafter.tasks.report import SUMMARY_COLUMNS, summary_header, summary_rows
+    from navcrafter.tasks.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
 
     table = Table(title="navcrafter run summary")
-    for col in SUMMARY_COLUMNS:
+    columns = (*SUMMARY_COLUMNS[:4], "median dist.", "≤2 cm", "camera err.", "sec", "error")
+    for col in columns:
         table.add_column(col, overflow="fold")
     for row in summary_rows(results):
-        table.add_row(*row)
+        table.add_row(*row[:-1], row[-1] if row[2] != "done" else "")
     console.print(table)
     for line in summary_header(run.run_id, cfg, results):
         console.print(line)
+    console.print(f"outputs: {store}/scenes/<scene id>/exports/ ({EXPORT_FILES})")
     failed = [r for r in results if r.status != "done"]
     console.print(f"summary: {store}/{run.summary}   status: navcrafter status {store}")
     if failed:

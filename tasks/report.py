@@ -89,6 +89,7 @@ def _fmt(v: float | None, unit: str = "", digits: int = 3) -> str:
 
 SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "within 2 cm",
                    "camera error", "seconds", "outputs / error")
+EXPORT_FILES = "cloud.ply, video.mp4, trajectory.json, trajectory.parquet"
 
 
 def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
