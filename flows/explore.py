@@ -58,8 +58,8 @@ def _step_run_name() -> str:
     return f"{task_run.task_name}{f'-{k}' if k is not None else ''}-{_short(p.get('scene_id', ''))}"
 
 
-def _ingest_run_name() -> str:
-    return f"ingest-{PurePath(task_run.parameters['source']).name}"
+def _source_run_name(prefix: str):
+    return lambda: f"{prefix}-{PurePath(task_run.parameters['source']).name}"
 
 
 def _scene_run_name() -> str:
@@ -69,8 +69,10 @@ def _scene_run_name() -> str:
 _STEP = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _transient,
          "task_run_name": _step_run_name, "persist_result": False}
 
-ingest_task = task(ingest.ingest, name="ingest", task_run_name=_ingest_run_name, retries=2,
-                   retry_delay_seconds=[2, 10], retry_condition_fn=_transient, persist_result=False)
+_SOURCE = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _transient,
+           "persist_result": False}
+identify_task = task(ingest.identify, name="identify", task_run_name=_source_run_name("identify"), **_SOURCE)
+ingest_task = task(ingest.ingest, name="ingest", task_run_name=_source_run_name("ingest"), **_SOURCE)
 geometry_task = task(geometry.initial_geometry, name="geometry", **_STEP)
 plan_task = task(plan.plan, name="plan", **_STEP)
 synthesize_task = task(synthesize.synthesize, name="synthesize", **_STEP)
@@ -162,18 +164,32 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
     if not sources:
         raise ValueError(f"the collection {photos} holds no files")
     results: list[SceneResult] = []
+
+    def fail(scene_id: str | None, srcs: list[str], res) -> None:
+        error = res.error if isinstance(res, ingest.IngestResult) else f"ingest crashed: {res!r}"
+        failed = SceneResult(scene_id or "", srcs, "failed", step="ingest", error=error, backend=config.backend)
+        write_manifest(store, manifest_rows_for(failed, run_id))
+        results.append(failed)
+
+    # hash every file, then ingest each distinct image once (files with equal bytes share a scene)
     by_scene: dict[str, list[str]] = {}
-    for source, fut in [(s, ingest_task.submit(store, s, config, run_id)) for s in sources]:
+    for source, fut in [(s, identify_task.submit(s, config)) for s in sources]:
         fut.wait()
         res = fut.state.result(raise_on_failure=False)
         if isinstance(res, ingest.IngestResult) and res.ok:
             by_scene.setdefault(res.scene_id, []).append(source)
-            continue
-        error = res.error if isinstance(res, ingest.IngestResult) else f"ingest crashed: {res!r}"
-        failed = SceneResult(getattr(res, "scene_id", None) or "", [source], "failed", step="ingest",
-                             error=error, backend=config.backend)
-        write_manifest(store, manifest_rows_for(failed, run_id))
-        results.append(failed)
+        else:
+            fail(getattr(res, "scene_id", None), [source], res)
+    ingests = {sid: ingest_task.submit(store, ingest.primary_source(srcs, sid), config, run_id)
+               for sid, srcs in by_scene.items()}
+    for sid, fut in ingests.items():
+        fut.wait()
+        res = fut.state.result(raise_on_failure=False)
+        if isinstance(res, ingest.IngestResult) and res.ok:
+            write_manifest(store, manifest_rows_for(
+                SceneResult(sid, by_scene[sid], "pending", step="ingest", backend=config.backend), run_id))
+        else:
+            fail(sid, by_scene.pop(sid), res)
     futures = {sid: scene_task.submit(store, sid, config, run_id, srcs) for sid, srcs in by_scene.items()}
     for sid, fut in futures.items():
         fut.wait()

@@ -15,9 +15,12 @@ just before committing that group, e.g. ``iter_1/lift``.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import signal
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -104,6 +107,27 @@ class Store:
 
     def local_path(self, rel: str) -> Path | None:
         return Path(self.path(rel)) if self.local else None
+
+    @contextlib.contextmanager
+    def scene_lock(self, scene_id: str) -> Iterator[None]:
+        """Exclusive lock on one scene while a step checks and writes it.
+
+        Local stores use ``flock`` on ``locks/<scene_id>.lock``: it works across threads and
+        processes on one machine and is released by the kernel when a process dies (even by
+        SIGKILL), so a crashed run never leaves a stale lock. Object stores have no such primitive;
+        there the lock is a no-op (locking across machines is part of distributed operation).
+        """
+        if not self.local:
+            yield
+            return
+        path = Path(self.root) / "locks" / f"{scene_id}.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a+b") as fh:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
 class SceneStore:

@@ -86,8 +86,16 @@ def run_step(store_uri: str, scene_id: str, step: StepSpec, k: int | None, confi
 
     ``prepare()`` (optional) runs before anything is written; its result is passed to ``body``,
     which writes arrays through the writer and returns extra attributes for the commit.
+    Runs under the scene's lock, so two runs over one store never write a scene at once: the
+    second waits, then finds the step complete and skips it.
     """
     store = open_store(store_uri)
+    with store.scene_lock(scene_id):
+        return _run_step_locked(store, scene_id, step, k, config, run_id, body, prepare, key_extra)
+
+
+def _run_step_locked(store: Store, scene_id: str, step: StepSpec, k: int | None, config: RunConfig,
+                     run_id: str, body, prepare, key_extra) -> StepRef:
     scene = store.scene(scene_id)
     path = step.group_path(k)
     key = step_key(scene, step, k, config, key_extra)

@@ -191,20 +191,27 @@ def make_work_image(image: np.ndarray, height: int, width: int) -> tuple[np.ndar
 # --------------------------------------------------------------------------------------------------
 # Simulation ground truth of demo images
 # --------------------------------------------------------------------------------------------------
-def find_simulation_truth(source: str, sha256: str, loaded: LoadedImage,
-                          crop_box: tuple[float, float, int, int], work_size: tuple[int, int]) -> dict | None:
-    """The ground-truth record of a demo photo (``<dir>/.groundtruth/<stem>/scene.json``), if any,
-    with the true intrinsics of the working image; ``None`` for other images."""
+def groundtruth_record(source: str, sha256: str) -> dict | None:
+    """The ground-truth record beside a demo photo (``<dir>/.groundtruth/<stem>/scene.json``) if it
+    exists and was written for exactly these image bytes; ``None`` otherwise."""
     p = Path(source)
-    if not p.exists():
-        return None
     sidecar = p.parent / GROUNDTRUTH_DIR / p.stem / "scene.json"
     if not sidecar.is_file():
         return None
     record = json.loads(sidecar.read_text())
-    photo = record.get("photo", {})
-    if photo.get("sha256") != sha256:
+    if record.get("photo", {}).get("sha256") != sha256:
         return None  # the photo was changed since the ground truth was written
+    record["groundtruth"] = str(sidecar.parent)
+    return record
+
+
+def find_simulation_truth(source: str, sha256: str, loaded: LoadedImage,
+                          crop_box: tuple[float, float, int, int], work_size: tuple[int, int]) -> dict | None:
+    """The simulation truth of a demo photo, with the true intrinsics of the working image."""
+    record = groundtruth_record(source, sha256)
+    if record is None:
+        return None
+    photo = record["photo"]
     if loaded.exif_orientation != 1:
         raise IngestError(f"{source}: a demo photo with an EXIF rotation has no valid ground truth")
     K = Intrinsics.from_dict(photo["intrinsics"])
@@ -212,12 +219,29 @@ def find_simulation_truth(source: str, sha256: str, loaded: LoadedImage,
     K = K.resize(W0, H0).crop(crop_box[0], crop_box[1], crop_box[2], crop_box[3])
     K = K.resize(work_size[0], work_size[1])
     return {"scene": record["scene"], "photo_c2w": photo["c2w"], "work_intrinsics": K.to_dict(),
-            "groundtruth": str(sidecar.parent)}
+            "groundtruth": record["groundtruth"]}
 
 
 # --------------------------------------------------------------------------------------------------
-# The task
+# The tasks
 # --------------------------------------------------------------------------------------------------
+def identify(source: str, config: RunConfig) -> IngestResult:
+    """Read and hash one file, writing nothing: its scene id, or why it cannot be used.
+
+    Hashing first lets a collection ingest each distinct image once, however many files hold it.
+    """
+    try:
+        data = read_source(source, config.ingest)
+    except IngestError as exc:
+        return IngestResult(source, None, False, str(exc))
+    return IngestResult(source, hashlib.sha256(data).hexdigest(), True)
+
+
+def primary_source(sources: list[str], scene_id: str) -> str:
+    """Of several files with the same bytes, the one to ingest: one with ground truth, if any."""
+    return next((s for s in sources if groundtruth_record(s, scene_id) is not None), sources[0])
+
+
 def ingest(store_uri: str, source: str, config: RunConfig, run_id: str) -> IngestResult:
     """Validate ``source`` and write the scene's ``input`` group. Never raises for a bad image:
     the failure is returned (and recorded in the manifest by the flow)."""

@@ -55,6 +55,8 @@ def collection(demo_photos, tmp_path_factory) -> Path:
     """The demo photos plus one file of each kind of trouble."""
     folder = tmp_path_factory.mktemp("collection")
     shutil.copytree(demo_photos, folder, dirs_exist_ok=True)
+    # the same bytes as room-0.png under a name that sorts first and has no ground truth beside it
+    (folder / "a-copy-of-room.png").write_bytes((demo_photos / "room-0.png").read_bytes())
     (folder / "notes.txt").write_text("shopping list")
     (folder / "empty.png").write_bytes(b"")
     (folder / "truncated.png").write_bytes((demo_photos / "room-0.png").read_bytes()[:3000])

@@ -35,8 +35,10 @@ def completed_counts(store: Path) -> Counter:
 
 def test_collection_end_to_end(full_run):
     store, run = full_run
-    by_name = {Path(r.sources[0]).name: r for r in run.scenes}
-    assert set(by_name) == set(DEMO) | set(BAD)
+    by_name = {Path(src).name: r for r in run.scenes for src in r.sources}
+    assert set(by_name) == set(DEMO) | set(BAD) | {"a-copy-of-room.png"}
+    assert by_name["a-copy-of-room.png"] is by_name["room-0.png"]  # one scene for equal bytes
+    assert len(run.scenes) == len(DEMO) + len(BAD)
     for name in DEMO:
         r = by_name[name]
         assert r.status == "done", r.error
@@ -52,7 +54,9 @@ def test_collection_end_to_end(full_run):
     assert {n: by_name[n].step for n in BAD} == {"notes.txt": "ingest", "empty.png": "ingest",
                                                  "truncated.png": "ingest", "no-groundtruth.png": "iter_0/geometry"}
     manifest = {Path(r["source"]).name: r for r in read_manifest(Store(str(store))).to_pylist()}
-    assert {k: v["status"] for k, v in manifest.items()} == {**{n: "done" for n in DEMO}, **{n: "failed" for n in BAD}}
+    assert {k: v["status"] for k, v in manifest.items()} == {
+        **{n: "done" for n in DEMO}, **{n: "failed" for n in BAD}, "a-copy-of-room.png": "done"}
+    assert manifest["a-copy-of-room.png"]["scene_id"] == manifest["room-0.png"]["scene_id"]
     assert all(v["backend"] == "simulation" for v in manifest.values())
     assert all(v["error"] == by_name[k].error for k, v in manifest.items() if k in BAD)
     assert (store / run.summary).is_file() and "SIMULATION MODE" in (store / run.summary).read_text()
@@ -179,4 +183,15 @@ def test_sigkill_of_the_whole_process_group_then_resume(prefect_api_url, demo_ph
         if complete:
             assert after[path] == (True, exec_id), path
     assert all(c == 1 for c in completed_counts(store).values())
+    _assert_same_outputs(full_run[0], store)
+
+
+def test_concurrent_runs_over_one_store_do_each_step_once(prefect_api_url, demo_photos, full_run, tmp_path):
+    store = tmp_path / "store"
+    args = ["explore", str(demo_photos), "--store", str(store), "--preset", "tiny", "--parallel", "2"]
+    procs = [_run_cli(args, {}, prefect_api_url) for _ in range(2)]
+    outs = [p.communicate(timeout=600)[0].decode() for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [o[-2000:] for o in outs]
+    counts = completed_counts(store)
+    assert len(counts) == 3 * (1 + len(pipeline_steps(TINY.iterations))) and set(counts.values()) == {1}
     _assert_same_outputs(full_run[0], store)
