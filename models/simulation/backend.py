@@ -113,11 +113,14 @@ def _require_hint(hint_c2w: np.ndarray | None, n: int) -> np.ndarray:
     return hint
 
 
-class SimulationSynthesizer:
+class _SimulationRole:
     backend = BACKEND
 
     def __init__(self, truth: SimulationTruth, config: SimulationConfig) -> None:
         self.truth, self.config = truth, config
+
+
+class SimulationSynthesizer(_SimulationRole):
 
     def synthesize(self, request: SynthesisRequest) -> np.ndarray:
         H, W = request.image.shape[:2]
@@ -129,11 +132,7 @@ class SimulationSynthesizer:
         return frames
 
 
-class SimulationGeometry:
-    backend = BACKEND
-
-    def __init__(self, truth: SimulationTruth, config: SimulationConfig) -> None:
-        self.truth, self.config = truth, config
+class SimulationGeometry(_SimulationRole):
 
     def predict(self, frames: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
                 hint_intrinsics: Intrinsics | None = None) -> GeometryPrediction:
@@ -188,11 +187,7 @@ def _discontinuity(depth: np.ndarray, hit: np.ndarray, rel: float = 0.05) -> np.
     return edge & hit
 
 
-class SimulationMonoDepth:
-    backend = BACKEND
-
-    def __init__(self, truth: SimulationTruth, config: SimulationConfig) -> None:
-        self.truth, self.config = truth, config
+class SimulationMonoDepth(_SimulationRole):
 
     def predict(self, image: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
                 hint_intrinsics: Intrinsics | None = None) -> MonoDepthPrediction:
