@@ -70,7 +70,7 @@ def explore(
     preset: Annotated[str, typer.Option(help="Config preset: 'paper' (defaults of the paper) or 'tiny'.")] =
         "paper",
     config: Annotated[Optional[Path], typer.Option(help="YAML/JSON config file applied over the preset.")] = None,
-    set_: Annotated[list[str], typer.Option("--set", help="Override, e.g. --set synthesis.num_frames=25.")] = [],
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="Override, e.g. --set lift.max_views=8.")] = None,
     backend: Annotated[Optional[str], typer.Option(help="'simulation' or 'onnx'.")] = None,
     models: Annotated[Optional[Path], typer.Option(help="Directory of exported ONNX models.")] = None,
     parallel: Annotated[Optional[int], typer.Option(min=1, help="Scenes processed at once.")] = None,
@@ -78,11 +78,10 @@ def explore(
     """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
     from pydantic import ValidationError
 
-    from navcrafter.models.backends import ONNX_NOT_BUILT
     from navcrafter.models.simulation import LABEL
     from navcrafter.schemas.config import RunConfig
 
-    overrides = _parse_sets(set_)
+    overrides = _parse_sets(set_ or [])
     if backend is not None:
         overrides["backend"] = backend
     if models is not None:
@@ -94,9 +93,6 @@ def explore(
     except (ValidationError, ValueError, FileNotFoundError) as exc:
         err.print(f"[red]invalid configuration:[/red] {exc}")
         raise typer.Exit(EXIT_USAGE) from None
-    if cfg.backend == "onnx":
-        err.print(f"[red]{ONNX_NOT_BUILT}[/red]")
-        raise typer.Exit(EXIT_USAGE)
     if not photos.exists():
         err.print(f"[red]{photos} does not exist[/red]; make a demo collection with "
                   f"`navcrafter demo-data {photos}`")
@@ -106,7 +102,13 @@ def explore(
     _prefect_env()
     from prefect.task_runners import ThreadPoolTaskRunner
 
-    from navcrafter.flows.explore import explore_collection
+    from navcrafter.flows.explore import explore_collection, preflight
+
+    problems = preflight(cfg)
+    if problems:
+        for p in problems:
+            err.print(f"[red]{p}[/red]")
+        raise typer.Exit(EXIT_USAGE)
 
     flow_ = explore_collection.with_options(task_runner=ThreadPoolTaskRunner(max_workers=cfg.max_parallel_scenes))
     run = flow_(str(photos), store, cfg)

@@ -19,8 +19,9 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
+from navcrafter.models.backends import ONNX_NOT_BUILT
 from navcrafter.schemas.config import RunConfig
-from navcrafter.tasks import evaluate, export, geometry, ingest, lift, plan, synthesize
+from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, synthesize
 from navcrafter.tasks.common import StepError, open_store
 from navcrafter.tasks.report import (
     SceneResult,
@@ -66,24 +67,30 @@ def _scene_run_name() -> str:
     return f"scene-{_short(flow_run.parameters['scene_id'])}"
 
 
-_STEP = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _transient,
-         "task_run_name": _step_run_name, "persist_result": False}
-
 _SOURCE = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _transient,
            "persist_result": False}
+_STEP = {**_SOURCE, "task_run_name": _step_run_name}
 identify_task = task(ingest.identify, name="identify", task_run_name=_source_run_name("identify"), **_SOURCE)
 ingest_task = task(ingest.ingest, name="ingest", task_run_name=_source_run_name("ingest"), **_SOURCE)
 geometry_task = task(geometry.initial_geometry, name="geometry", **_STEP)
 plan_task = task(plan.plan, name="plan", **_STEP)
 synthesize_task = task(synthesize.synthesize, name="synthesize", **_STEP)
 lift_task = task(lift.lift, name="lift", **_STEP)
+fit_task = task(fit.fit, name="fit", **_STEP)
 export_task = task(export.export, name="export", **_STEP)
 evaluate_task = task(evaluate.evaluate_scene, name="evaluate", **_STEP)
 
 
-def fit_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> None:
-    raise NotImplementedError("3D Gaussian Splatting fitting (fit.enabled) is not built yet; it is "
-                              "tracked as its own issue. Run with fit.enabled=false.")
+def preflight(config: RunConfig) -> list[str]:
+    """What the configuration asks for that is not built yet (checked before any work starts)."""
+    problems = []
+    if config.backend == "onnx":
+        problems.append(ONNX_NOT_BUILT)
+    if config.plan.strategy == "collision_aware":
+        problems.append(plan.COLLISION_AWARE_NOT_BUILT)
+    if config.fit.enabled:
+        problems.append(fit.NOT_BUILT)
+    return problems
 
 
 @dataclass
@@ -117,7 +124,7 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
             synthesize_task(store, scene_id, k, config, run_id)
             lift_task(store, scene_id, k, config, run_id)
         if config.fit.enabled:
-            fit_scene(store, scene_id, config, run_id)
+            fit_task(store, scene_id, config, run_id)
         export_task(store, scene_id, config, run_id)
         metrics = evaluate_task(store, scene_id, config, run_id)
     except Exception as exc:  # recorded, then raised so that the flow run shows as failed
@@ -159,6 +166,9 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
     The thread pool size is set by the caller (``with_options``); the CLI uses
     ``config.max_parallel_scenes``.
     """
+    problems = preflight(config)
+    if problems:
+        raise NotImplementedError(" ".join(problems))
     run_id = str(flow_run.id or uuid.uuid4().hex)
     sources = ingest.list_collection(photos)
     if not sources:

@@ -102,12 +102,6 @@ class Store:
     def read_bytes(self, rel: str) -> bytes:
         return self.fs.cat_file(self.path(rel))
 
-    def exists(self, rel: str) -> bool:
-        return self.fs.exists(self.path(rel))
-
-    def local_path(self, rel: str) -> Path | None:
-        return Path(self.path(rel)) if self.local else None
-
     @contextlib.contextmanager
     def scene_lock(self, scene_id: str) -> Iterator[None]:
         """Exclusive lock on one scene while a step checks and writes it.
@@ -137,9 +131,9 @@ class SceneStore:
         self.store, self.scene_id = store, scene_id
         self.prefix = scene_group(scene_id)
 
-    def _open(self, path: str, mode: str = "r") -> zarr.Group | None:
+    def _open(self, path: str) -> zarr.Group | None:
         try:
-            return zarr.open_group(store=self.store._zstore, path=f"{self.prefix}/{path}", mode=mode)
+            return zarr.open_group(store=self.store._zstore, path=f"{self.prefix}/{path}", mode="r")
         except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
             return None
 
@@ -169,8 +163,7 @@ class SceneStore:
         g = self._open(step.group_path(k))
         return {a.name: g[a.name][...] for a in step.arrays if a.name in g}
 
-    def begin(self, step: StepSpec, k: int | None, key: str, backend: str,
-              exec_id: str | None = None) -> StepWriter:
+    def begin(self, step: StepSpec, k: int | None, key: str, backend: str) -> StepWriter:
         path = step.group_path(k)
         full = f"{self.prefix}/{path}"
         root = self.store.group
@@ -179,20 +172,15 @@ class SceneStore:
         # a file-only step (export) may have left files without a zarr group
         if self.store.fs.exists(self.store.path(full)):
             self.store.fs.rm(self.store.path(full), recursive=True)
-        root.require_group(self.prefix).attrs.update({"scene_id": self.scene_id})
+        scene_group_ = root.require_group(self.prefix)
+        if scene_group_.attrs.get("scene_id") != self.scene_id:
+            scene_group_.attrs.update({"scene_id": self.scene_id})
         g = root.create_group(full)
-        exec_id = exec_id or uuid.uuid4().hex
+        exec_id = uuid.uuid4().hex
         g.attrs.update({"step": step.name, "complete": False, "key": key, "exec_id": exec_id,
                         "backend": backend, "started_at": utcnow().isoformat(),
                         "schema_version": SCHEMA_VERSION})
         return StepWriter(self, step, k, g, exec_id)
-
-    def set_attrs(self, **attrs: Any) -> None:
-        self.store.group.require_group(self.prefix).attrs.update(attrs)
-
-    def attrs(self) -> dict[str, Any]:
-        g = self._open("")
-        return {} if g is None else g.attrs.asdict()
 
     def file_rel(self, step: StepSpec, k: int | None, name: str) -> str:
         return f"{self.prefix}/{step.group_path(k)}/{name}"

@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 POSE = pa.fixed_shape_tensor(pa.float64(), (4, 4))
@@ -78,7 +77,7 @@ SCHEMAS: dict[str, pa.Schema] = {"manifest": MANIFEST, "steps": STEPS,
 
 
 def utcnow() -> dt.datetime:
-    return dt.datetime.now(dt.timezone.utc)
+    return dt.datetime.now(dt.UTC)
 
 
 def to_table(name: str, rows: Sequence[dict[str, Any]]) -> pa.Table:
@@ -181,11 +180,3 @@ def atomic_write(fs, path: str, data: bytes, local: bool) -> None:
         fs.mv(tmp, path)
     else:  # one PUT is atomic on object stores
         fs.pipe_file(path, data)
-
-
-def column(table: pa.Table, name: str) -> list:
-    return table.column(name).to_pylist()
-
-
-def filter_eq(table: pa.Table, name: str, value: Any) -> pa.Table:
-    return table.filter(pc.equal(table.column(name), value))

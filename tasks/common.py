@@ -19,7 +19,7 @@ from navcrafter.models.pointcloud import Cloud
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig, stable_hash
 from navcrafter.schemas.layout import GEOMETRY, INGEST, SCHEMA_VERSION, StepSpec, cloud_step, dependencies
-from navcrafter.schemas.store import SceneStore, Store, StepWriter
+from navcrafter.schemas.store import SceneStore, StepWriter, Store
 from navcrafter.schemas.tables import utcnow
 
 _log = logging.getLogger("navcrafter")
@@ -66,12 +66,11 @@ def open_store(uri: str) -> Store:
         return _stores[uri]
 
 
-def step_key(scene: SceneStore, step: StepSpec, k: int | None, config: RunConfig,
-             extra: Any = None) -> str:
+def step_key(scene: SceneStore, step: StepSpec, k: int | None, config: RunConfig) -> str:
     """Cache key: the step, its config section, and the keys of the upstream outputs it reads."""
     deps = [scene.require_complete(s, kk).key for s, kk in dependencies(step.name, k, config.iterations)]
     return stable_hash({"step": step.name, "k": k, "scene": scene.scene_id, "schema": SCHEMA_VERSION,
-                        "config": config.step_config(step.name), "deps": deps, "extra": extra}, length=32)
+                        "config": config.step_config(step.name), "deps": deps}, length=32)
 
 
 def seed_from_key(key: str) -> int:
@@ -81,7 +80,7 @@ def seed_from_key(key: str) -> int:
 
 def run_step(store_uri: str, scene_id: str, step: StepSpec, k: int | None, config: RunConfig,
              run_id: str, body: Callable[[StepWriter, int, Any], dict[str, Any]],
-             prepare: Callable[[], Any] | None = None, key_extra: Any = None) -> StepRef:
+             prepare: Callable[[], Any] | None = None) -> StepRef:
     """Run ``body`` unless the step's group is already complete with the same key.
 
     ``prepare()`` (optional) runs before anything is written; its result is passed to ``body``,
@@ -91,14 +90,14 @@ def run_step(store_uri: str, scene_id: str, step: StepSpec, k: int | None, confi
     """
     store = open_store(store_uri)
     with store.scene_lock(scene_id):
-        return _run_step_locked(store, scene_id, step, k, config, run_id, body, prepare, key_extra)
+        return _run_step_locked(store, scene_id, step, k, config, run_id, body, prepare)
 
 
 def _run_step_locked(store: Store, scene_id: str, step: StepSpec, k: int | None, config: RunConfig,
-                     run_id: str, body, prepare, key_extra) -> StepRef:
+                     run_id: str, body, prepare) -> StepRef:
     scene = store.scene(scene_id)
     path = step.group_path(k)
-    key = step_key(scene, step, k, config, key_extra)
+    key = step_key(scene, step, k, config)
     status = scene.status(step, k)
     if status.complete and status.key == key:
         _record(store, scene_id, path, "skipped", key, status.attrs.get("exec_id"), run_id, config.backend)
@@ -133,6 +132,9 @@ def _record(store: Store, scene_id: str, path: str, event: str, key: str | None,
                                   "exec_id": exec_id, "run_id": run_id, "backend": backend,
                                   "at": utcnow(), "seconds": seconds, "error": error}])
 
+
+# The steps table is an event log for people and tests: the group's completion marker is the truth
+# (a process killed between commit and this write leaves a complete step without its event row).
 
 # --------------------------------------------------------------------------------------------------
 # Shared readers

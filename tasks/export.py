@@ -28,7 +28,6 @@ from navcrafter.schemas.tables import to_table
 from navcrafter.tasks.common import StepRef, load_cloud, open_store, run_step
 
 
-
 def encode_mp4(frames: np.ndarray, fps: int) -> bytes:
     """H.264 MP4 (yuv420p) of ``[T, H, W, 3]`` uint8 frames, via the ffmpeg of imageio-ffmpeg."""
     import imageio_ffmpeg

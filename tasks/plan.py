@@ -26,6 +26,8 @@ from navcrafter.schemas.layout import GEOMETRY, PLAN
 from navcrafter.tasks.common import StepRef, open_store, run_step
 
 WORLD_UP = np.array([0.0, -1.0, 0.0])  # the input camera's "up" (OpenCV: y points down)
+COLLISION_AWARE_NOT_BUILT = ("plan.strategy 'collision_aware' (the paper's Algorithm 1) is not built yet; "
+                             "it is tracked as its own issue. Use plan.strategy 'orbit'.")
 
 
 def scene_centre(depth: np.ndarray, confidence: np.ndarray, quantile: float) -> np.ndarray:
@@ -59,9 +61,7 @@ def orbit_target(k: int, centre: np.ndarray, cfg: PlanConfig) -> np.ndarray:
 def plan(store_uri: str, scene_id: str, k: int, config: RunConfig, run_id: str) -> StepRef:
     cfg = config.plan
     if cfg.strategy == "collision_aware":
-        raise NotImplementedError(
-            "plan.strategy 'collision_aware' (the paper's Algorithm 1) is not built yet; "
-            "use plan.strategy 'orbit'")
+        raise NotImplementedError(COLLISION_AWARE_NOT_BUILT)
 
     def body(writer, seed: int, _) -> dict:
         scene = open_store(store_uri).scene(scene_id)

@@ -11,7 +11,6 @@ import shutil  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 import pytest  # noqa: E402
 
 from navcrafter.schemas.config import RunConfig  # noqa: E402

@@ -18,14 +18,12 @@ from pathlib import Path
 import imageio_ffmpeg
 import numpy as np
 import pyarrow.parquet as pq
-import pytest
+from conftest import BAD, DEMO, TINY
 
 from navcrafter.models.pointcloud import read_ply
 from navcrafter.schemas.layout import EXPORT, STEPS
 from navcrafter.schemas.store import FAULT_ENV, Store
 from navcrafter.tasks.report import pipeline_steps, read_manifest
-
-from conftest import BAD, DEMO, TINY
 
 
 def completed_counts(store: Path) -> Counter:

@@ -137,4 +137,5 @@ def test_ingest_writes_input_and_true_working_intrinsics(tmp_path, demo_photos, 
     other = tmp_path / "copy.png"
     other.write_bytes((demo_photos / "room-0.png").read_bytes())
     res2 = ingest(str(tmp_path / "store2"), str(other), tiny, "r")
-    assert res2.ok and "simulation_truth" not in Store(str(tmp_path / "store2")).scene(res2.scene_id).status(INGEST).attrs
+    attrs = Store(str(tmp_path / "store2")).scene(res2.scene_id).status(INGEST).attrs
+    assert res2.ok and "simulation_truth" not in attrs

@@ -12,9 +12,15 @@ import pytest
 from navcrafter.models.cameras import Intrinsics, invert_pose, look_at, make_pose
 from navcrafter.models.simulation.backend import SimulationError, SimulationTruth, simulation_backend
 from navcrafter.models.simulation.render import render
-from navcrafter.models.simulation.scenes import KINDS, MIN_CAMERA_CLEARANCE, SimScene, generate_scene
+from navcrafter.models.simulation.scenes import (
+    KINDS,
+    MIN_CAMERA_CLEARANCE,
+    Light,
+    SceneObject,
+    SimScene,
+    generate_scene,
+)
 from navcrafter.models.simulation.textures import Material
-from navcrafter.models.simulation.scenes import Light, SceneObject
 from navcrafter.schemas.config import SimulationConfig
 
 

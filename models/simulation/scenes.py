@@ -94,10 +94,6 @@ class SimScene:
             return np.zeros(0)
         return rc.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy()
 
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        mesh = self.merged_mesh()
-        return np.asarray(mesh.get_min_bound()), np.asarray(mesh.get_max_bound())
-
 
 # --------------------------------------------------------------------------------------------------
 # Mesh helpers (ground-truth frame, z up)
