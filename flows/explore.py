@@ -23,10 +23,12 @@ from navcrafter.models.backends import ONNX_NOT_BUILT
 from navcrafter.schemas.config import RunConfig
 from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, synthesize
 from navcrafter.tasks.common import StepError, open_store
+from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import (
     SceneResult,
     last_step,
     manifest_rows_for,
+    plan_artifact_markdown,
     step_timings,
     summary_markdown,
     write_manifest,
@@ -72,13 +74,22 @@ _SOURCE = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _
 _STEP = {**_SOURCE, "task_run_name": _step_run_name}
 identify_task = task(ingest.identify, name="identify", task_run_name=_source_run_name("identify"), **_SOURCE)
 ingest_task = task(ingest.ingest, name="ingest", task_run_name=_source_run_name("ingest"), **_SOURCE)
-geometry_task = task(geometry.initial_geometry, name="geometry", **_STEP)
-plan_task = task(plan.plan, name="plan", **_STEP)
-synthesize_task = task(synthesize.synthesize, name="synthesize", **_STEP)
-lift_task = task(lift.lift, name="lift", **_STEP)
-fit_task = task(fit.fit, name="fit", **_STEP)
-export_task = task(export.export, name="export", **_STEP)
+STEP_TASKS = {  # Prefect tasks by step name (the order of steps is tasks.pipeline.scene_steps)
+    "geometry": task(geometry.initial_geometry, name="geometry", **_STEP),
+    "plan": task(plan.plan, name="plan", **_STEP),
+    "synthesize": task(synthesize.synthesize, name="synthesize", **_STEP),
+    "lift": task(lift.lift, name="lift", **_STEP),
+    "fit": task(fit.fit, name="fit", **_STEP),
+    "export": task(export.export, name="export", **_STEP),
+}
 evaluate_task = task(evaluate.evaluate_scene, name="evaluate", **_STEP)
+
+
+def publish_plan_artifact(store: str, scene_id: str, k: int) -> None:
+    markdown = plan_artifact_markdown(store, scene_id, k)
+    if markdown:
+        create_markdown_artifact(key=f"plan-{_short(scene_id)}-{k}", markdown=markdown,
+                                 description=f"planner state, scene {_short(scene_id)}, iteration {k}")
 
 
 def preflight(config: RunConfig) -> list[str]:
@@ -86,8 +97,6 @@ def preflight(config: RunConfig) -> list[str]:
     problems = []
     if config.backend == "onnx":
         problems.append(ONNX_NOT_BUILT)
-    if config.plan.strategy == "collision_aware":
-        problems.append(plan.COLLISION_AWARE_NOT_BUILT)
     if config.fit.enabled:
         problems.append(fit.NOT_BUILT)
     return problems
@@ -118,21 +127,18 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     metrics: dict[str, float] = {}
     failure: Exception | None = None
     try:
-        geometry_task(store, scene_id, config, run_id)
-        for k in range(1, config.iterations + 1):
-            plan_task(store, scene_id, k, config, run_id)
-            synthesize_task(store, scene_id, k, config, run_id)
-            lift_task(store, scene_id, k, config, run_id)
-        if config.fit.enabled:
-            fit_task(store, scene_id, config, run_id)
-        export_task(store, scene_id, config, run_id)
+        for step in scene_steps(config):
+            STEP_TASKS[step.spec.name](store_uri=store, scene_id=scene_id, config=config, run_id=run_id,
+                                       **step.kwargs())
+            if step.spec.name == "plan":
+                publish_plan_artifact(store, scene_id, step.k)
         metrics = evaluate_task(store, scene_id, config, run_id)
     except Exception as exc:  # recorded, then raised so that the flow run shows as failed
         failure = exc
     scene = open_store(store).scene(scene_id)
-    timings = step_timings(scene, config.iterations)
+    timings = step_timings(scene, config)
     result = SceneResult(scene_id, sources, "done" if failure is None else "failed",
-                         step=last_step(scene, config.iterations), backend=config.backend,
+                         step=last_step(scene, config), backend=config.backend,
                          seconds=sum(timings.values()), timings=timings, metrics=metrics)
     if failure is None:
         result.outputs = f"scenes/{scene_id}/exports"

@@ -44,24 +44,42 @@ class Cloud:
                    np.concatenate([c.confidence for c in clouds]))
 
 
+def voxel_index(points: np.ndarray, voxel: float) -> tuple[int, np.ndarray]:
+    """Number of occupied voxels and, per point, the index of its voxel (voxels in sorted order)."""
+    if voxel <= 0:
+        raise ValueError(f"voxel size must be positive, got {voxel}")
+    q = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + _OFFSET
+    if len(q) and (q.min() < 0 or q.max() >= (1 << _BITS)):
+        raise ValueError(f"cloud extent exceeds the voxel grid ({(1 << _BITS) * voxel:.0f} units per axis)")
+    key = (q[:, 0] << (2 * _BITS)) | (q[:, 1] << _BITS) | q[:, 2]
+    uniq, inv = np.unique(key, return_inverse=True)
+    return len(uniq), inv.reshape(-1)
+
+
+def thin_points(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point per occupied voxel: the mean of its points (float64)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    n, inv = voxel_index(points, voxel)
+    counts = np.bincount(inv, minlength=n)
+    return np.stack([np.bincount(inv, weights=points[:, i], minlength=n) for i in range(3)], 1) / counts[:, None]
+
+
 def voxel_fuse(cloud: Cloud, voxel: float) -> Cloud:
     """One point per occupied voxel: confidence-weighted mean position and colour, max confidence."""
     if voxel <= 0:
         raise ValueError(f"voxel size must be positive, got {voxel}")
     if len(cloud) == 0:
         return Cloud.empty()
-    q = np.floor(cloud.points.astype(np.float64) / voxel).astype(np.int64) + _OFFSET
-    if q.min() < 0 or q.max() >= (1 << _BITS):
-        raise ValueError(f"cloud extent exceeds the voxel grid ({(1 << _BITS) * voxel:.0f} units per axis)")
-    key = (q[:, 0] << (2 * _BITS)) | (q[:, 1] << _BITS) | q[:, 2]
-    uniq, inv = np.unique(key, return_inverse=True)
+    n, inv = voxel_index(cloud.points, voxel)
     w = np.maximum(cloud.confidence.astype(np.float64), 1e-6)
-    wsum = np.bincount(inv, weights=w, minlength=len(uniq))
-    pts = np.stack([np.bincount(inv, weights=w * cloud.points[:, i], minlength=len(uniq))
+    wsum = np.bincount(inv, weights=w, minlength=n)
+    pts = np.stack([np.bincount(inv, weights=w * cloud.points[:, i], minlength=n)
                     for i in range(3)], axis=1) / wsum[:, None]
-    cols = np.stack([np.bincount(inv, weights=w * cloud.colors[:, i], minlength=len(uniq))
+    cols = np.stack([np.bincount(inv, weights=w * cloud.colors[:, i], minlength=n)
                      for i in range(3)], axis=1) / wsum[:, None]
-    conf = np.zeros(len(uniq), dtype=np.float32)
+    conf = np.zeros(n, dtype=np.float32)
     np.maximum.at(conf, inv, cloud.confidence)
     return Cloud(pts.astype(np.float32), np.clip(np.rint(cols), 0, 255).astype(np.uint8), conf)
 

@@ -52,25 +52,53 @@ class SynthesisConfig(_Section):
 
 
 class PlanConfig(_Section):
-    """Camera trajectory planning.
+    """Camera trajectory planning (see ``navcrafter.models.planning``).
 
-    ``orbit`` is the simple planner of the foundation: each iteration orbits the scene centre by an
-    azimuth offset (alternating sides, growing). ``collision_aware`` is the paper's Algorithm 1.
+    * ``collision_aware``: the paper's Algorithm 1 (candidates in the search space, collision
+      detector, visibility score, spherical interpolation, collision optimisation).
+    * ``viewcrafter``: the baseline: same candidates and score, no collision handling, straight paths.
+    * ``orbit``: the foundation's simple orbit around the scene centre (no scoring, no obstacles).
+
+    The search space is relative to ``d0``, the distance from the input camera to the scene centre
+    ``o`` (the point on the input optical axis at the ``centre_depth_quantile`` of the input view's
+    depth), so steps scale with the scene; ``safe_radius`` is a physical size, in scene units.
     """
 
-    strategy: Literal["orbit", "collision_aware"] = "orbit"
+    strategy: Literal["collision_aware", "viewcrafter", "orbit"] = "collision_aware"
     num_candidates: int = Field(3, ge=1, description="K candidate poses per iteration (paper: 3).")
+    radius_range: tuple[float, float] = Field(
+        (0.15, 0.4), description="Candidate distance from the current camera, times d0.")
+    azimuth_range_deg: tuple[float, float] = Field(
+        (-90.0, 90.0), description="Candidate azimuth from the horizontal direction to o (positive: right).")
+    elevation_range_deg: tuple[float, float] = Field(
+        (-30.0, 30.0), description="Candidate elevation from the horizon (with the azimuth default: a "
+        "quarter sphere).")
+    safe_radius: float = Field(
+        0.25, gt=0, description="r_safe in scene units (metres for metric geometry): the camera's "
+        "safety margin from any surface.")
+    anchor_fraction: float = Field(
+        0.5, gt=0, le=1, description="m0 of the score F = (1-m) min(1, m/m0), m = seen fraction of the mask.")
+    smoothness: float = Field(1.0, ge=0, description="lambda of the collision optimisation's smoothness term.")
+    max_resample: int = Field(10, ge=0, description="Extra draws of K candidates while all collide (cheap: G only).")
+    centre_depth_quantile: float = Field(
+        0.5, gt=0, lt=1, description="Scene centre o = point at this depth quantile on the optical axis.")
     orbit_step_deg: float = Field(20.0, gt=0, le=90, description="Azimuth step of the orbit planner.")
     orbit_max_shift: float = Field(
-        1.0, gt=0, description="Cap on the camera displacement of one orbit step, in scene units: the "
-        "azimuth shrinks for far-away centres (the orbit planner does not see obstacles)."
-    )
+        1.0, gt=0, description="Cap on the camera displacement of one orbit step, in scene units.")
     orbit_radius_scale: float = Field(
-        0.85, gt=0, description="Target distance to the centre as a fraction of the initial one."
-    )
-    centre_depth_quantile: float = Field(
-        0.5, gt=0, lt=1, description="Scene centre o = point at this depth quantile on the optical axis."
-    )
+        0.85, gt=0, description="Orbit target distance to the centre as a fraction of the initial one.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> PlanConfig:
+        for name in ("radius_range", "azimuth_range_deg", "elevation_range_deg"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"plan.{name} must be (low, high), got ({lo}, {hi})")
+        if self.radius_range[0] <= 0:
+            raise ValueError("plan.radius_range must be positive")
+        if not -90 <= self.elevation_range_deg[0] <= self.elevation_range_deg[1] <= 90:
+            raise ValueError("plan.elevation_range_deg must lie within [-90, 90]")
+        return self
 
 
 class LiftConfig(_Section):
@@ -153,9 +181,12 @@ class RunConfig(BaseModel):
         parts: dict[str, dict[str, Any]] = {
             "ingest": {"ingest": self.ingest.model_dump(mode="json"),
                        "resolution": [self.synthesis.height, self.synthesis.width]},
-            "geometry": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},
+            "geometry": {**common, "simulation": sim,  # the first cloud is filtered and fused like lifts
+                         "lift": self.lift.model_dump(mode="json", include={"pixel_stride", "confidence_threshold",
+                                                                            "voxel_size", "max_depth"})},
             "plan": {**common, "plan": self.plan.model_dump(mode="json"),
-                     "num_frames": self.synthesis.num_frames},
+                     "frames": [self.synthesis.num_frames, self.synthesis.height, self.synthesis.width],
+                     "point_size": self.lift.voxel_size},
             "synthesize": {**common, "synthesis": self.synthesis.model_dump(mode="json"),
                            "simulation": sim},
             "lift": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},

@@ -127,17 +127,24 @@ GEOMETRY = StepSpec(
 
 PLAN = StepSpec(
     "plan", "iter_{k}/plan",
-    "Camera trajectory of iteration k, from the current pose to the next view.",
+    "Camera trajectory of iteration k, from the current pose to the next view, and the planner's state.",
     arrays=(
         ArraySpec("trajectory", "float64", ("T", 4, 4), ("T", 4, 4), "world c2w of every frame"),
         ArraySpec("K", "float64", (3, 3), (3, 3), "intrinsics of every frame"),
         ArraySpec("centre", "float64", (3,), (3,), "scene centre o the cameras look at"),
         ArraySpec("candidates", "float64", ("C", 4, 4), ("C", 4, 4), "candidate poses considered"),
-        ArraySpec("candidate_scores", "float64", ("C",), ("C",), "score of each candidate (higher is better)",
+        ArraySpec("candidate_scores", "float64", ("C",), ("C",), "score F of each candidate (higher is better)",
                   optional=True),
+        ArraySpec("candidate_collides", "bool", ("C",), ("C",), "collision detector G of each candidate",
+                  optional=True),
+        ArraySpec("candidate_masks", "bool", ("C", "H", "W"), (1, "H", "W"),
+                  "visibility mask of each candidate (cloud splatted into it)", optional=True),
+        ArraySpec("initial_trajectory", "float64", ("T", 4, 4), ("T", 4, 4),
+                  "trajectory before collision optimisation", optional=True),
     ),
     attrs=("strategy", "chosen"),
     iterative=True,
+    extra={"topdown.png": "file: top-down plot of cloud, candidates and trajectories"},
 )
 
 SYNTHESIZE = StepSpec(

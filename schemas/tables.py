@@ -9,6 +9,7 @@ Readers concatenate all files; ``latest`` de-duplicates by key; ``compact`` merg
 from __future__ import annotations
 
 import datetime as dt
+import fcntl
 import io
 import uuid
 from collections.abc import Iterable, Sequence
@@ -132,12 +133,21 @@ class Tables:
                       if p.endswith(".parquet") and not p.rsplit("/", 1)[-1].startswith("."))
 
     def read(self, name: str, files: Iterable[str] | None = None) -> pa.Table:
+        """All rows of a table. A file removed by a concurrent compaction while being read makes the
+        read start over: the merged file is always in place before its sources are removed."""
         schema = SCHEMAS[name]
-        parts = []
-        for p in (self.files(name) if files is None else files):
-            with self.fs.open(p, "rb") as fh:
-                parts.append(pq.read_table(fh, schema=schema))
-        return pa.concat_tables(parts) if parts else schema.empty_table()
+        for _ in range(5):
+            parts = []
+            try:
+                for p in (self.files(name) if files is None else files):
+                    with self.fs.open(p, "rb") as fh:
+                        parts.append(pq.read_table(fh, schema=schema))
+            except FileNotFoundError:
+                if files is not None:
+                    raise
+                continue
+            return pa.concat_tables(parts) if parts else schema.empty_table()
+        raise RuntimeError(f"table {name!r} kept changing while being read; try again")
 
     def latest(self, name: str, key: Sequence[str], order: str) -> pa.Table:
         """One row per ``key``: the one with the greatest ``order`` (later files win ties)."""
@@ -156,17 +166,25 @@ class Tables:
     def compact(self, name: str) -> int:
         """Merge all files of a table into one; returns how many files were merged.
 
-        Safe beside concurrent writers: only the files read are removed, after the merged file
-        (whose rows are a superset of theirs) is in place.
+        Safe beside concurrent writers and readers: only the files read are removed, after the merged
+        file (whose rows are a superset of theirs) is in place. Compactions exclude each other (a lock
+        file on local disks), so no row is ever merged twice; on object stores, which have no lock,
+        compaction is skipped (0 is returned) and readers simply read more files.
         """
-        files = self.files(name)
-        if len(files) < 2:
+        if not self.local:
             return 0
-        merged = self.read(name, files)
-        self.write(name, merged, part=f"{utcnow():%Y%m%dT%H%M%S%f}-compacted-{uuid.uuid4().hex[:8]}")
-        for p in files:
-            self.fs.rm(p)
-        return len(files)
+        lock_dir = f"{self.root}/.locks"
+        self.fs.makedirs(lock_dir, exist_ok=True)
+        with open(f"{lock_dir}/{name}.lock", "a+b") as lock:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+            files = self.files(name)
+            if len(files) < 2:
+                return 0
+            merged = self.read(name, files)
+            self.write(name, merged, part=f"{utcnow():%Y%m%dT%H%M%S%f}-compacted-{uuid.uuid4().hex[:8]}")
+            for p in files:
+                self.fs.rm(p)
+            return len(files)
 
 
 def atomic_write(fs, path: str, data: bytes, local: bool) -> None:

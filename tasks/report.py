@@ -11,10 +11,10 @@ import pyarrow as pa
 
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, GEOMETRY, LIFT, PLAN, SYNTHESIZE, StepSpec
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.pipeline import scene_steps
 
 
 @dataclass
@@ -36,30 +36,22 @@ class SceneResult:
         return asdict(self)
 
 
-def pipeline_steps(iterations: int) -> list[tuple[StepSpec, int | None]]:
-    steps: list[tuple[StepSpec, int | None]] = [(GEOMETRY, None)]
-    for k in range(1, iterations + 1):
-        steps += [(PLAN, k), (SYNTHESIZE, k), (LIFT, k)]
-    return steps + [(EXPORT, None)]
-
-
-def step_timings(scene: SceneStore, iterations: int) -> dict[str, float]:
+def step_timings(scene: SceneStore, config: RunConfig) -> dict[str, float]:
     """Execution seconds of every completed step of a scene, from the groups' attributes."""
     out = {}
-    for spec, k in pipeline_steps(iterations):
-        st = scene.status(spec, k)
+    for step in scene_steps(config):
+        st = scene.status(step.spec, step.k)
         if st.complete:
             out[st.path] = float(st.attrs.get("seconds", 0.0))
     return out
 
 
-def last_step(scene: SceneStore, iterations: int) -> str | None:
+def last_step(scene: SceneStore, config: RunConfig) -> str | None:
     done = None
-    for spec, k in pipeline_steps(iterations):
-        st = scene.status(spec, k)
-        if not st.complete:
+    for step in scene_steps(config):
+        if not scene.status(step.spec, step.k).complete:
             return done
-        done = st.path
+        done = step.path
     return done
 
 
@@ -141,3 +133,27 @@ def write_summary(store_uri: str, run_id: str, config: RunConfig, results: list[
     store.write_bytes(f"runs/{run_id}/summary.json", json.dumps(doc, indent=1, default=str).encode())
     store.write_bytes(f"runs/{run_id}/summary.md", md.encode())
     return md
+
+
+def plan_artifact_markdown(store_uri: str, scene_id: str, k: int) -> str | None:
+    """Dashboard view of a planner step: the top-down plot (embedded) and the candidates' table."""
+    import base64
+
+    from navcrafter.schemas.layout import PLAN
+
+    scene = open_store(store_uri).scene(scene_id)
+    st = scene.status(PLAN, k)
+    if not st.complete or "topdown.png" not in st.attrs.get("files", {}):
+        return None
+    png = open_store(store_uri).read_bytes(st.attrs["files"]["topdown.png"]["path"])
+    arrays = scene.read_all(PLAN, k)
+    a = st.attrs
+    lines = [f"# Plan, iteration {k} ({a['strategy']})", "",
+             f"chosen candidate: {a['chosen']}; optimised: {a.get('optimised')}; fallback: "
+             f"{a.get('fallback') or 'none'}; candidate draws: {a.get('rounds')}; "
+             f"planning time: {a.get('seconds', 0):.2f} s", "",
+             f"![top-down](data:image/png;base64,{base64.b64encode(png).decode()})", "",
+             "| candidate | score F | collides |", "|---:|---:|---|"]
+    for i, (sc, col) in enumerate(zip(arrays.get("candidate_scores", []), arrays.get("candidate_collides", []))):
+        lines.append(f"| {i} | {sc:.3f} | {'yes' if col else 'no'} |")
+    return "\n".join(lines) + "\n"

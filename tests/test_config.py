@@ -32,9 +32,12 @@ def test_presets_files_and_overrides(tmp_path):
 
 def test_step_config_isolates_sections():
     a = RunConfig()
-    b = RunConfig.load(overrides={"lift.voxel_size": 0.05})
+    b = RunConfig.load(overrides={"lift.max_views": 5})
     assert a.step_config("plan") == b.step_config("plan")
+    assert a.step_config("geometry") == b.step_config("geometry")
     assert a.step_config("lift") != b.step_config("lift")
+    c = RunConfig.load(overrides={"lift.voxel_size": 0.05})  # the planner splats points of that size
+    assert a.step_config("plan") != c.step_config("plan")
     assert a.config_hash() != b.config_hash()
     assert RunConfig().config_hash() == a.config_hash()
     with pytest.raises(KeyError):

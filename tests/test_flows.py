@@ -23,7 +23,8 @@ from conftest import BAD, DEMO, TINY
 from navcrafter.models.pointcloud import read_ply
 from navcrafter.schemas.layout import EXPORT, STEPS
 from navcrafter.schemas.store import FAULT_ENV, Store
-from navcrafter.tasks.report import pipeline_steps, read_manifest
+from navcrafter.tasks.pipeline import scene_steps
+from navcrafter.tasks.report import read_manifest
 
 
 def completed_counts(store: Path) -> Counter:
@@ -62,8 +63,8 @@ def test_collection_end_to_end(full_run):
     counts = completed_counts(store)
     for name in DEMO:
         sid = by_name[name].scene_id
-        for spec, k in pipeline_steps(TINY.iterations):
-            assert counts[(sid, spec.group_path(k))] == 1
+        for step in scene_steps(TINY):
+            assert counts[(sid, step.path)] == 1
 
 
 def test_exports_are_complete_and_labelled(full_run):
@@ -113,7 +114,7 @@ def _step_state(store: Path) -> dict[tuple[str, str], tuple[bool, str | None]]:
     out = {}
     for sid in s.scene_ids():
         sc = s.scene(sid)
-        for spec, k in [(STEPS["ingest"], None), *pipeline_steps(TINY.iterations)]:
+        for spec, k in [(STEPS["ingest"], None), *[(s.spec, s.k) for s in scene_steps(TINY)]]:
             st = sc.status(spec, k)
             if st.exists:
                 out[(sid, st.path)] = (st.complete, st.attrs.get("exec_id"))
@@ -123,7 +124,7 @@ def _step_state(store: Path) -> dict[tuple[str, str], tuple[bool, str | None]]:
 def _assert_same_outputs(a: Path, b: Path) -> None:
     sa, sb = Store(str(a)), Store(str(b))
     for sid in sb.scene_ids():
-        for spec, k in pipeline_steps(TINY.iterations):
+        for spec, k in [(s.spec, s.k) for s in scene_steps(TINY)]:
             if spec is EXPORT:
                 for name in ("cloud.ply", "trajectory.json", "trajectory.parquet", "video.mp4"):
                     rel = sb.scene(sid).file_rel(EXPORT, None, name)
@@ -191,5 +192,5 @@ def test_concurrent_runs_over_one_store_do_each_step_once(prefect_api_url, demo_
     outs = [p.communicate(timeout=600)[0].decode() for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[-2000:] for o in outs]
     counts = completed_counts(store)
-    assert len(counts) == 3 * (1 + len(pipeline_steps(TINY.iterations))) and set(counts.values()) == {1}
+    assert len(counts) == 3 * (1 + len(scene_steps(TINY))) and set(counts.values()) == {1}
     _assert_same_outputs(full_run[0], store)

@@ -166,3 +166,43 @@ def test_concurrent_table_writers_lose_nothing(tmp_path):
     for th in threads:
         th.join()
     assert t.read("metrics").num_rows == 40
+
+
+def test_compaction_races_with_writers_and_readers(tmp_path):
+    t = Store(tmp_path / "s").tables
+    stop = threading.Event()
+    errors = []
+
+    def writer(i):
+        for j in range(15):
+            t.write("steps", [{"scene_id": f"s{i}", "step": f"x{j}", "event": "completed", "at": utcnow()}])
+
+    def compactor():
+        while not stop.is_set():
+            try:
+                t.compact("steps")
+            except Exception as exc:  # noqa: BLE001 - any error fails the test below
+                errors.append(exc)
+
+    def reader():
+        while not stop.is_set():
+            try:
+                rows = t.read("steps").to_pylist()
+                keys = [(r["scene_id"], r["step"]) for r in rows]
+                assert len(keys) == len(set(keys)), "a row was read twice"
+            except Exception as exc:  # noqa: BLE001
+                errors.append(exc)
+
+    side = [threading.Thread(target=f) for f in (compactor, compactor, reader)]
+    writers = [threading.Thread(target=writer, args=(i,)) for i in range(3)]
+    for th in side + writers:
+        th.start()
+    for th in writers:
+        th.join()
+    stop.set()
+    for th in side:
+        th.join()
+    assert not errors, errors[:3]
+    rows = t.read("steps").to_pylist()
+    assert sorted((r["scene_id"], r["step"]) for r in rows) == sorted((f"s{i}", f"x{j}") for i in range(3)
+                                                                      for j in range(15))

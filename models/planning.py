@@ -1,0 +1,431 @@
+"""Camera trajectory planning: the paper's collision-aware planner (Algorithm 1) and a
+ViewCrafter-style baseline, behind one interface.
+
+One iteration of the collision-aware planner:
+
+1. **Candidates.** ``K`` poses sampled in the search space ``S`` around the current camera
+   (``SearchSpace``): positions ``p_cur + r * dir(azimuth, elevation)``, ``r`` in ``radius * d0``
+   (``d0`` = distance from the input camera to the scene centre ``o``), azimuth measured from the
+   horizontal direction to ``o``, elevation from the horizon (world up = -y). The default is the
+   quarter sphere in front of the camera (azimuth +-90 deg, elevation +-30 deg). Samples are
+   stratified (a Halton sequence with a seeded random shift). Every candidate looks at ``o``.
+2. **Collision detector G** (``CollisionDetector``): a position collides when it lies within
+   ``r_safe`` of the current cloud (KD-tree), or outside the free space seen so far: it is free only
+   if some earlier camera saw it *in front of* the surface in that pixel (its depth map), or it lies
+   within ``r_safe`` of an earlier camera centre. Colliding candidates get an empty mask.
+3. **Score F** of the visibility mask ``M`` rendered by splatting the cloud into the candidate
+   (``navcrafter.models.pointrender``): with ``m`` the fraction of pixels covered by known content,
+
+       F(M) = (1 - m) * min(1, m / m0)          (m0 = ``anchor_fraction``, default 0.5)
+
+   i.e. the unseen area, as long as at least ``m0`` of the view stays anchored to seen content;
+   below that the score falls linearly to 0 (an empty mask scores 0).
+4. **SphericalInterpolate** from the current pose to the best candidate (NBV): rotation by SLERP,
+   position on the arc around ``o`` (radius interpolated linearly).
+5. **CollisionOptimization**, only when ``G`` flags the interpolated path: minimise over the
+   interior positions (end points fixed)
+
+       L(x) = sum_t max(0, r_safe - d(x_t, P)) + lambda * sum_t |x_{t+1} - x_t|^2
+
+   (``r_safe`` is a physical size in scene units, ``safe_radius``; the search space scales with d0)
+
+   with L-BFGS (analytic gradient from the KD-tree's nearest points), from the arc and from 32
+   detours bulging in 8 directions around the chord at 4 amplitudes (the hinge alone cannot carry a
+   path around an obstacle); the interior cameras then look at ``o``. A result counts only if ``G``
+   passes it (which also checks the seen free space, not part of ``L``); the cheapest such result
+   wins. If no start gives a collision-free path, the next-best candidate is tried, then fresh
+   candidates are drawn; if nothing works the camera stays put (a static clip) and the result says
+   so.
+
+The baseline (``ViewCrafterPlanner``) scores the same candidates with the same ``F`` but has no
+collision detector, interpolates positions on a straight line and never optimises.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
+
+from navcrafter.models.cameras import interpolate_poses, invert_pose, look_at
+from navcrafter.models.pointcloud import thin_points
+from navcrafter.models.pointrender import render_points
+
+WORLD_UP = np.array([0.0, -1.0, 0.0])  # a scene's world is its input camera's OpenCV frame
+MAX_ELEVATION_DEG = 85.0  # look-at is degenerate straight above or below the centre
+
+
+# --------------------------------------------------------------------------------------------------
+# Search space and candidates
+# --------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SearchSpace:
+    """Candidate positions ``p_cur + r * dir(azimuth, elevation)`` around the current camera.
+
+    Azimuth is measured in the horizontal plane from the current camera's horizontal direction to
+    ``o`` (positive to the camera's right), elevation from that plane (positive up). The default,
+    azimuth +-90 deg and elevation +-30 deg, is a quarter of the sphere's area: the half in front of
+    the camera, within 30 deg of the horizon. ``radius`` is in units of ``d0``.
+    """
+
+    radius: tuple[float, float] = (0.15, 0.4)
+    azimuth_deg: tuple[float, float] = (-90.0, 90.0)
+    elevation_deg: tuple[float, float] = (-30.0, 30.0)
+
+
+def search_frame(current: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal (forward, right, up) at the current camera: forward is the horizontal direction
+    to ``o`` (the camera's own horizontal viewing direction if ``o`` is straight above or below)."""
+    up = WORLD_UP
+    f = np.asarray(centre, dtype=np.float64) - current[:3, 3]
+    f = f - (f @ up) * up
+    if np.linalg.norm(f) < 1e-9:
+        f = current[:3, 2] - (current[:3, 2] @ up) * up
+    f = f / np.linalg.norm(f)
+    right = np.cross(-up, f)  # OpenCV: x = y x z with y = down
+    return f, right, up
+
+
+def look_at_centre(position: np.ndarray, centre: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Pose at ``position`` looking at ``centre``; horizontally along ``forward`` when ``centre`` is
+    within 5 deg of straight above or below (where look-at has no stable roll)."""
+    view = centre - position
+    n = np.linalg.norm(view)
+    if n < 1e-9 or abs(view @ WORLD_UP) > np.cos(np.deg2rad(90.0 - MAX_ELEVATION_DEG)) * n:
+        return look_at(position, position + forward, up=WORLD_UP)
+    return look_at(position, centre, up=WORLD_UP)
+
+
+def sample_candidates(current: np.ndarray, centre: np.ndarray, d0: float, space: SearchSpace, count: int,
+                      rng: np.random.Generator) -> np.ndarray:
+    """``count`` candidate poses ``[count, 4, 4]`` in the search space, all looking at ``centre``.
+
+    Stratified: a Halton sequence over (azimuth, sin elevation, radius) with a seeded random shift.
+    """
+    f, right, up = search_frame(current, centre)
+    shift = rng.random(3)
+    u = (np.stack([_halton(count, 2), _halton(count, 3), _halton(count, 5)], 1) + shift) % 1.0
+    az = np.deg2rad(space.azimuth_deg[0] + u[:, 0] * (space.azimuth_deg[1] - space.azimuth_deg[0]))
+    s0, s1 = np.sin(np.deg2rad(space.elevation_deg))  # uniform in area: sample sin(elevation)
+    el = np.arcsin(np.clip(s0 + u[:, 1] * (s1 - s0), -1, 1))
+    r = d0 * (space.radius[0] + u[:, 2] * (space.radius[1] - space.radius[0]))
+    dirs = (np.cos(el) * np.cos(az))[:, None] * f + (np.cos(el) * np.sin(az))[:, None] * right + \
+        np.sin(el)[:, None] * up
+    pos = current[:3, 3] + r[:, None] * dirs
+    return np.stack([look_at_centre(p, centre, f) for p in pos])
+
+
+def _halton(n: int, base: int) -> np.ndarray:
+    out = np.empty(n)
+    for i in range(n):
+        fr, x, k = 1.0, 0.0, i + 1
+        while k > 0:
+            fr /= base
+            x += fr * (k % base)
+            k //= base
+        out[i] = x
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Collision detector
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class SeenView:
+    """An earlier camera and what it saw: pose, intrinsics and z-depth (0 = unknown)."""
+
+    c2w: np.ndarray
+    K: np.ndarray
+    depth: np.ndarray
+
+
+class CollisionDetector:
+    """G: proximity to the cloud (KD-tree) or outside the free space seen by earlier cameras.
+
+    The KD-tree is built on the cloud thinned to voxels of ``r_safe / 8``, so distances are exact to
+    within about 0.11 * ``r_safe``.
+    """
+
+    def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView]) -> None:
+        if r_safe <= 0:
+            raise ValueError("r_safe must be positive")
+        self.r_safe = float(r_safe)
+        pts = thin_points(cloud_points, r_safe / 8)
+        self.points = pts
+        self.tree = cKDTree(pts) if len(pts) else None
+        self.views = views
+        self.centres = np.array([v.c2w[:3, 3] for v in views]).reshape(-1, 3)
+
+    def clearance(self, x: np.ndarray) -> np.ndarray:
+        """Distance from positions ``[M, 3]`` to the nearest cloud point."""
+        if self.tree is None:
+            return np.full(len(x), np.inf)
+        d, _ = self.tree.query(np.asarray(x, dtype=np.float64), k=1)
+        return d
+
+    def seen_free(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        free = np.zeros(len(x), dtype=bool)
+        if len(self.centres):
+            free |= np.linalg.norm(x[:, None] - self.centres[None], axis=-1).min(1) < self.r_safe
+        for v in self.views:
+            w2c = invert_pose(v.c2w)
+            pc = x @ w2c[:3, :3].T + w2c[:3, 3]
+            z = pc[:, 2]
+            H, W = v.depth.shape
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = np.floor(v.K[0, 0] * pc[:, 0] / z + v.K[0, 1] * pc[:, 1] / z + v.K[0, 2])
+                w = np.floor(v.K[1, 1] * pc[:, 1] / z + v.K[1, 2])
+            ok = (z > 0) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+            if not ok.any():
+                continue
+            d = np.zeros(len(x))
+            d[ok] = v.depth[w[ok].astype(int), u[ok].astype(int)]
+            free |= ok & (d > 0) & (z < d)
+        return free
+
+    def collides(self, x: np.ndarray) -> np.ndarray:
+        """Per position: within ``r_safe`` of the cloud, or not in seen free space."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        return (self.clearance(x) < self.r_safe) | ~self.seen_free(x)
+
+    def trajectory_collides(self, trajectory: np.ndarray) -> bool:
+        return bool(self.collides(trajectory[:, :3, 3]).any())
+
+
+# --------------------------------------------------------------------------------------------------
+# Scoring, interpolation, optimisation
+# --------------------------------------------------------------------------------------------------
+def visibility_score(mask: np.ndarray, anchor_fraction: float) -> float:
+    """F(M) = (1 - m) * min(1, m / m0), m = covered fraction of the mask."""
+    m = float(np.mean(mask))
+    return (1.0 - m) * min(1.0, m / anchor_fraction)
+
+
+def spherical_interpolate(current: np.ndarray, target: np.ndarray, num: int, centre: np.ndarray) -> np.ndarray:
+    return interpolate_poses(current, target, num, centre=centre)
+
+
+def poses_looking_at(positions: np.ndarray, centre: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Poses at ``positions`` looking at ``centre``; the first and last are ``start`` and ``end`` exactly."""
+    forward = end[:3, 2] - (end[:3, 2] @ WORLD_UP) * WORLD_UP
+    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    out = np.stack([look_at_centre(p, centre, forward) for p in positions])
+    out[0], out[-1] = start, end
+    return out
+
+
+@dataclass
+class OptimisationResult:
+    trajectory: np.ndarray
+    collision_free: bool
+    optimised: bool  # False when the input was already collision-free (returned unchanged)
+    starts: int = 0
+    iterations: int = 0
+    cost: float = 0.0
+
+
+def trajectory_cost(x: np.ndarray, detector: CollisionDetector, smoothness: float) -> float:
+    d = detector.clearance(x)
+    return float(np.maximum(0.0, detector.r_safe - d).sum() + smoothness * (np.diff(x, axis=0) ** 2).sum())
+
+
+def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, centre: np.ndarray,
+                        smoothness: float = 1.0, max_iter: int = 200) -> OptimisationResult:
+    """CollisionOptimization: collision-free path with the same end poses, or a report that none was
+    found. A path that is already collision-free is returned unchanged."""
+    if not detector.trajectory_collides(trajectory):
+        return OptimisationResult(trajectory, True, False)
+    x0 = trajectory[:, :3, 3].copy()
+    T = len(x0)
+    r = detector.r_safe
+    tree = detector.tree
+    pts = detector.points
+
+    def fun(flat: np.ndarray) -> tuple[float, np.ndarray]:
+        x = x0.copy()
+        x[1:-1] = flat.reshape(-1, 3)
+        grad = np.zeros_like(x)
+        cost = 0.0
+        if tree is not None:
+            d, idx = tree.query(x[1:-1], k=1)
+            close = d < r
+            if close.any():
+                cost += float((r - d[close]).sum())
+                diff = x[1:-1][close] - pts[idx[close]]
+                grad[1:-1][close] -= diff / np.maximum(d[close], 1e-9)[:, None]
+        dx = np.diff(x, axis=0)
+        cost += smoothness * float((dx**2).sum())
+        g = np.zeros_like(x)
+        g[:-1] -= 2 * smoothness * dx
+        g[1:] += 2 * smoothness * dx
+        grad += g
+        return cost, grad[1:-1].ravel()
+
+    chord = x0[-1] - x0[0]
+    along = chord / max(np.linalg.norm(chord), 1e-9)
+    side = np.cross(along, WORLD_UP)
+    side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else np.array([1.0, 0, 0])
+    up = np.cross(side, along)
+    bump = np.sin(np.pi * np.linspace(0, 1, T))[:, None]
+    scale = max(np.linalg.norm(chord) / 2, 2 * r)
+    ring = [np.cos(a) * up + np.sin(a) * side for a in np.deg2rad(np.arange(0, 360, 45))]
+    starts = [x0] + [x0 + a * scale * bump * n for a in (0.25, 0.5, 1.0, 2.0) for n in ring]
+    best: OptimisationResult | None = None
+    least_bad: OptimisationResult | None = None
+    tried = 0
+    for i, start in enumerate(starts):
+        tried = i + 1
+        res = minimize(fun, start[1:-1].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+        x = x0.copy()
+        x[1:-1] = res.x.reshape(-1, 3)
+        traj = poses_looking_at(x, centre, trajectory[0], trajectory[-1])
+        ok = not detector.trajectory_collides(traj)
+        cand = OptimisationResult(traj, ok, True, 0, int(res.nit), float(res.fun))
+        if ok and (best is None or cand.cost < best.cost):
+            best = cand
+        if least_bad is None or cand.cost < least_bad.cost:
+            least_bad = cand
+        if ok and i == 0:
+            break  # the arc itself could be repaired: keep the smallest change
+    result = best if best is not None else least_bad
+    result.starts = tried
+    return result
+
+
+# --------------------------------------------------------------------------------------------------
+# Planners
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class PlanningState:
+    current: np.ndarray  # [4, 4] current camera pose (world)
+    centre: np.ndarray  # [3] scene centre o
+    d0: float  # distance from the input camera to o (scales the search space)
+    K: np.ndarray  # [3, 3] intrinsics of masks and frames
+    height: int
+    width: int
+    cloud_points: np.ndarray  # [N, 3]
+    views: list[SeenView]
+    num_frames: int
+    point_size: float  # world size of a cloud point (for splatting)
+
+
+@dataclass
+class PlanResult:
+    trajectory: np.ndarray  # [T, 4, 4] final
+    initial_trajectory: np.ndarray  # [T, 4, 4] before collision optimisation
+    candidates: np.ndarray  # [C, 4, 4]
+    scores: np.ndarray  # [C]
+    collides: np.ndarray  # [C] bool (all False for planners without a detector)
+    masks: np.ndarray  # [C, H, W] bool
+    chosen: int  # index into candidates, -1 when the camera stays put
+    optimised: bool = False
+    collision_free: bool | None = None  # None: the planner does not check
+    fallback: str = ""  # "", "next-candidate", "resampled" or "static"
+    rounds: int = 1
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    num_candidates: int = 3
+    space: SearchSpace = SearchSpace()
+    safe_radius: float = 0.25  # scene units
+    anchor_fraction: float = 0.5
+    smoothness: float = 1.0
+    max_resample: int = 10
+
+
+def _masks_and_scores(state: PlanningState, cands: np.ndarray, skip: np.ndarray,
+                      anchor: float) -> tuple[np.ndarray, np.ndarray]:
+    masks = np.zeros((len(cands), state.height, state.width), dtype=bool)
+    scores = np.zeros(len(cands))
+    for i, c2w in enumerate(cands):
+        if skip[i]:
+            continue
+        masks[i] = render_points(state.cloud_points, c2w, state.K, state.height, state.width,
+                                 state.point_size).mask
+        scores[i] = visibility_score(masks[i], anchor)
+    return masks, scores
+
+
+class CollisionAwarePlanner:
+    """The paper's Algorithm 1 (one iteration per call)."""
+
+    name = "collision_aware"
+
+    def __init__(self, config: PlannerConfig) -> None:
+        self.config = config
+
+    def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
+        cfg = self.config
+        t0 = time.perf_counter()
+        detector = CollisionDetector(state.cloud_points, cfg.safe_radius, state.views)
+        t_tree = time.perf_counter()
+        T = state.num_frames
+        cands, scores, collides, masks = [], [], [], []
+        first_initial = None
+        t_score = 0.0
+        for rounds in range(1, cfg.max_resample + 2):
+            ts = time.perf_counter()
+            c = sample_candidates(state.current, state.centre, state.d0, cfg.space, cfg.num_candidates, rng)
+            col = detector.collides(c[:, :3, 3])
+            m, sc = _masks_and_scores(state, c, col, cfg.anchor_fraction)
+            offset = sum(len(x) for x in cands)
+            cands.append(c)
+            collides.append(col)
+            masks.append(m)
+            scores.append(sc)
+            t_score += time.perf_counter() - ts
+            for rank, i in enumerate(np.argsort(-sc, kind="stable")):
+                if col[i] or sc[i] <= 0:
+                    break
+                initial = spherical_interpolate(state.current, c[i], T, state.centre)
+                first_initial = initial if first_initial is None else first_initial
+                opt = optimise_trajectory(initial, detector, state.centre, cfg.smoothness)
+                if opt.collision_free:
+                    fallback = "" if rounds == 1 and rank == 0 else ("next-candidate" if rounds == 1 else "resampled")
+                    return self._result(opt.trajectory, initial, cands, scores, collides, masks, offset + int(i),
+                                        opt.optimised, fallback, rounds, t0, t_tree, t_score)
+        static = np.repeat(state.current[None], T, axis=0)
+        return self._result(static, first_initial if first_initial is not None else static, cands, scores,
+                            collides, masks, -1, False, "static", rounds, t0, t_tree, t_score)
+
+    @staticmethod
+    def _result(traj, initial, cands, scores, collides, masks, chosen, optimised, fallback, rounds, t0, t_tree,
+                t_score) -> PlanResult:
+        t_end = time.perf_counter()
+        timings = {"detector_s": t_tree - t0, "candidates_s": t_score,
+                   "trajectory_s": t_end - t_tree - t_score, "total_s": t_end - t0}
+        return PlanResult(traj, initial, np.concatenate(cands), np.concatenate(scores), np.concatenate(collides),
+                          np.concatenate(masks), chosen, optimised=optimised, collision_free=True,
+                          fallback=fallback, rounds=rounds, timings=timings)
+
+
+class ViewCrafterPlanner:
+    """Baseline: utility-only next-best view, straight-line interpolation, no collision handling."""
+
+    name = "viewcrafter"
+
+    def __init__(self, config: PlannerConfig) -> None:
+        self.config = config
+
+    def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
+        cfg = self.config
+        t0 = time.perf_counter()
+        cands = sample_candidates(state.current, state.centre, state.d0, cfg.space, cfg.num_candidates, rng)
+        none = np.zeros(len(cands), dtype=bool)
+        masks, scores = _masks_and_scores(state, cands, none, cfg.anchor_fraction)
+        t_score = time.perf_counter()
+        i = int(np.argmax(scores))
+        traj = interpolate_poses(state.current, cands[i], state.num_frames)
+        t_end = time.perf_counter()
+        timings = {"detector_s": 0.0, "candidates_s": t_score - t0, "trajectory_s": t_end - t_score,
+                   "total_s": t_end - t0}
+        return PlanResult(traj, traj, cands, scores, none, masks, i, timings=timings)
+
+
+PLANNERS = {CollisionAwarePlanner.name: CollisionAwarePlanner, ViewCrafterPlanner.name: ViewCrafterPlanner}
