@@ -9,10 +9,15 @@ One iteration of the collision-aware planner:
    horizontal direction to ``o``, elevation from the horizon (world up = -y). The default is the
    quarter sphere in front of the camera (azimuth +-90 deg, elevation +-30 deg). Samples are
    stratified (a Halton sequence with a seeded random shift). Every candidate looks at ``o``.
+   Candidates are drawn K at a time until K of them pass ``G`` (at most ``max_resample`` extra
+   draws): F chooses among K collision-free candidates; colliding draws are kept with empty masks.
 2. **Collision detector G** (``CollisionDetector``): a position collides when it lies within
-   ``r_safe`` of the current cloud (KD-tree), or outside the free space seen so far: it is free only
-   if some earlier camera saw it *in front of* the surface in that pixel (its depth map), or it lies
-   within ``r_safe`` of an earlier camera centre. Colliding candidates get an empty mask.
+   ``r_safe`` of the current cloud (KD-tree), or behind a surface: some earlier camera saw a surface
+   in front of it (its depth map) and none saw it in front of a surface (or stood within ``r_safe``
+   of it). Space that no camera has looked at counts as occupied with ``unknown_space = "occupied"``
+   (the default: only seen free space is allowed, so the camera never enters space it has not seen)
+   and as free with ``"free"`` (explores more, but may meet surfaces it has not seen; see the
+   planning benchmark). Colliding candidates get an empty mask.
 3. **Score F** of the visibility mask ``M`` rendered by splatting the cloud into the candidate
    (``navcrafter.models.pointrender``): with ``m`` the fraction of pixels covered by known content,
 
@@ -25,17 +30,18 @@ One iteration of the collision-aware planner:
 5. **CollisionOptimization**, only when ``G`` flags the interpolated path: minimise over the
    interior positions (end points fixed)
 
-       L(x) = sum_t max(0, r_safe - d(x_t, P)) + lambda * sum_t |x_{t+1} - x_t|^2
+       L(x) = sum_t max(0, r' - d(x_t, P)) + lambda * sum_t |x_{t+1} - x_t|^2,   r' = 1.2 r_safe
 
-   (``r_safe`` is a physical size in scene units, ``safe_radius``; the search space scales with d0)
+   (``r_safe`` is a physical size in scene units, ``safe_radius``; the search space scales with d0;
+   the 20 % margin keeps optimised paths off the boundary, since the cloud is only an estimate)
 
-   with L-BFGS (analytic gradient from the KD-tree's nearest points), from the arc and from 32
-   detours bulging in 8 directions around the chord at 4 amplitudes (the hinge alone cannot carry a
-   path around an obstacle); the interior cameras then look at ``o``. A result counts only if ``G``
-   passes it (which also checks the seen free space, not part of ``L``); the cheapest such result
-   wins. If no start gives a collision-free path, the next-best candidate is tried, then fresh
-   candidates are drawn; if nothing works the camera stays put (a static clip) and the result says
-   so.
+   with L-BFGS (analytic gradient from the KD-tree's nearest points) over the knots of a cubic
+   spline path, from the arc and then from detours bulging in 8 directions around the chord at
+   growing amplitudes (the hinge alone cannot carry a path around an obstacle); the interior cameras
+   then look at ``o``. A result counts only if ``G`` passes it (which also checks the seen free space,
+   not part of ``L``); the cheapest such result at the smallest amplitude wins. If no start gives a
+   collision-free path, the next-best candidate is tried; if none works the camera stays put (a
+   static clip) and the result says so.
 
 The baseline (``ViewCrafterPlanner``) scores the same candidates with the same ``F`` but has no
 collision detector, interpolates positions on a straight line and never optimises.
@@ -145,17 +151,19 @@ class SeenView:
 class CollisionDetector:
     """G: proximity to the cloud (KD-tree) or outside the free space seen by earlier cameras.
 
-    The KD-tree is built on the cloud thinned to voxels of ``r_safe / 8``, so distances are exact to
-    within about 0.11 * ``r_safe``.
+    The KD-tree is built on the cloud thinned to voxels of ``r_safe / 8`` (``thin=False``: the caller
+    already thinned it at most that coarsely), so distances are exact to within 0.11 * ``r_safe``.
     """
 
-    def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView]) -> None:
+    def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView], thin: bool = True,
+                 unknown_is_free: bool = False) -> None:
         if r_safe <= 0:
             raise ValueError("r_safe must be positive")
         self.r_safe = float(r_safe)
-        pts = thin_points(cloud_points, r_safe / 8)
+        self.unknown_is_free = unknown_is_free
+        pts = thin_points(cloud_points, r_safe / 8) if thin else np.asarray(cloud_points, dtype=np.float64)
         self.points = pts
-        self.tree = cKDTree(pts) if len(pts) else None
+        self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False) if len(pts) else None
         self.views = views
         self.centres = np.array([v.c2w[:3, 3] for v in views]).reshape(-1, 3)
 
@@ -167,8 +175,16 @@ class CollisionDetector:
         return d
 
     def seen_free(self, x: np.ndarray) -> np.ndarray:
+        """Free as far as the earlier views tell: seen in front of a surface by some view, or next to
+        an earlier camera; with ``unknown_is_free``, also any position no view saw behind a surface."""
+        free, occluded = self._visibility(x)
+        return free | (~occluded if self.unknown_is_free else False)
+
+    def _visibility(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per position: seen free by some view (or near an earlier camera); behind a surface in some view."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         free = np.zeros(len(x), dtype=bool)
+        occluded = np.zeros(len(x), dtype=bool)
         if len(self.centres):
             free |= np.linalg.norm(x[:, None] - self.centres[None], axis=-1).min(1) < self.r_safe
         for v in self.views:
@@ -185,7 +201,8 @@ class CollisionDetector:
             d = np.zeros(len(x))
             d[ok] = v.depth[w[ok].astype(int), u[ok].astype(int)]
             free |= ok & (d > 0) & (z < d)
-        return free
+            occluded |= ok & (d > 0) & (z >= d)
+        return free, occluded
 
     def collides(self, x: np.ndarray) -> np.ndarray:
         """Per position: within ``r_safe`` of the cloud, or not in seen free space."""
@@ -233,67 +250,99 @@ def trajectory_cost(x: np.ndarray, detector: CollisionDetector, smoothness: floa
     return float(np.maximum(0.0, detector.r_safe - d).sum() + smoothness * (np.diff(x, axis=0) ** 2).sum())
 
 
+def _spline_basis(num_out: int, num_knots: int) -> np.ndarray:
+    """``[num_out, num_knots]`` matrix evaluating a natural cubic spline through ``num_knots`` values at
+    uniform parameters, at ``num_out`` uniform parameters (both including the ends)."""
+    from scipy.interpolate import CubicSpline
+
+    s_k, s_o = np.linspace(0, 1, num_knots), np.linspace(0, 1, num_out)
+    return np.stack([CubicSpline(s_k, e, bc_type="natural")(s_o) for e in np.eye(num_knots)], axis=1)
+
+
 def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, centre: np.ndarray,
-                        smoothness: float = 1.0, max_iter: int = 200) -> OptimisationResult:
+                        smoothness: float = 1.0, margin: float = 0.2, knots: int = 17, samples: int = 33,
+                        max_iter: int = 100) -> OptimisationResult:
     """CollisionOptimization: collision-free path with the same end poses, or a report that none was
-    found. A path that is already collision-free is returned unchanged."""
+    found. A path that is already collision-free is returned unchanged.
+
+    The path is a natural cubic spline through ``knots`` positions (the ends fixed); the hinge is
+    evaluated at ``samples`` points along it (weighted to stand for all T), the smoothness term on all
+    T positions, exactly as in ``L``. The hinge pushes towards ``(1 + margin) * r_safe`` while ``G``
+    accepts ``r_safe``: the cloud is an estimate (noisy, thinned), so a path planned exactly at
+    ``r_safe`` would graze the true surfaces. Starts are tried by increasing detour amplitude; the
+    cheapest collision-free result of the first amplitude that has one wins.
+    """
     if not detector.trajectory_collides(trajectory):
         return OptimisationResult(trajectory, True, False)
+    if detector.collides(trajectory[[0, -1], :3, 3]).any():  # fixed end points: nothing can fix that
+        return OptimisationResult(trajectory, False, False)
     x0 = trajectory[:, :3, 3].copy()
     T = len(x0)
-    r = detector.r_safe
-    tree = detector.tree
-    pts = detector.points
+    M, S = min(knots, T), min(samples, T)
+    A = _spline_basis(T, M)  # dense positions from knots
+    B = _spline_basis(S, M)  # hinge samples from knots
+    D = np.diff(np.eye(T), axis=0) @ A  # differences of dense positions
+    DtD = D.T @ D
+    weight = T / S
+    r = detector.r_safe * (1.0 + margin)
+    tree, pts = detector.tree, detector.points
+    ends = np.zeros((M, 3))
+    ends[0], ends[-1] = x0[0], x0[-1]
 
-    def fun(flat: np.ndarray) -> tuple[float, np.ndarray]:
-        x = x0.copy()
-        x[1:-1] = flat.reshape(-1, 3)
-        grad = np.zeros_like(x)
-        cost = 0.0
+    def knots_of(y: np.ndarray) -> np.ndarray:
+        out = ends.copy()
+        out[1:-1] = y.reshape(-1, 3)
+        return out
+
+    def fun(y: np.ndarray) -> tuple[float, np.ndarray]:
+        k = knots_of(y)
+        g = 2 * smoothness * (DtD @ k)
+        cost = smoothness * float(np.sum((D @ k) ** 2))
         if tree is not None:
-            d, idx = tree.query(x[1:-1], k=1)
-            close = d < r
+            xs = B @ k
+            d, idx = tree.query(xs, k=1, distance_upper_bound=r)
+            close = np.isfinite(d)
             if close.any():
-                cost += float((r - d[close]).sum())
-                diff = x[1:-1][close] - pts[idx[close]]
-                grad[1:-1][close] -= diff / np.maximum(d[close], 1e-9)[:, None]
-        dx = np.diff(x, axis=0)
-        cost += smoothness * float((dx**2).sum())
-        g = np.zeros_like(x)
-        g[:-1] -= 2 * smoothness * dx
-        g[1:] += 2 * smoothness * dx
-        grad += g
-        return cost, grad[1:-1].ravel()
+                cost += weight * float((r - d[close]).sum())
+                gx = np.zeros_like(xs)
+                gx[close] = -(xs[close] - pts[idx[close]]) / np.maximum(d[close], 1e-9)[:, None]
+                g += weight * (B.T @ gx)
+        return cost, g[1:-1].ravel()
 
+    s_k = np.linspace(0, 1, M)
+    base = np.stack([np.interp(s_k, np.linspace(0, 1, T), x0[:, i]) for i in range(3)], 1)
     chord = x0[-1] - x0[0]
     along = chord / max(np.linalg.norm(chord), 1e-9)
     side = np.cross(along, WORLD_UP)
     side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else np.array([1.0, 0, 0])
     up = np.cross(side, along)
-    bump = np.sin(np.pi * np.linspace(0, 1, T))[:, None]
+    bump = np.sin(np.pi * s_k)[:, None]
     scale = max(np.linalg.norm(chord) / 2, 2 * r)
     ring = [np.cos(a) * up + np.sin(a) * side for a in np.deg2rad(np.arange(0, 360, 45))]
-    starts = [x0] + [x0 + a * scale * bump * n for a in (0.25, 0.5, 1.0, 2.0) for n in ring]
-    best: OptimisationResult | None = None
+    levels = [[base]] + [[base + a * scale * bump * n for n in ring] for a in (0.25, 0.5, 1.0, 2.0)]
     least_bad: OptimisationResult | None = None
     tried = 0
-    for i, start in enumerate(starts):
-        tried = i + 1
-        res = minimize(fun, start[1:-1].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
-        x = x0.copy()
-        x[1:-1] = res.x.reshape(-1, 3)
-        traj = poses_looking_at(x, centre, trajectory[0], trajectory[-1])
-        ok = not detector.trajectory_collides(traj)
-        cand = OptimisationResult(traj, ok, True, 0, int(res.nit), float(res.fun))
-        if ok and (best is None or cand.cost < best.cost):
-            best = cand
-        if least_bad is None or cand.cost < least_bad.cost:
-            least_bad = cand
-        if ok and i == 0:
-            break  # the arc itself could be repaired: keep the smallest change
-    result = best if best is not None else least_bad
-    result.starts = tried
-    return result
+    for level in levels:
+        best: OptimisationResult | None = None
+        for start in level:
+            tried += 1
+            res = minimize(fun, start[1:-1].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
+            x = A @ knots_of(res.x)
+            x[0], x[-1] = x0[0], x0[-1]
+            traj = poses_looking_at(x, centre, trajectory[0], trajectory[-1])
+            ok = not detector.trajectory_collides(traj)
+            cand = OptimisationResult(traj, ok, True, 0, int(res.nit), float(res.fun))
+            if ok and (best is None or cand.cost < best.cost):
+                best = cand
+            if least_bad is None or cand.cost < least_bad.cost:
+                least_bad = cand
+        if best is not None:
+            best.starts = tried
+            return best
+    assert least_bad is not None
+    least_bad.collision_free = False
+    least_bad.starts = tried
+    return least_bad
 
 
 # --------------------------------------------------------------------------------------------------
@@ -324,7 +373,7 @@ class PlanResult:
     chosen: int  # index into candidates, -1 when the camera stays put
     optimised: bool = False
     collision_free: bool | None = None  # None: the planner does not check
-    fallback: str = ""  # "", "next-candidate", "resampled" or "static"
+    fallback: str = ""  # "", "next-candidate" (the best one had no safe path) or "static"
     rounds: int = 1
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -337,17 +386,24 @@ class PlannerConfig:
     anchor_fraction: float = 0.5
     smoothness: float = 1.0
     max_resample: int = 10
+    unknown_space: str = "occupied"  # or "free"
 
 
-def _masks_and_scores(state: PlanningState, cands: np.ndarray, skip: np.ndarray,
+def planning_cloud(state: PlanningState, r_safe: float | None = None) -> np.ndarray:
+    """The cloud thinned once per planning call, to the splat size (and at most ``r_safe / 8``, so the
+    collision detector can use it as is): masks and clearances need no finer detail."""
+    voxel = state.point_size if r_safe is None else min(state.point_size, r_safe / 8)
+    return thin_points(state.cloud_points, voxel)
+
+
+def _masks_and_scores(state: PlanningState, points: np.ndarray, cands: np.ndarray, skip: np.ndarray,
                       anchor: float) -> tuple[np.ndarray, np.ndarray]:
     masks = np.zeros((len(cands), state.height, state.width), dtype=bool)
     scores = np.zeros(len(cands))
     for i, c2w in enumerate(cands):
         if skip[i]:
             continue
-        masks[i] = render_points(state.cloud_points, c2w, state.K, state.height, state.width,
-                                 state.point_size).mask
+        masks[i] = render_points(points, c2w, state.K, state.height, state.width, state.point_size).mask
         scores[i] = visibility_score(masks[i], anchor)
     return masks, scores
 
@@ -363,36 +419,37 @@ class CollisionAwarePlanner:
     def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
         cfg = self.config
         t0 = time.perf_counter()
-        detector = CollisionDetector(state.cloud_points, cfg.safe_radius, state.views)
+        points = planning_cloud(state, cfg.safe_radius)
+        detector = CollisionDetector(points, cfg.safe_radius, state.views, thin=False,
+                                     unknown_is_free=cfg.unknown_space == "free")
         t_tree = time.perf_counter()
-        T = state.num_frames
-        cands, scores, collides, masks = [], [], [], []
-        first_initial = None
-        t_score = 0.0
-        for rounds in range(1, cfg.max_resample + 2):
-            ts = time.perf_counter()
+        # draw K candidates at a time until K of them pass G (colliding draws keep an empty mask)
+        cands, collides = [], []
+        while len(cands) <= cfg.max_resample:
             c = sample_candidates(state.current, state.centre, state.d0, cfg.space, cfg.num_candidates, rng)
-            col = detector.collides(c[:, :3, 3])
-            m, sc = _masks_and_scores(state, c, col, cfg.anchor_fraction)
-            offset = sum(len(x) for x in cands)
             cands.append(c)
-            collides.append(col)
-            masks.append(m)
-            scores.append(sc)
-            t_score += time.perf_counter() - ts
-            for rank, i in enumerate(np.argsort(-sc, kind="stable")):
-                if col[i] or sc[i] <= 0:
-                    break
-                initial = spherical_interpolate(state.current, c[i], T, state.centre)
-                first_initial = initial if first_initial is None else first_initial
-                opt = optimise_trajectory(initial, detector, state.centre, cfg.smoothness)
-                if opt.collision_free:
-                    fallback = "" if rounds == 1 and rank == 0 else ("next-candidate" if rounds == 1 else "resampled")
-                    return self._result(opt.trajectory, initial, cands, scores, collides, masks, offset + int(i),
-                                        opt.optimised, fallback, rounds, t0, t_tree, t_score)
+            collides.append(detector.collides(c[:, :3, 3]))
+            if sum(int((~x).sum()) for x in collides) >= cfg.num_candidates:
+                break
+        rounds = len(cands)
+        cands_a, collides_a = np.concatenate(cands), np.concatenate(collides)
+        masks_a, scores_a = _masks_and_scores(state, points, cands_a, collides_a, cfg.anchor_fraction)
+        t_score = time.perf_counter() - t_tree
+        T = state.num_frames
+        first_initial = None
+        for rank, i in enumerate(np.argsort(-scores_a, kind="stable")):
+            if collides_a[i] or scores_a[i] <= 0:
+                break
+            initial = spherical_interpolate(state.current, cands_a[i], T, state.centre)
+            first_initial = initial if first_initial is None else first_initial
+            opt = optimise_trajectory(initial, detector, state.centre, cfg.smoothness)
+            if opt.collision_free:
+                return self._result(opt.trajectory, initial, cands_a, scores_a, collides_a, masks_a, int(i),
+                                    opt.optimised, "" if rank == 0 else "next-candidate", rounds, t0, t_tree,
+                                    t_score)
         static = np.repeat(state.current[None], T, axis=0)
-        return self._result(static, first_initial if first_initial is not None else static, cands, scores,
-                            collides, masks, -1, False, "static", rounds, t0, t_tree, t_score)
+        return self._result(static, first_initial if first_initial is not None else static, cands_a, scores_a,
+                            collides_a, masks_a, -1, False, "static", rounds, t0, t_tree, t_score)
 
     @staticmethod
     def _result(traj, initial, cands, scores, collides, masks, chosen, optimised, fallback, rounds, t0, t_tree,
@@ -400,9 +457,8 @@ class CollisionAwarePlanner:
         t_end = time.perf_counter()
         timings = {"detector_s": t_tree - t0, "candidates_s": t_score,
                    "trajectory_s": t_end - t_tree - t_score, "total_s": t_end - t0}
-        return PlanResult(traj, initial, np.concatenate(cands), np.concatenate(scores), np.concatenate(collides),
-                          np.concatenate(masks), chosen, optimised=optimised, collision_free=True,
-                          fallback=fallback, rounds=rounds, timings=timings)
+        return PlanResult(traj, initial, cands, scores, collides, masks, chosen, optimised=optimised,
+                          collision_free=True, fallback=fallback, rounds=rounds, timings=timings)
 
 
 class ViewCrafterPlanner:
@@ -418,7 +474,7 @@ class ViewCrafterPlanner:
         t0 = time.perf_counter()
         cands = sample_candidates(state.current, state.centre, state.d0, cfg.space, cfg.num_candidates, rng)
         none = np.zeros(len(cands), dtype=bool)
-        masks, scores = _masks_and_scores(state, cands, none, cfg.anchor_fraction)
+        masks, scores = _masks_and_scores(state, planning_cloud(state), cands, none, cfg.anchor_fraction)
         t_score = time.perf_counter()
         i = int(np.argmax(scores))
         traj = interpolate_poses(state.current, cands[i], state.num_frames)

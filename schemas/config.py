@@ -79,7 +79,10 @@ class PlanConfig(_Section):
     anchor_fraction: float = Field(
         0.5, gt=0, le=1, description="m0 of the score F = (1-m) min(1, m/m0), m = seen fraction of the mask.")
     smoothness: float = Field(1.0, ge=0, description="lambda of the collision optimisation's smoothness term.")
-    max_resample: int = Field(10, ge=0, description="Extra draws of K candidates while all collide (cheap: G only).")
+    max_resample: int = Field(10, ge=0, description="Extra draws of K candidates until K pass G (cheap: G only).")
+    unknown_space: Literal["occupied", "free"] = Field(
+        "occupied", description="How G treats space no camera has seen: 'occupied' (only seen free space "
+        "is allowed) or 'free' (collisions are proximity to the cloud and being behind an observed surface).")
     centre_depth_quantile: float = Field(
         0.5, gt=0, lt=1, description="Scene centre o = point at this depth quantile on the optical axis.")
     orbit_step_deg: float = Field(20.0, gt=0, le=90, description="Azimuth step of the orbit planner.")

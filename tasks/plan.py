@@ -58,7 +58,8 @@ def planner_config(cfg: PlanConfig) -> PlannerConfig:
     return PlannerConfig(num_candidates=cfg.num_candidates,
                          space=SearchSpace(cfg.radius_range, cfg.azimuth_range_deg, cfg.elevation_range_deg),
                          safe_radius=cfg.safe_radius, anchor_fraction=cfg.anchor_fraction,
-                         smoothness=cfg.smoothness, max_resample=cfg.max_resample)
+                         smoothness=cfg.smoothness, max_resample=cfg.max_resample,
+                         unknown_space=cfg.unknown_space)
 
 
 def planning_state(scene: SceneStore, k: int, config: RunConfig) -> PlanningState:
