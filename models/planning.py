@@ -12,12 +12,14 @@ One iteration of the collision-aware planner:
    Candidates are drawn K at a time until K of them pass ``G`` (at most ``max_resample`` extra
    draws): F chooses among K collision-free candidates; colliding draws are kept with empty masks.
 2. **Collision detector G** (``CollisionDetector``): a position collides when it lies within
-   ``r_safe`` of the current cloud (KD-tree), or behind a surface: some earlier camera saw a surface
-   in front of it (its depth map) and none saw it in front of a surface (or stood within ``r_safe``
-   of it). Space that no camera has looked at counts as occupied with ``unknown_space = "occupied"``
-   (the default: only seen free space is allowed, so the camera never enters space it has not seen)
-   and as free with ``"free"`` (explores more, but may meet surfaces it has not seen; see the
-   planning benchmark). Colliding candidates get an empty mask.
+   ``r_safe`` of an observed surface (the cloud, by KD-tree; the earlier views' depth maps as
+   meshes, which have no holes where a surface was seen at a grazing angle; and the ground plane,
+   estimated by RANSAC, since the floor under a camera is rarely in its view) or below the ground,
+   or when it is not in seen free space: no earlier camera saw it in front of the surface in that
+   pixel and no earlier camera stood within r_safe of it. That is ``unknown_space = "occupied"``,
+   the default: the camera never enters space it has not seen. With ``"free"``, only space seen
+   *behind* a surface counts as occupied (explores more, but may meet surfaces it has not seen;
+   see the planning benchmark). Colliding candidates get an empty mask.
 3. **Score F** of the visibility mask ``M`` rendered by splatting the cloud into the candidate
    (``navcrafter.models.pointrender``): with ``m`` the fraction of pixels covered by known content,
 
@@ -95,6 +97,16 @@ def search_frame(current: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, n
     return f, right, up
 
 
+def space_positions(current: np.ndarray, centre: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
+                    radius: np.ndarray) -> np.ndarray:
+    """Positions ``[..., 3]`` at ``radius`` from the current camera in the directions (radians) of the
+    search frame (see ``SearchSpace``)."""
+    f, right, up = search_frame(current, centre)
+    dirs = (np.cos(elevation) * np.cos(azimuth))[..., None] * f + \
+        (np.cos(elevation) * np.sin(azimuth))[..., None] * right + np.sin(elevation)[..., None] * up
+    return current[:3, 3] + np.asarray(radius)[..., None] * dirs
+
+
 def look_at_centre(position: np.ndarray, centre: np.ndarray, forward: np.ndarray) -> np.ndarray:
     """Pose at ``position`` looking at ``centre``; horizontally along ``forward`` when ``centre`` is
     within 5 deg of straight above or below (where look-at has no stable roll)."""
@@ -111,17 +123,14 @@ def sample_candidates(current: np.ndarray, centre: np.ndarray, d0: float, space:
 
     Stratified: a Halton sequence over (azimuth, sin elevation, radius) with a seeded random shift.
     """
-    f, right, up = search_frame(current, centre)
     shift = rng.random(3)
     u = (np.stack([_halton(count, 2), _halton(count, 3), _halton(count, 5)], 1) + shift) % 1.0
     az = np.deg2rad(space.azimuth_deg[0] + u[:, 0] * (space.azimuth_deg[1] - space.azimuth_deg[0]))
     s0, s1 = np.sin(np.deg2rad(space.elevation_deg))  # uniform in area: sample sin(elevation)
     el = np.arcsin(np.clip(s0 + u[:, 1] * (s1 - s0), -1, 1))
     r = d0 * (space.radius[0] + u[:, 2] * (space.radius[1] - space.radius[0]))
-    dirs = (np.cos(el) * np.cos(az))[:, None] * f + (np.cos(el) * np.sin(az))[:, None] * right + \
-        np.sin(el)[:, None] * up
-    pos = current[:3, 3] + r[:, None] * dirs
-    return np.stack([look_at_centre(p, centre, f) for p in pos])
+    forward = search_frame(current, centre)[0]
+    return np.stack([look_at_centre(p, centre, forward) for p in space_positions(current, centre, az, el, r)])
 
 
 def _halton(n: int, base: int) -> np.ndarray:
@@ -156,7 +165,8 @@ class CollisionDetector:
     """
 
     def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView], thin: bool = True,
-                 unknown_is_free: bool = False) -> None:
+                 unknown_is_free: bool = False, surfaces: bool = True,
+                 ground: tuple[np.ndarray, float] | None = None) -> None:
         if r_safe <= 0:
             raise ValueError("r_safe must be positive")
         self.r_safe = float(r_safe)
@@ -166,12 +176,28 @@ class CollisionDetector:
         self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False) if len(pts) else None
         self.views = views
         self.centres = np.array([v.c2w[:3, 3] for v in views]).reshape(-1, 3)
+        self.surfaces = view_surfaces(views) if surfaces else None
+        self.ground = ground  # (unit normal pointing up, offset): height above ground = n . x + offset
 
-    def clearance(self, x: np.ndarray) -> np.ndarray:
-        """Distance from positions ``[M, 3]`` to the nearest cloud point."""
+    def cloud_clearance(self, x: np.ndarray) -> np.ndarray:
+        """Distance from positions ``[M, 3]`` to the nearest cloud point (KD-tree)."""
         if self.tree is None:
             return np.full(len(x), np.inf)
         d, _ = self.tree.query(np.asarray(x, dtype=np.float64), k=1)
+        return d
+
+    def clearance(self, x: np.ndarray) -> np.ndarray:
+        """Distance from positions ``[M, 3]`` to the nearest observed surface: the cloud's points, and
+        the surfaces of the earlier views' depth maps (which have no holes where a view saw a surface
+        at a grazing angle, e.g. a floor far away)."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        d = self.cloud_clearance(x)
+        if self.surfaces is not None and len(x):
+            import open3d as o3d
+
+            d = np.minimum(d, self.surfaces.compute_distance(o3d.core.Tensor(x.astype(np.float32))).numpy())
+        if self.ground is not None:
+            d = np.minimum(d, np.maximum(x @ self.ground[0] + self.ground[1], 0.0))
         return d
 
     def seen_free(self, x: np.ndarray) -> np.ndarray:
@@ -200,8 +226,8 @@ class CollisionDetector:
                 continue
             d = np.zeros(len(x))
             d[ok] = v.depth[w[ok].astype(int), u[ok].astype(int)]
-            free |= ok & (d > 0) & (z < d)
             occluded |= ok & (d > 0) & (z >= d)
+            free |= ok & (d > 0) & (z < d)
         return free, occluded
 
     def collides(self, x: np.ndarray) -> np.ndarray:
@@ -211,6 +237,84 @@ class CollisionDetector:
 
     def trajectory_collides(self, trajectory: np.ndarray) -> bool:
         return bool(self.collides(trajectory[:, :3, 3]).any())
+
+
+def estimate_ground(points: np.ndarray, camera: np.ndarray, rng: np.random.Generator, tolerance: float,
+                    max_tilt_deg: float = 35.0, iterations: int = 300,
+                    min_inliers: float = 0.05) -> tuple[np.ndarray, float] | None:
+    """The dominant plane below ``camera`` whose normal is within ``max_tilt_deg`` of world up
+    (RANSAC, seeded), as ``(n, c)`` with ``n`` pointing up, so ``n . x + c`` is the height above it;
+    ``None`` if no such plane holds at least ``min_inliers`` of the points."""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < 3:
+        return None
+    sample = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
+    cos_tilt = np.cos(np.deg2rad(max_tilt_deg))
+    best, best_count = None, int(min_inliers * len(sample))
+    for _ in range(iterations):
+        a, b, c = sample[rng.choice(len(sample), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            continue
+        n = n / norm
+        if n @ WORLD_UP < 0:
+            n = -n
+        if n @ WORLD_UP < cos_tilt:
+            continue
+        off = -n @ a
+        if camera @ n + off <= 0:  # must be below the camera
+            continue
+        count = int((np.abs(sample @ n + off) < tolerance).sum())
+        if count > best_count:
+            best, best_count = (n, float(off)), count
+    if best is None:
+        return None
+    n, off = best  # refine on the inliers (least squares with the normal fixed in orientation)
+    inl = sample[np.abs(sample @ n + off) < tolerance]
+    centroid = inl.mean(0)
+    _, _, vt = np.linalg.svd(inl - centroid, full_matrices=False)
+    n2 = vt[2] if vt[2] @ WORLD_UP > 0 else -vt[2]
+    if n2 @ WORLD_UP >= cos_tilt:
+        n = n2
+    return n, float(-n @ centroid)
+
+
+def view_surfaces(views: list[SeenView], step: int = 4, max_jump: float = 1.0):
+    """An Open3D raycasting scene of the views' depth maps as triangle meshes (every ``step``-th pixel;
+    neighbours are joined unless their depths differ by more than a factor ``1 + max_jump``), or ``None``.
+
+    The loose jump test is deliberate: a surface seen at a grazing angle (a floor far away) changes
+    depth fast from row to row and must stay closed, while a triangle that wrongly bridges a depth
+    edge lies in the thin wedge behind the nearer surface, i.e. in space that is not seen free."""
+    import open3d as o3d
+
+    from navcrafter.models.cameras import camera_directions
+
+    verts, tris, offset = [], [], 0
+    for v in views:
+        H, W = v.depth.shape
+        rows, cols = np.arange(0, H, step), np.arange(0, W, step)
+        d = v.depth[np.ix_(rows, cols)].astype(np.float64)
+        rays = camera_directions(v.K, H, W)[np.ix_(rows, cols)]
+        pts = (rays * d[..., None]) @ v.c2w[:3, :3].T + v.c2w[:3, 3]
+        h, w = d.shape
+        idx = np.arange(h * w).reshape(h, w)
+        a, b, c, e = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        flat = d.reshape(-1)
+        for tri in (np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, e], -1).reshape(-1, 3)):
+            z = flat[tri]
+            ok = (z > 0).all(1) & (z.max(1) <= (1 + max_jump) * z.min(1))
+            tris.append(tri[ok] + offset)
+        verts.append(pts.reshape(-1, 3))
+        offset += h * w
+    tris_a = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+    if len(tris_a) == 0:
+        return None
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.concatenate(verts).astype(np.float32)),
+                        o3d.core.Tensor(tris_a.astype(np.uint32)))
+    return scene
 
 
 # --------------------------------------------------------------------------------------------------
@@ -298,16 +402,21 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
         k = knots_of(y)
         g = 2 * smoothness * (DtD @ k)
         cost = smoothness * float(np.sum((D @ k) ** 2))
+        xs = B @ k
+        gx = np.zeros_like(xs)
         if tree is not None:
-            xs = B @ k
             d, idx = tree.query(xs, k=1, distance_upper_bound=r)
             close = np.isfinite(d)
             if close.any():
                 cost += weight * float((r - d[close]).sum())
-                gx = np.zeros_like(xs)
-                gx[close] = -(xs[close] - pts[idx[close]]) / np.maximum(d[close], 1e-9)[:, None]
-                g += weight * (B.T @ gx)
-        return cost, g[1:-1].ravel()
+                gx[close] -= (xs[close] - pts[idx[close]]) / np.maximum(d[close], 1e-9)[:, None]
+        if detector.ground is not None:  # the ground plane: height h = n . x + c, hinge on r - h
+            n, c = detector.ground
+            h = xs @ n + c
+            low = h < r
+            cost += weight * float((r - h[low]).sum())
+            gx[low] -= n
+        return cost, (g + weight * (B.T @ gx))[1:-1].ravel()
 
     s_k = np.linspace(0, 1, M)
     base = np.stack([np.interp(s_k, np.linspace(0, 1, T), x0[:, i]) for i in range(3)], 1)
@@ -420,8 +529,9 @@ class CollisionAwarePlanner:
         cfg = self.config
         t0 = time.perf_counter()
         points = planning_cloud(state, cfg.safe_radius)
+        ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
         detector = CollisionDetector(points, cfg.safe_radius, state.views, thin=False,
-                                     unknown_is_free=cfg.unknown_space == "free")
+                                     unknown_is_free=cfg.unknown_space == "free", ground=ground)
         t_tree = time.perf_counter()
         # draw K candidates at a time until K of them pass G (colliding draws keep an empty mask)
         cands, collides = [], []

@@ -79,8 +79,8 @@ def _fmt(v: float | None, unit: str = "", digits: int = 3) -> str:
     return "" if v is None else f"{v:.{digits}f}{unit}"
 
 
-SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "within 2 cm",
-                   "camera error", "seconds", "outputs / error")
+SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "coverage",
+                   "noise ratio", "F-score", "collisions", "seconds", "outputs / error")
 EXPORT_FILES = "cloud.ply, video.mp4, trajectory.json, trajectory.parquet"
 
 
@@ -90,11 +90,10 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
     for r in results:
         m = r.metrics
         note = r.outputs if r.status == "done" else (r.error or "")
-        within = 100 * m["cloud_within_2cm"] if "cloud_within_2cm" in m else None
         rows.append((PurePath(r.sources[0]).name, r.scene_id[:12] if r.scene_id else "-", r.status,
                      str(int(m["n_points"])) if "n_points" in m else "", _fmt(m.get("cloud_median_dist_m"), " m", 4),
-                     _fmt(within, " %", 1), _fmt(m.get("camera_median_err_m"), " m", 4), f"{r.seconds:.1f}",
-                     note or ""))
+                     _fmt(m.get("coverage")), _fmt(m.get("noise_ratio")), _fmt(m.get("fscore")),
+                     str(int(m["collisions"])) if "collisions" in m else "", f"{r.seconds:.1f}", note or ""))
     return rows
 
 

@@ -21,7 +21,7 @@ import pyarrow.parquet as pq
 from conftest import BAD, DEMO, TINY
 
 from navcrafter.models.pointcloud import read_ply
-from navcrafter.schemas.layout import EXPORT, STEPS
+from navcrafter.schemas.layout import EXPORT, PLAN, STEPS
 from navcrafter.schemas.store import FAULT_ENV, Store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
@@ -46,6 +46,10 @@ def test_collection_end_to_end(full_run):
         assert r.metrics["cloud_median_dist_m"] < 0.03, r.metrics
         assert r.metrics["cloud_within_5cm"] > 0.6, r.metrics
         assert r.metrics["camera_median_err_m"] < 0.05, r.metrics
+        # the default planner is the collision-aware one: no trajectory sample touches a true surface
+        assert r.metrics["collisions"] == 0, r.metrics
+        assert 0 < r.metrics["coverage"] <= 1 and 0 <= r.metrics["noise_ratio"] < 0.6, r.metrics
+        assert 0 < r.metrics["fscore"] <= 1
     for name, (message, fix) in BAD.items():
         r = by_name[name]
         assert r.status == "failed" and message in r.error and fix in r.error, (name, r.error)
@@ -65,6 +69,32 @@ def test_collection_end_to_end(full_run):
         sid = by_name[name].scene_id
         for step in scene_steps(TINY):
             assert counts[(sid, step.path)] == 1
+
+
+def test_planner_state_is_stored_and_published(full_run):
+    from prefect.artifacts import Artifact
+
+    store, run = full_run
+    done = [r for r in run.scenes if r.status == "done"]
+    for r in done:
+        scene = Store(str(store)).scene(r.scene_id)
+        for k in range(1, TINY.iterations + 1):
+            st = scene.status(PLAN, k)
+            assert st.attrs["strategy"] == "collision_aware" and st.attrs["collision_free"] is True
+            arrays = scene.read_all(PLAN, k)
+            C = len(arrays["candidates"])
+            assert C >= TINY.plan.num_candidates
+            assert arrays["candidate_masks"].shape == (C, TINY.synthesis.height, TINY.synthesis.width)
+            assert arrays["candidate_scores"].shape == arrays["candidate_collides"].shape == (C,)
+            assert arrays["initial_trajectory"].shape == arrays["trajectory"].shape
+            if st.attrs["chosen"] >= 0:
+                assert np.array_equal(arrays["trajectory"][-1], arrays["candidates"][st.attrs["chosen"]])
+            png = (store / st.attrs["files"]["topdown.png"]["path"]).read_bytes()
+            assert png.startswith(b"\x89PNG")
+            art = Artifact.get(key=f"plan-{r.scene_id[:12]}-{k}")
+            assert art is not None and "data:image/png;base64," in art.data and "| candidate |" in art.data
+    summary = Artifact.get(key="run-summary")
+    assert summary is not None and "SIMULATION MODE" in summary.data
 
 
 def test_exports_are_complete_and_labelled(full_run):

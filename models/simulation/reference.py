@@ -15,7 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from navcrafter.models.cameras import Intrinsics, look_at, unproject_depth
-from navcrafter.models.planning import WORLD_UP, SearchSpace, search_frame
+from navcrafter.models.planning import WORLD_UP, SearchSpace, space_positions
 from navcrafter.models.pointcloud import thin_points
 from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.models.simulation.render import render
@@ -25,14 +25,11 @@ def reachable_viewpoints(truth: SimulationTruth, centre_world: np.ndarray, d0_wo
                          reach: int, clearance_m: float, azimuths: int = 9, elevations: int = 3,
                          radii: int = 3) -> np.ndarray:
     """World camera poses of the reference grid (input camera first)."""
-    f, right, up = search_frame(np.eye(4), centre_world)
     az = np.deg2rad(np.linspace(*space.azimuth_deg, azimuths))
     el = np.deg2rad(np.linspace(*space.elevation_deg, elevations))
     r = d0_world * np.linspace(space.radius[0], space.radius[1] * reach, radii * reach)
     A, E, R = np.meshgrid(az, el, r, indexing="ij")
-    dirs = (np.cos(E) * np.cos(A))[..., None] * f + (np.cos(E) * np.sin(A))[..., None] * right + \
-        np.sin(E)[..., None] * up
-    pos = (R[..., None] * dirs).reshape(-1, 3)
+    pos = space_positions(np.eye(4), centre_world, A, E, R).reshape(-1, 3)
     gt = truth.gt_points(pos)
     rc, _ = truth.scene.raycasting()
     inside = rc.compute_occupancy(o3d.core.Tensor(gt.astype(np.float32))).numpy() > 0
