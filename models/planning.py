@@ -280,13 +280,31 @@ def estimate_ground(points: np.ndarray, camera: np.ndarray, rng: np.random.Gener
     return n, float(-n @ centroid)
 
 
-def view_surfaces(views: list[SeenView], step: int = 4, max_jump: float = 1.0):
-    """An Open3D raycasting scene of the views' depth maps as triangle meshes (every ``step``-th pixel;
-    neighbours are joined unless their depths differ by more than a factor ``1 + max_jump``), or ``None``.
+def _smooth_steps(q: np.ndarray, axis: int, factor: float = 3.0, noise: float = 0.02) -> np.ndarray:
+    """For each pair of neighbours along ``axis`` of an inverse-depth grid: True where the step is
+    consistent with its neighbouring steps (a surface, however steep), False at a depth edge."""
+    dq = np.abs(np.diff(q, axis=axis))
+    pad = [(0, 0), (0, 0)]
+    pad[axis] = (1, 1)
+    padded = np.pad(dq, pad, constant_values=np.inf)
+    prev = np.take(padded, range(0, dq.shape[axis]), axis=axis)
+    nxt = np.take(padded, range(2, dq.shape[axis] + 2), axis=axis)
+    ref = np.minimum(prev, nxt)
+    ref = np.where(np.isfinite(ref), ref, dq)  # a lone step (grid border) is judged by itself
+    n = q.shape[axis]
+    qmin = np.minimum(np.take(q, range(0, n - 1), axis=axis), np.take(q, range(1, n), axis=axis))
+    return dq <= factor * ref + noise * qmin
 
-    The loose jump test is deliberate: a surface seen at a grazing angle (a floor far away) changes
-    depth fast from row to row and must stay closed, while a triangle that wrongly bridges a depth
-    edge lies in the thin wedge behind the nearer surface, i.e. in space that is not seen free."""
+
+def view_surfaces(views: list[SeenView], step: int = 4, max_jump: float = 1.0):
+    """An Open3D raycasting scene of the views' depth maps as triangle meshes (every ``step``-th pixel),
+    or ``None``.
+
+    Neighbours are joined unless a depth edge separates them: on a plane, inverse depth is affine in
+    the pixel coordinates, so its steps along a row or column stay constant however steep the plane
+    (a floor seen at a grazing angle stays closed); at an occlusion edge one step stands out from its
+    neighbours and the triangles across it are dropped (as are those spanning depths more than a
+    factor ``1 + max_jump`` apart), so no phantom surface blocks space that other views saw free."""
     import open3d as o3d
 
     from navcrafter.models.cameras import camera_directions
@@ -299,13 +317,19 @@ def view_surfaces(views: list[SeenView], step: int = 4, max_jump: float = 1.0):
         rays = camera_directions(v.K, H, W)[np.ix_(rows, cols)]
         pts = (rays * d[..., None]) @ v.c2w[:3, :3].T + v.c2w[:3, 3]
         h, w = d.shape
+        valid = d > 0
+        q = np.where(valid, 1.0 / np.where(valid, d, 1.0), 0.0)
+        ok_x = _smooth_steps(q, 1) & valid[:, :-1] & valid[:, 1:]  # (h, w-1): pixel (i,j)-(i,j+1)
+        ok_y = _smooth_steps(q, 0) & valid[:-1, :] & valid[1:, :]  # (h-1, w): pixel (i,j)-(i+1,j)
         idx = np.arange(h * w).reshape(h, w)
         a, b, c, e = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        first = ok_x[:-1, :] & ok_y[:, :-1]  # triangle (a, c, b): edges a-b and a-c
+        second = ok_x[1:, :] & ok_y[:, 1:]  # triangle (b, c, e): edges c-e and b-e
         flat = d.reshape(-1)
-        for tri in (np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, e], -1).reshape(-1, 3)):
+        for tri, keep in ((np.stack([a, c, b], -1), first), (np.stack([b, c, e], -1), second)):
+            tri = tri[keep]
             z = flat[tri]
-            ok = (z > 0).all(1) & (z.max(1) <= (1 + max_jump) * z.min(1))
-            tris.append(tri[ok] + offset)
+            tris.append(tri[z.max(1) <= (1 + max_jump) * z.min(1)] + offset)
         verts.append(pts.reshape(-1, 3))
         offset += h * w
     tris_a = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
