@@ -58,7 +58,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
-from navcrafter.models.cameras import interpolate_poses, invert_pose, look_at
+from navcrafter.models.cameras import interpolate_poses, look_at, project
 from navcrafter.models.pointcloud import thin_points
 from navcrafter.models.pointrender import render_points
 
@@ -158,10 +158,13 @@ class SeenView:
 
 
 class CollisionDetector:
-    """G: proximity to the cloud (KD-tree) or outside the free space seen by earlier cameras.
+    """G: within ``r_safe`` of an observed surface, or outside the free space seen by earlier cameras
+    (see the module docstring, step 2).
 
-    The KD-tree is built on the cloud thinned to voxels of ``r_safe / 8`` (``thin=False``: the caller
-    already thinned it at most that coarsely), so distances are exact to within 0.11 * ``r_safe``.
+    Surfaces: the cloud (a KD-tree on the cloud thinned to voxels of ``r_safe / 8``; ``thin=False``
+    when the caller already thinned it at most that coarsely, so distances are exact to within
+    0.11 * ``r_safe``), the earlier views' depth maps as meshes (``surfaces``), and an optional ground
+    plane. ``unknown_is_free`` selects the ``"free"`` policy for space no camera has seen.
     """
 
     def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView], thin: bool = True,
@@ -214,13 +217,9 @@ class CollisionDetector:
         if len(self.centres):
             free |= np.linalg.norm(x[:, None] - self.centres[None], axis=-1).min(1) < self.r_safe
         for v in self.views:
-            w2c = invert_pose(v.c2w)
-            pc = x @ w2c[:3, :3].T + w2c[:3, 3]
-            z = pc[:, 2]
+            uv, z = project(x, v.c2w, v.K)
             H, W = v.depth.shape
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = np.floor(v.K[0, 0] * pc[:, 0] / z + v.K[0, 1] * pc[:, 1] / z + v.K[0, 2])
-                w = np.floor(v.K[1, 1] * pc[:, 1] / z + v.K[1, 2])
+            u, w = np.floor(uv[:, 0]), np.floor(uv[:, 1])
             ok = (z > 0) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
             if not ok.any():
                 continue
@@ -231,7 +230,7 @@ class CollisionDetector:
         return free, occluded
 
     def collides(self, x: np.ndarray) -> np.ndarray:
-        """Per position: within ``r_safe`` of the cloud, or not in seen free space."""
+        """Per position: within ``r_safe`` of an observed surface, or not in seen free space."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return (self.clearance(x) < self.r_safe) | ~self.seen_free(x)
 
