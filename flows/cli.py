@@ -15,7 +15,8 @@ from rich.table import Table
 
 app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a resumable batch workflow.",
                   no_args_is_help=True, add_completion=False)
-console = Console()
+# Wide when piped (logs, CI): rich would otherwise fold the summary table into 80 columns.
+console = Console(width=None if sys.stdout.isatty() else 160)
 err = Console(stderr=True)
 
 EXIT_USAGE = 2

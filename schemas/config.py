@@ -195,6 +195,8 @@ class RunConfig(BaseModel):
             "lift": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},
             "fit": {**common, "fit": self.fit.model_dump(mode="json")},
             "export": {"fps": self.synthesis.fps, "iterations": self.iterations},
+            "evaluate": {"backend": self.backend, "plan": self.plan.model_dump(mode="json"),
+                         "iterations": self.iterations},
         }
         if step not in parts:
             raise KeyError(f"unknown step {step!r}; known: {sorted(parts)}")

@@ -177,7 +177,14 @@ EXPORT = StepSpec(
     attrs=("files",),
 )
 
-STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, EXPORT)}
+EVALUATE = StepSpec(
+    "evaluate", "evaluation",
+    "Scene metrics (tasks/evaluate.py), kept so that a rerun does not recompute them; also appended "
+    "to the metrics table.",
+    attrs=("metrics",),
+)
+
+STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, EXPORT, EVALUATE)}
 
 
 def scene_group(scene_id: str) -> str:
@@ -207,4 +214,6 @@ def dependencies(step: str, k: int | None, iterations: int) -> list[tuple[StepSp
         for i in range(1, iterations + 1):
             deps += [(PLAN, i), (SYNTHESIZE, i), (LIFT, i)]
         return deps
+    if step == "evaluate":
+        return [(EXPORT, None)]  # the export's key covers every step before it
     raise KeyError(f"unknown step {step!r}")

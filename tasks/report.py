@@ -11,6 +11,7 @@ import pyarrow as pa
 
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.common import open_store
@@ -43,6 +44,9 @@ def step_timings(scene: SceneStore, config: RunConfig) -> dict[str, float]:
         st = scene.status(step.spec, step.k)
         if st.complete:
             out[st.path] = float(st.attrs.get("seconds", 0.0))
+    st = scene.status(EVALUATE)
+    if st.complete:
+        out[st.path] = float(st.attrs.get("seconds", 0.0))
     return out
 
 
@@ -81,6 +85,7 @@ def _fmt(v: float | None, unit: str = "", digits: int = 3) -> str:
 
 SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "coverage",
                    "noise ratio", "F-score", "collisions", "seconds", "outputs / error")
+_TEXT_COLUMNS = {"image", "scene", "status", "outputs / error"}
 EXPORT_FILES = "cloud.ply, video.mp4, trajectory.json, trajectory.parquet"
 
 
@@ -114,7 +119,7 @@ def summary_markdown(run_id: str, config: RunConfig, results: list[SceneResult])
     if config.backend == "simulation":
         lines += [f"> **{header.pop(0)}**", ""]
     lines += header + ["", "| " + " | ".join(SUMMARY_COLUMNS) + " |",
-                       "|---|---|---|---:|---:|---:|---:|---:|---|"]
+                       "|" + "|".join("---" if c in _TEXT_COLUMNS else "---:" for c in SUMMARY_COLUMNS) + "|"]
     for row in summary_rows(results):
         cells = [c.replace("|", "/").replace("\n", " ") for c in row]
         cells[1] = f"`{cells[1]}`"

@@ -21,7 +21,7 @@ import pyarrow.parquet as pq
 from conftest import BAD, DEMO, TINY
 
 from navcrafter.models.pointcloud import read_ply
-from navcrafter.schemas.layout import EXPORT, PLAN, STEPS
+from navcrafter.schemas.layout import EVALUATE, EXPORT, PLAN, STEPS
 from navcrafter.schemas.store import FAULT_ENV, Store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
@@ -62,13 +62,23 @@ def test_collection_end_to_end(full_run):
     assert manifest["a-copy-of-room.png"]["scene_id"] == manifest["room-0.png"]["scene_id"]
     assert all(v["backend"] == "simulation" for v in manifest.values())
     assert all(v["error"] == by_name[k].error for k, v in manifest.items() if k in BAD)
-    assert (store / run.summary).is_file() and "SIMULATION MODE" in (store / run.summary).read_text()
+    summary_md = (store / run.summary).read_text()
+    assert "SIMULATION MODE" in summary_md
+    table = [line for line in summary_md.splitlines() if line.startswith("|")]
+    assert len(table) == 2 + len(run.scenes)  # header, alignment row, one row per image
+    assert len({len(line.strip("|").split("|")) for line in table}) == 1, table[:2]
     # every step of every scene ran exactly once
     counts = completed_counts(store)
     for name in DEMO:
         sid = by_name[name].scene_id
         for step in scene_steps(TINY):
             assert counts[(sid, step.path)] == 1
+        assert counts[(sid, "evaluation")] == 1
+    metric_rows = Store(str(store)).tables.read("metrics").to_pylist()
+    for name in DEMO:
+        rows = [m for m in metric_rows if m["scene_id"] == by_name[name].scene_id]
+        assert {m["name"]: m["value"] for m in rows} == by_name[name].metrics
+        assert len(rows) == len(by_name[name].metrics)  # written once
 
 
 def test_planner_state_is_stored_and_published(full_run):
@@ -128,6 +138,7 @@ def test_rerun_recomputes_nothing(full_run, collection):
     before = completed_counts(store)
     run = explore_collection(str(collection), str(store), TINY)
     assert [r.status for r in run.scenes] == [r.status for r in first.scenes]
+    assert [r.metrics for r in run.scenes] == [r.metrics for r in first.scenes]  # read back, not recomputed
     assert completed_counts(store) == before  # nothing executed again
     events = [e for e in Store(str(store)).tables.read("steps").to_pylist() if e["run_id"] == run.run_id]
     assert events and {e["event"] for e in events} <= {"skipped", "failed"}
@@ -164,6 +175,8 @@ def _assert_same_outputs(a: Path, b: Path) -> None:
             assert xa.keys() == xb.keys()
             for name in xa:
                 np.testing.assert_array_equal(xa[name], xb[name], err_msg=f"{sid[:8]} {spec.group_path(k)}/{name}")
+        ma, mb = (dict(x.scene(sid).status(EVALUATE).attrs["metrics"]) for x in (sa, sb))
+        assert {**ma, "plan_seconds": 0} == {**mb, "plan_seconds": 0}, sid[:8]  # all but a timing
 
 
 def test_injected_crash_mid_step_then_resume(prefect_api_url, demo_photos, full_run, tmp_path):
@@ -222,5 +235,5 @@ def test_concurrent_runs_over_one_store_do_each_step_once(prefect_api_url, demo_
     outs = [p.communicate(timeout=600)[0].decode() for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[-2000:] for o in outs]
     counts = completed_counts(store)
-    assert len(counts) == 3 * (1 + len(scene_steps(TINY))) and set(counts.values()) == {1}
+    assert len(counts) == 3 * (2 + len(scene_steps(TINY))) and set(counts.values()) == {1}  # + input, evaluation
     _assert_same_outputs(full_run[0], store)
