@@ -11,13 +11,14 @@ from typing import Annotated, Optional
 import typer
 import yaml
 from rich.console import Console
+from rich.markdown import Markdown
 from rich.table import Table
 
 app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a resumable batch workflow.",
                   no_args_is_help=True, add_completion=False)
 # Wide when piped (logs, CI): rich would otherwise fold the summary table into 80 columns.
 console = Console(width=None if sys.stdout.isatty() else 160)
-err = Console(stderr=True)
+err = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
 
 EXIT_USAGE = 2
 EXIT_PARTIAL = 3
@@ -64,6 +65,18 @@ def demo_data(
         console.print(f"  {p}")
 
 
+def _load_config(path: Optional[Path], preset: str, overrides: dict):
+    from pydantic import ValidationError
+
+    from navcrafter.schemas.config import RunConfig
+
+    try:
+        return RunConfig.load(path, preset=preset, overrides=overrides)
+    except (ValidationError, ValueError, FileNotFoundError) as exc:
+        err.print(f"[red]invalid configuration:[/red] {exc}")
+        raise typer.Exit(EXIT_USAGE) from None
+
+
 @app.command()
 def explore(
     photos: Annotated[Path, typer.Argument(help="A folder of images (searched recursively) or one image.")],
@@ -77,10 +90,7 @@ def explore(
     parallel: Annotated[Optional[int], typer.Option(min=1, help="Scenes processed at once.")] = None,
 ) -> None:
     """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
-    from pydantic import ValidationError
-
     from navcrafter.models.simulation import LABEL
-    from navcrafter.schemas.config import RunConfig
 
     overrides = _parse_sets(set_ or [])
     if backend is not None:
@@ -89,11 +99,7 @@ def explore(
         overrides["model_dir"] = str(models)
     if parallel is not None:
         overrides["max_parallel_scenes"] = parallel
-    try:
-        cfg = RunConfig.load(config, preset=preset, overrides=overrides)
-    except (ValidationError, ValueError, FileNotFoundError) as exc:
-        err.print(f"[red]invalid configuration:[/red] {exc}")
-        raise typer.Exit(EXIT_USAGE) from None
+    cfg = _load_config(config, preset, overrides)
     if not photos.exists():
         err.print(f"[red]{photos} does not exist[/red]; make a demo collection with "
                   f"`navcrafter demo-data {photos}`")
@@ -135,6 +141,46 @@ def explore(
 
 
 @app.command()
+def evaluate(
+    store: Annotated[str, typer.Argument(help="Store directory or URL of explored scenes.")],
+    preset: Annotated[str, typer.Option(help="Config preset the scenes were explored with.")] = "paper",
+    config: Annotated[Optional[Path], typer.Option(help="YAML/JSON config file applied over the preset.")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option(
+        "--set", help="Override, e.g. --set evaluation.pose_frames=20.")] = None,
+    eval_weights: Annotated[Optional[Path], typer.Option(
+        help="Folder of official evaluation weights (LPIPS, FID Inception, FVD I3D).")] = None,
+    parallel: Annotated[Optional[int], typer.Option(min=1, help="Scenes scored at once.")] = None,
+) -> None:
+    """Score every finished scene: the paper's Tables III-VII as Parquet and Markdown in the store."""
+    from navcrafter.schemas.store import Store, StoreError
+
+    overrides = _parse_sets(set_ or [])
+    if eval_weights is not None:
+        overrides["evaluation.weights_dir"] = str(eval_weights)
+    if parallel is not None:
+        overrides["max_parallel_scenes"] = parallel
+    cfg = _load_config(config, preset, overrides)
+    try:
+        Store(store, create=False)
+    except StoreError as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(EXIT_USAGE) from None
+    _prefect_env()
+    from navcrafter.flows.evaluate import evaluable_scenes, evaluate_store_local
+
+    if not evaluable_scenes(store)[0]:
+        err.print(f"[red]{store} has no finished scenes[/red]; run `navcrafter explore PHOTOS --store {store}` first")
+        raise typer.Exit(EXIT_USAGE)
+    result = evaluate_store_local(store, cfg)
+    console.print(Markdown(Store(store, create=False).read_bytes(result.report).decode()))
+    console.print(f"report: {store}/{result.report}   table: {store}/tables/evaluations/{result.evaluation_id}.parquet")
+    if result.failed:
+        err.print(f"[red]{len(result.failed)} scene(s) could not be scored[/red]: "
+                  + "; ".join(f"{k[:12]}: {v}" for k, v in result.failed.items()))
+        raise typer.Exit(EXIT_PARTIAL)
+
+
+@app.command()
 def status(
     store: Annotated[str, typer.Argument(help="Store directory or URL.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the manifest as JSON lines.")] = False,
@@ -150,7 +196,7 @@ def status(
         err.print(f"[red]{exc}[/red]")
         raise typer.Exit(EXIT_USAGE) from None
     if compact:
-        for name in ("manifest", "steps", "metrics"):
+        for name in ("manifest", "steps", "metrics", "evaluations"):
             st.tables.compact(name)
     rows = read_manifest(st).to_pylist()
     if as_json:

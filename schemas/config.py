@@ -120,6 +120,22 @@ class FitConfig(_Section):
     enabled: bool = False
 
 
+class EvaluationConfig(_Section):
+    """The evaluation suite (``navcrafter evaluate``; ``flows/evaluate.py``)."""
+
+    pose_frames: int = Field(
+        14, ge=3, description="Frames of each clip given to COLMAP for R_err/T_err, evenly spaced over the clip "
+        "(the paper scores 14-frame clips)."
+    )
+    lpips_net: Literal["alex", "vgg"] = Field("alex", description="LPIPS backbone.")
+    weights_dir: Path | None = Field(
+        None, description="Folder with the official evaluation weights (LPIPS, FID Inception, FVD I3D); "
+        "default $NAVCRAFTER_EVAL_WEIGHTS or ~/.cache/navcrafter/eval. Missing files make those metrics "
+        "'unavailable'."
+    )
+    camera_guidance: bool = Field(True, description="Run COLMAP on the synthesized clips (R_err/T_err).")
+
+
 class SimulationConfig(_Section):
     """Noise model of the simulation backend's Geometry and MonoDepth roles.
 
@@ -163,6 +179,7 @@ class RunConfig(BaseModel):
     lift: LiftConfig = LiftConfig()
     fit: FitConfig = FitConfig()
     simulation: SimulationConfig = SimulationConfig()
+    evaluation: EvaluationConfig = EvaluationConfig()
 
     @field_validator("model_dir")
     @classmethod
@@ -197,6 +214,7 @@ class RunConfig(BaseModel):
             "export": {"fps": self.synthesis.fps, "iterations": self.iterations},
             "evaluate": {"backend": self.backend, "plan": self.plan.model_dump(mode="json"),
                          "iterations": self.iterations},
+            "score": {"backend": self.backend, "evaluation": self.evaluation.model_dump(mode="json")},
         }
         if step not in parts:
             raise KeyError(f"unknown step {step!r}; known: {sorted(parts)}")

@@ -181,10 +181,18 @@ EVALUATE = StepSpec(
     "evaluate", "evaluation",
     "Scene metrics (tasks/evaluate.py), kept so that a rerun does not recompute them; also appended "
     "to the metrics table.",
-    attrs=("metrics",),
+    attrs=("metrics", "iterations"),
 )
 
-STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, EXPORT, EVALUATE)}
+SCORE = StepSpec(
+    "score", "scores",
+    "One scene's rows of the evaluation suite (navcrafter evaluate): image metrics, camera guidance "
+    "(COLMAP), runtime, geometry; rows in the schema of the evaluations table, kept in attrs.",
+    attrs=("rows",),
+)
+
+STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, EXPORT, EVALUATE,
+                                                  SCORE)}
 
 
 def scene_group(scene_id: str) -> str:
@@ -216,4 +224,6 @@ def dependencies(step: str, k: int | None, iterations: int) -> list[tuple[StepSp
         return deps
     if step == "evaluate":
         return [(EXPORT, None)]  # the export's key covers every step before it
+    if step == "score":
+        return [(EVALUATE, None)]
     raise KeyError(f"unknown step {step!r}")

@@ -73,8 +73,24 @@ METRICS = pa.schema([
     pa.field("created_at", TIMESTAMP, nullable=False),
 ])
 
-SCHEMAS: dict[str, pa.Schema] = {"manifest": MANIFEST, "steps": STEPS,
-                                 "trajectories": TRAJECTORIES, "metrics": METRICS}
+EVALUATIONS = pa.schema([
+    pa.field("evaluation_id", pa.string(), nullable=False, metadata={"doc": "one `navcrafter evaluate` run"}),
+    pa.field("scene_id", pa.string(), metadata={"doc": "null for a row over all scenes (FID, FVD)"}),
+    pa.field("table", pa.string(), nullable=False,
+             metadata={"doc": "paper table: III synthesis quality, IV camera guidance, V runtime, "
+                              "VI exploration geometry, VII 3DGS"}),
+    pa.field("metric", pa.string(), nullable=False),
+    pa.field("value", pa.float64(), metadata={"doc": "null unless status is ok"}),
+    pa.field("unit", pa.string()),
+    pa.field("status", pa.string(), nullable=False,
+             metadata={"doc": "ok | unavailable (e.g. weights missing) | not_built | failed"}),
+    pa.field("note", pa.string(), metadata={"doc": "why a value is missing, or how it was measured"}),
+    pa.field("backend", pa.string()),
+    pa.field("created_at", TIMESTAMP, nullable=False),
+])
+
+SCHEMAS: dict[str, pa.Schema] = {"manifest": MANIFEST, "steps": STEPS, "trajectories": TRAJECTORIES,
+                                 "metrics": METRICS, "evaluations": EVALUATIONS}
 
 
 def utcnow() -> dt.datetime:

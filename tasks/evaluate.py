@@ -77,7 +77,7 @@ def evaluate_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str
         store.tables.write("metrics", [{"scene_id": scene_id, "run_id": run_id, "name": k, "value": v,
                                         "unit": UNITS.get(k), "backend": config.backend, "created_at": now}
                                        for k, v in metrics.items()], part=f"scene-{scene_id}-{writer.exec_id}")
-        return {"metrics": metrics}
+        return {"metrics": metrics, "iterations": config.iterations}
 
     ref = run_step(store_uri, scene_id, EVALUATE, None, config, run_id, body)
     status = open_store(store_uri).scene(scene_id).status(EVALUATE)

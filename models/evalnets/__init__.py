@@ -12,7 +12,8 @@ from navcrafter.models.evalnets.weights import (
     MetricUnavailable,
     WeightFile,
     find_weights,
+    known_weight_files,
     weights_dir,
 )
 
-__all__ = ["WEIGHT_FILES", "MetricUnavailable", "WeightFile", "find_weights", "weights_dir"]
+__all__ = ["WEIGHT_FILES", "MetricUnavailable", "WeightFile", "find_weights", "known_weight_files", "weights_dir"]

@@ -1,0 +1,100 @@
+"""The ``evaluate-store`` flow: the evaluation suite over every finished scene of a store.
+
+One task per scene (``tasks/score.py``: image metrics, COLMAP camera guidance, runtime, geometry),
+then FID / FVD over all scenes, then the rows go to the ``evaluations`` table and to
+``evaluations/<evaluation_id>/report.{md,json}`` in the store, and to Prefect artifacts (a table and
+the Markdown report). Scores are kept per scene, so evaluating again with the same settings only
+re-reads them.
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+from dataclasses import dataclass, field
+from pathlib import PurePath
+from typing import Any
+
+from prefect import flow, task
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.task_runners import ThreadPoolTaskRunner
+
+from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import EVALUATE
+from navcrafter.schemas.tables import utcnow
+from navcrafter.tasks import score
+from navcrafter.tasks.common import open_store
+from navcrafter.tasks.report import read_manifest
+
+
+@dataclass
+class EvaluationRun:
+    evaluation_id: str
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    report: str = ""  # store-relative path of the Markdown report
+    failed: dict[str, str] = field(default_factory=dict)  # scene id -> error
+
+
+def evaluable_scenes(store_uri: str) -> tuple[list[str], dict[str, str]]:
+    """Scenes whose exploration finished (their ``evaluation`` group is complete), and a display name
+    (the source file's name) for each."""
+    store = open_store(store_uri)
+    sources: dict[str, set[str]] = {}
+    for r in read_manifest(store).to_pylist():
+        if r.get("scene_id"):
+            sources.setdefault(r["scene_id"], set()).add(PurePath(str(r["source"])).name)
+    names = {sid: ", ".join(sorted(v)) for sid, v in sources.items()}
+    ids = [sid for sid in store.scene_ids() if store.scene(sid).status(EVALUATE).complete]
+    return ids, names
+
+
+score_task = task(score.score_scene, name="score", task_run_name="score-{scene_id:.12}",
+                  retries=1, retry_delay_seconds=2)
+distribution_task = task(score.distribution_rows, name="fid-fvd")
+
+
+@flow(name="evaluate-store", persist_result=False)
+def evaluate_store(store: str, config: RunConfig, scene_ids: list[str] | None = None) -> EvaluationRun:
+    """Score finished scenes of ``store`` (all of them unless ``scene_ids``) and write the tables."""
+    evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
+    ids, names = evaluable_scenes(store)
+    if scene_ids is not None:
+        unknown = sorted(set(scene_ids) - set(ids))
+        if unknown:
+            raise ValueError(f"scene(s) {', '.join(s[:12] for s in unknown)} of {store} have not finished "
+                             "exploring; run `navcrafter explore` first")
+        ids = [s for s in ids if s in set(scene_ids)]
+    result = EvaluationRun(evaluation_id)
+    futures = {sid: score_task.submit(store, sid, config, evaluation_id) for sid in ids}
+    scored = []
+    for sid, fut in futures.items():
+        try:
+            result.rows += fut.result()
+            scored.append(sid)
+        except Exception as exc:  # one scene's failure is recorded; the others are still reported
+            result.failed[sid] = f"{type(exc).__name__}: {exc}"
+            result.rows.append(score.row("V", "scoring", status="failed", note=result.failed[sid], scene_id=sid))
+    if scored:
+        result.rows += distribution_task(store, scored, config)
+    s = open_store(store)
+    now = utcnow()
+    s.tables.write("evaluations", [{**r, "evaluation_id": evaluation_id, "backend": config.backend,
+                                    "created_at": now} for r in result.rows], part=evaluation_id)
+    md = score.evaluation_markdown(evaluation_id, result.rows, names, config.backend)
+    result.report = f"evaluations/{evaluation_id}/report.md"
+    s.write_bytes(result.report, md.encode())
+    s.write_bytes(f"evaluations/{evaluation_id}/report.json", json.dumps(
+        {"evaluation_id": evaluation_id, "backend": config.backend, "scenes": ids, "names": names,
+         "failed": result.failed, "rows": result.rows}, indent=1).encode())
+    create_markdown_artifact(key="evaluation-report", markdown=md,
+                             description=f"navcrafter evaluation {evaluation_id} ({config.backend})")
+    create_table_artifact(key="evaluation-table", table=[
+        {k: r[k] for k in ("scene_id", "table", "metric", "value", "unit", "status")} for r in result.rows],
+        description=f"navcrafter evaluation {evaluation_id}: one row per scene and metric")
+    return result
+
+
+def evaluate_store_local(store: str, config: RunConfig) -> EvaluationRun:
+    """The same flow on a thread pool sized by ``max_parallel_scenes``."""
+    return evaluate_store.with_options(task_runner=ThreadPoolTaskRunner(
+        max_workers=config.max_parallel_scenes))(store, config)
