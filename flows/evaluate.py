@@ -19,7 +19,7 @@ from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.config import EvaluationConfig, RunConfig
 from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks import score
@@ -98,3 +98,44 @@ def evaluate_store_local(store: str, config: RunConfig) -> EvaluationRun:
     """The same flow on a thread pool sized by ``max_parallel_scenes``."""
     return evaluate_store.with_options(task_runner=ThreadPoolTaskRunner(
         max_workers=config.max_parallel_scenes))(store, config)
+
+
+@flow(name="evaluate-clips", persist_result=False)
+def evaluate_clips(clips: str, generated: str, out: str, config: EvaluationConfig) -> EvaluationRun:
+    """Score the frames a generator made for dataset clips (``tasks/clips.py``); writes
+    ``out/evaluations.parquet`` (the evaluations schema) and ``out/report.{md,json}``."""
+    from pathlib import Path
+
+    import pyarrow.parquet as pq
+
+    from navcrafter.schemas.tables import to_table
+    from navcrafter.tasks import clips as clip_tasks
+
+    evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
+    keys = clip_tasks.clip_keys(clips)
+    result = EvaluationRun(evaluation_id)
+    score_clip = task(clip_tasks.score_clip, name="score-clip", task_run_name="score-clip-{key}")
+    futures = [score_clip.submit(Path(clips), Path(generated), key, config) for key in keys]
+    for key, fut in zip(keys, futures):
+        rows = fut.result()
+        result.rows += rows
+        failed = [r["note"] for r in rows if r["status"] == "failed" and r["table"] == "III"]
+        if failed:
+            result.failed[key] = failed[0]
+    scored = [k for k in keys if k not in result.failed]
+    result.rows += task(clip_tasks.clip_distribution_rows, name="fid-fvd")(Path(clips), Path(generated),
+                                                                              scored, config)
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    now = utcnow()
+    pq.write_table(to_table("evaluations", [{**r, "evaluation_id": evaluation_id, "backend": "external",
+                                             "created_at": now} for r in result.rows]),
+                   out_dir / "evaluations.parquet")
+    md = score.evaluation_markdown(evaluation_id, result.rows, {}, "external")
+    (out_dir / "report.md").write_text(md)
+    (out_dir / "report.json").write_text(json.dumps({"evaluation_id": evaluation_id, "clips": keys,
+                                                     "failed": result.failed, "rows": result.rows}, indent=1))
+    result.report = str(out_dir / "report.md")
+    create_markdown_artifact(key="clip-evaluation-report", markdown=md,
+                             description=f"navcrafter clip evaluation {evaluation_id}")
+    return result

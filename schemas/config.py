@@ -213,7 +213,7 @@ class RunConfig(BaseModel):
             "fit": {**common, "fit": self.fit.model_dump(mode="json")},
             "export": {"fps": self.synthesis.fps, "iterations": self.iterations},
             "evaluate": {"backend": self.backend, "plan": self.plan.model_dump(mode="json"),
-                         "iterations": self.iterations},
+                         "iterations": self.iterations, "outputs": 2},  # 2: attrs record the iterations
             "score": {"backend": self.backend, "evaluation": self.evaluation.model_dump(mode="json")},
         }
         if step not in parts:

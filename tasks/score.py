@@ -56,7 +56,11 @@ def clip_indices(num_frames: int, count: int) -> np.ndarray:
 
 
 def scene_iterations(scene: SceneStore) -> int:
-    return int(scene.require_complete(EVALUATE).attrs["iterations"])
+    attrs = scene.require_complete(EVALUATE).attrs
+    if "iterations" not in attrs:
+        raise ValueError(f"scene {scene.scene_id[:12]} was evaluated by an older navcrafter; run the same "
+                         "`navcrafter explore` again (it only refreshes the evaluation), then evaluate")
+    return int(attrs["iterations"])
 
 
 # -- table III --------------------------------------------------------------------------------------

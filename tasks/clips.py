@@ -1,0 +1,176 @@
+"""Benchmark clips from the public datasets, and scoring of clips generated for them.
+
+The paper scores its video model on RealEstate10K, DL3DV and Tanks and Temples clips (a conditioning
+image and the camera path of the next 14 frames). ``export_clips`` writes such clips, read by
+``schemas/datasets.py``, as plain files any generator can consume; ``score_clips`` scores the frames a
+generator wrote for them with the same metrics as ``navcrafter evaluate`` (Table III image quality,
+Table IV camera guidance by COLMAP, FID/FVD over all clips). Layout::
+
+    <clips>/<clip>/condition.png            the conditioning image
+    <clips>/<clip>/reference/0001.png ...   the T-1 ground-truth frames after it
+    <clips>/<clip>/cameras.json             T OpenCV c2w (relative: the first is the identity) and K
+    <generated>/<clip>/0001.png ...         what a generator made: T-1 frames (or T, the first being
+                                            its copy of the conditioning image, which is then dropped)
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from navcrafter.models.evalnets.weights import MetricUnavailable
+from navcrafter.schemas.config import EvaluationConfig
+from navcrafter.tasks.score import row
+
+CAMERAS = "cameras.json"
+
+
+def clip_key(clip_id: str) -> str:
+    """A folder name for a clip id such as ``re10k/0a1b2c@17``."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", clip_id).strip("_")
+
+
+def _save_png(image: np.ndarray, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.ascontiguousarray(image)).save(path)
+
+
+def export_clips(samples, out: str | Path) -> list[str]:
+    """Write every ``Sample`` of a dataset reader as a clip folder; returns the clip folder names."""
+    out = Path(out)
+    keys = []
+    for s in samples:
+        key = clip_key(s.clip_id)
+        d = out / key
+        _save_png(s.image, d / "condition.png")
+        for i, frame in enumerate(s.frames, start=1):
+            _save_png(frame, d / "reference" / f"{i:04d}.png")
+        doc = {"clip_id": s.clip_id, "dataset": s.dataset, "sequence": s.sequence, "width": s.width,
+               "height": s.height, "frame_ids": [str(f) for f in s.frame_ids],
+               "c2w": s.relative_c2w().tolist(), "K": np.asarray(s.K).tolist(),
+               "convention": "OpenCV camera-to-world, relative to the conditioning camera; K in pixels"}
+        (d / CAMERAS).write_text(json.dumps(doc, indent=1))
+        keys.append(key)
+    return keys
+
+
+def _read_frames(folder: Path) -> list[np.ndarray]:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    return [np.asarray(Image.open(p).convert("RGB")) for p in files]
+
+
+def load_clip(clips: Path, key: str) -> dict[str, Any]:
+    d = clips / key
+    doc = json.loads((d / CAMERAS).read_text())
+    return {"doc": doc, "condition": np.asarray(Image.open(d / "condition.png").convert("RGB")),
+            "reference": np.stack(_read_frames(d / "reference")),
+            "c2w": np.asarray(doc["c2w"], dtype=np.float64), "K": np.asarray(doc["K"], dtype=np.float64)}
+
+
+def load_generated(generated: Path, key: str, clip: dict[str, Any]) -> np.ndarray:
+    """The generated frames of a clip, checked against its reference (count and size)."""
+    folder = generated / key
+    if not folder.is_dir():
+        raise FileNotFoundError(f"no generated frames for clip {key}: expected images in {folder}")
+    frames = _read_frames(folder)
+    ref = clip["reference"]
+    if len(frames) == len(ref) + 1:
+        frames = frames[1:]  # the generator's copy of the conditioning image
+    if len(frames) != len(ref):
+        raise ValueError(f"{folder} holds {len(frames)} images; clip {key} needs {len(ref)} (the frames after "
+                         f"the conditioning image) or {len(ref) + 1} (with it)")
+    shapes = {f.shape for f in frames}
+    if shapes != {ref.shape[1:]}:
+        raise ValueError(f"{folder}: frames are {sorted(shapes)}, the reference is {ref.shape[1:]}; "
+                         "generate at the clip's resolution")
+    return np.stack(frames)
+
+
+def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig) -> list[dict[str, Any]]:
+    """Table III and IV rows of one generated clip."""
+    from navcrafter.models.imagemetrics import psnr, ssim
+
+    try:
+        clip = load_clip(clips, key)
+        fake = load_generated(generated, key, clip)
+    except (OSError, ValueError) as exc:
+        return [row("III", "PSNR", status="failed", note=str(exc), scene_id=key)]
+    a, b = fake.astype(np.float64) / 255.0, clip["reference"].astype(np.float64) / 255.0
+    p = np.asarray(psnr(a, b), dtype=np.float64)
+    rows = [row("III", "PSNR", float(np.mean(np.minimum(p, 100.0))), "dB", scene_id=key),
+            row("III", "SSIM", float(np.mean(ssim(a, b))), None, scene_id=key)]
+    try:
+        from navcrafter.models.evalnets.lpips import lpips_distance
+
+        d = lpips_distance(a.astype(np.float32), b.astype(np.float32), net=config.lpips_net,
+                           weights_dir=config.weights_dir)
+        rows.append(row("III", "LPIPS", float(np.mean(d)), None, note=config.lpips_net, scene_id=key))
+    except MetricUnavailable as exc:
+        rows.append(row("III", "LPIPS", status="unavailable", note=str(exc), scene_id=key))
+    if config.camera_guidance:
+        from navcrafter.models.posemetrics import camera_guidance_precision
+
+        frames = np.concatenate([clip["condition"][None], fake])
+        with tempfile.TemporaryDirectory(prefix="navcrafter-colmap-") as work:
+            res = camera_guidance_precision(frames, clip["c2w"], clip["K"][0], work, scale="farthest",
+                                            num_threads=2)
+        reason = res.get("reason") or None
+        rows.append(row("IV", "registered", res["n_registered"] / max(res["n_frames"], 1), "fraction",
+                        note=f"{res['n_registered']} of {res['n_frames']} frames", scene_id=key))
+        for metric, key_, unit in (("R_err", "R_err_deg_sum", "deg (sum over a clip)"),
+                                   ("T_err", "T_err_sum", "unit extent, sum over a clip")):
+            if np.isfinite(res[key_]):
+                rows.append(row("IV", metric, float(res[key_]), unit, note=reason, scene_id=key))
+            else:
+                rows.append(row("IV", metric, status="failed", note=reason or "COLMAP failed", scene_id=key))
+    return rows
+
+
+def clip_distribution_rows(clips: Path, generated: Path, keys: list[str],
+                           config: EvaluationConfig) -> list[dict[str, Any]]:
+    """FID over all frames and FVD over all clips (when the weights are there)."""
+    from navcrafter.models.evalnets import fidfvd
+
+    rows = []
+    for metric in ("FID", "FVD"):
+        try:
+            fidfvd.require_weights(metric, config.weights_dir)
+        except MetricUnavailable as exc:
+            rows.append(row("III", metric, status="unavailable", note=str(exc)))
+            continue
+        real, fake = [], []
+        for key in keys:
+            try:
+                clip = load_clip(clips, key)
+                fake.append(load_generated(generated, key, clip).astype(np.float32) / 255.0)
+                real.append(clip["reference"].astype(np.float32) / 255.0)
+            except (OSError, ValueError):
+                continue
+        if len(fake) < 2:
+            rows.append(row("III", metric, status="unavailable", note=f"needs 2 scored clips (have {len(fake)})"))
+            continue
+        if metric == "FID":
+            a, b = np.concatenate(real), np.concatenate(fake)
+            value = fidfvd.fid(a, b, config.weights_dir, method="gram" if len(a) < 2048 else "sqrtm")
+        else:
+            value = fidfvd.fvd(np.stack(real), np.stack(fake), config.weights_dir,
+                               method="gram" if len(real) < 400 else "sqrtm")
+        rows.append(row("III", metric, value, None, note=f"{len(fake)} clips"))
+    return rows
+
+
+def clip_keys(clips: str | Path) -> list[str]:
+    clips = Path(clips)
+    if not clips.is_dir():
+        raise FileNotFoundError(f"{clips} is not a folder of clips; make one with `navcrafter dataset-clips`")
+    keys = sorted(p.name for p in clips.iterdir() if (p / CAMERAS).is_file())
+    if not keys:
+        raise FileNotFoundError(f"{clips} holds no clips (folders with {CAMERAS}); make them with "
+                                "`navcrafter dataset-clips`")
+    return keys
