@@ -123,8 +123,8 @@ def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig)
         reason = res.get("reason") or None
         rows.append(row("IV", "registered", res["n_registered"] / max(res["n_frames"], 1), "fraction",
                         note=f"{res['n_registered']} of {res['n_frames']} frames", scene_id=key))
-        for metric, key_, unit in (("R_err", "R_err_deg_sum", "deg (sum over a clip)"),
-                                   ("T_err", "T_err_sum", "unit extent, sum over a clip")):
+        for metric, key_, unit in (("R_err", "R_err_deg_sum", "deg, sum per clip"),
+                                   ("T_err", "T_err_sum", "unit extent, sum per clip")):
             if np.isfinite(res[key_]):
                 rows.append(row("IV", metric, float(res[key_]), unit, note=reason, scene_id=key))
             else:

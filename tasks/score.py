@@ -141,8 +141,8 @@ def camera_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[d
     rows = [row("IV", "registered", registered / max(total, 1), "fraction",
                 note=f"{registered} of {total} frames registered by COLMAP")]
     if r_err:
-        rows += [row("IV", "R_err", float(np.mean(r_err)), "deg (sum over a clip)", note=note),
-                 row("IV", "T_err", float(np.mean(t_err)), "unit extent, sum over a clip", note=note)]
+        rows += [row("IV", "R_err", float(np.mean(r_err)), "deg, sum per clip", note=note),
+                 row("IV", "T_err", float(np.mean(t_err)), "unit extent, sum per clip", note=note)]
     else:
         rows += [row("IV", m, status="failed", note="COLMAP registered no clip: " + note) for m in ("R_err", "T_err")]
     return rows
