@@ -24,9 +24,8 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from navcrafter.models.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig
-from navcrafter.tasks.score import row
+from navcrafter.tasks.score import frechet_rows, image_quality_rows, row
 
 CAMERAS = "cameras.json"
 
@@ -94,25 +93,12 @@ def load_generated(generated: Path, key: str, clip: dict[str, Any]) -> np.ndarra
 
 def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig) -> list[dict[str, Any]]:
     """Table III and IV rows of one generated clip."""
-    from navcrafter.models.imagemetrics import psnr, ssim
-
     try:
         clip = load_clip(clips, key)
         fake = load_generated(generated, key, clip)
     except (OSError, ValueError) as exc:
         return [row("III", "PSNR", status="failed", note=str(exc), scene_id=key)]
-    a, b = fake.astype(np.float64) / 255.0, clip["reference"].astype(np.float64) / 255.0
-    p = np.asarray(psnr(a, b), dtype=np.float64)
-    rows = [row("III", "PSNR", float(np.mean(np.minimum(p, 100.0))), "dB", scene_id=key),
-            row("III", "SSIM", float(np.mean(ssim(a, b))), None, scene_id=key)]
-    try:
-        from navcrafter.models.evalnets.lpips import lpips_distance
-
-        d = lpips_distance(a.astype(np.float32), b.astype(np.float32), net=config.lpips_net,
-                           weights_dir=config.weights_dir)
-        rows.append(row("III", "LPIPS", float(np.mean(d)), None, note=config.lpips_net, scene_id=key))
-    except MetricUnavailable as exc:
-        rows.append(row("III", "LPIPS", status="unavailable", note=str(exc), scene_id=key))
+    rows = image_quality_rows(fake, clip["reference"], config, scene_id=key)
     if config.camera_guidance:
         from navcrafter.models.posemetrics import camera_guidance_precision
 
@@ -135,34 +121,19 @@ def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig)
 def clip_distribution_rows(clips: Path, generated: Path, keys: list[str],
                            config: EvaluationConfig) -> list[dict[str, Any]]:
     """FID over all frames and FVD over all clips (when the weights are there)."""
-    from navcrafter.models.evalnets import fidfvd
 
-    rows = []
-    for metric in ("FID", "FVD"):
-        try:
-            fidfvd.require_weights(metric, config.weights_dir)
-        except MetricUnavailable as exc:
-            rows.append(row("III", metric, status="unavailable", note=str(exc)))
-            continue
+    def load() -> tuple[list[np.ndarray], list[np.ndarray]]:
         real, fake = [], []
         for key in keys:
             try:
                 clip = load_clip(clips, key)
-                fake.append(load_generated(generated, key, clip).astype(np.float32) / 255.0)
-                real.append(clip["reference"].astype(np.float32) / 255.0)
+                fake.append(load_generated(generated, key, clip))
+                real.append(clip["reference"])
             except (OSError, ValueError):
                 continue
-        if len(fake) < 2:
-            rows.append(row("III", metric, status="unavailable", note=f"needs 2 scored clips (have {len(fake)})"))
-            continue
-        if metric == "FID":
-            a, b = np.concatenate(real), np.concatenate(fake)
-            value = fidfvd.fid(a, b, config.weights_dir, method="gram" if len(a) < 2048 else "sqrtm")
-        else:
-            value = fidfvd.fvd(np.stack(real), np.stack(fake), config.weights_dir,
-                               method="gram" if len(real) < 400 else "sqrtm")
-        rows.append(row("III", metric, value, None, note=f"{len(fake)} clips"))
-    return rows
+        return real, fake
+
+    return frechet_rows(load, config)
 
 
 def clip_keys(clips: str | Path) -> list[str]:

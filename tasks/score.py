@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import math
 import tempfile
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from navcrafter.models.evalnets.weights import MetricUnavailable
-from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.config import EvaluationConfig, RunConfig
 from navcrafter.schemas.layout import EVALUATE, LIFT, PLAN, SCORE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks.common import open_store, run_step, simulation_truth
@@ -79,8 +80,6 @@ def reference_frames(scene: SceneStore, k: int, idx: np.ndarray) -> np.ndarray |
 
 
 def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[dict[str, Any]]:
-    from navcrafter.models.imagemetrics import psnr, ssim
-
     fake, real = [], []
     for k in range(1, iterations + 1):
         n = scene.status(SYNTHESIZE, k).attrs.get("num_frames") or len(scene.read(PLAN, k, "trajectory"))
@@ -93,21 +92,29 @@ def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> lis
         real.append(ref)
     if not fake:
         return [row("III", m, status="unavailable", note="no iterations") for m in ("PSNR", "SSIM", "LPIPS")]
-    a = np.concatenate(fake).astype(np.float64) / 255.0
-    b = np.concatenate(real).astype(np.float64) / 255.0
+    return image_quality_rows(np.concatenate(fake), np.concatenate(real), config.evaluation, SIM_REFERENCE_NOTE)
+
+
+def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationConfig, note: str | None = None,
+                       scene_id: str | None = None) -> list[dict[str, Any]]:
+    """PSNR, SSIM and LPIPS (mean over frames) of uint8 frames ``fake`` against ``real`` (``N x H x W x 3``)."""
+    from navcrafter.models.imagemetrics import psnr, ssim
+
+    a, b = fake.astype(np.float64) / 255.0, real.astype(np.float64) / 255.0
     p = np.asarray(psnr(a, b), dtype=np.float64)
-    capped = "; identical frames give inf, capped at 100 dB" if np.isinf(p).any() else ""
-    rows = [row("III", "PSNR", float(np.mean(np.minimum(p, 100.0))), "dB", note=SIM_REFERENCE_NOTE + capped),
-            row("III", "SSIM", float(np.mean(ssim(a, b))), None, note=SIM_REFERENCE_NOTE)]
+    capped = "identical frames give inf, capped at 100 dB" if np.isinf(p).any() else None
+    rows = [row("III", "PSNR", float(np.mean(np.minimum(p, 100.0))), "dB",
+                note="; ".join(x for x in (note, capped) if x) or None, scene_id=scene_id),
+            row("III", "SSIM", float(np.mean(ssim(a, b))), None, note=note, scene_id=scene_id)]
     try:
         from navcrafter.models.evalnets.lpips import lpips_distance
 
-        d = lpips_distance(a.astype(np.float32), b.astype(np.float32), net=config.evaluation.lpips_net,
-                           weights_dir=config.evaluation.weights_dir)
-        rows.append(row("III", "LPIPS", float(np.mean(d)), None, note=f"{config.evaluation.lpips_net}; "
-                        + SIM_REFERENCE_NOTE))
+        d = lpips_distance(a.astype(np.float32), b.astype(np.float32), net=config.lpips_net,
+                           weights_dir=config.weights_dir)
+        rows.append(row("III", "LPIPS", float(np.mean(d)), None, scene_id=scene_id,
+                        note="; ".join(x for x in (config.lpips_net, note) if x)))
     except MetricUnavailable as exc:
-        rows.append(row("III", "LPIPS", status="unavailable", note=str(exc)))
+        rows.append(row("III", "LPIPS", status="unavailable", note=str(exc), scene_id=scene_id))
     return rows
 
 
@@ -217,40 +224,52 @@ def distribution_rows(store_uri: str, scene_ids: list[str], config: RunConfig) -
     Needs reference clips (simulation scenes) and the official Inception / I3D weights; otherwise the
     rows say which is missing. Frames are read scene by scene, at ``evaluation.pose_frames`` per clip.
     """
-    from navcrafter.models.evalnets import fidfvd
-
-    rows: list[dict[str, Any]] = []
     store = open_store(store_uri)
-    for metric in ("FID", "FVD"):
-        try:
-            fidfvd.require_weights(metric, config.evaluation.weights_dir)
-        except MetricUnavailable as exc:
-            rows.append(row("III", metric, status="unavailable", note=str(exc)))
-            continue
-        fake, real = [], []
+
+    def clips() -> tuple[list[np.ndarray], list[np.ndarray]]:
+        real, fake = [], []
         for sid in scene_ids:
             scene = store.scene(sid)
             for k in range(1, scene_iterations(scene) + 1):
-                n = len(scene.read(PLAN, k, "trajectory"))
-                idx = clip_indices(n, config.evaluation.pose_frames)
+                idx = clip_indices(len(scene.read(PLAN, k, "trajectory")), config.evaluation.pose_frames)
                 ref = reference_frames(scene, k, idx)
-                if ref is None:
-                    continue
-                fake.append(scene.read(SYNTHESIZE, k, "frames")[idx].astype(np.float32) / 255.0)
-                real.append(ref.astype(np.float32) / 255.0)
+                if ref is not None:
+                    real.append(ref)
+                    fake.append(scene.read(SYNTHESIZE, k, "frames")[idx])
+        return real, fake
+
+    return frechet_rows(clips, config.evaluation, SIM_REFERENCE_NOTE)
+
+
+def frechet_rows(clips: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]], config: EvaluationConfig,
+                 note: str | None = None) -> list[dict[str, Any]]:
+    """FID over all frames and FVD over all clips; ``clips()`` gives (real, fake) lists of uint8
+    ``T x H x W x 3`` clips and is only called when a metric's weights are there."""
+    from navcrafter.models.evalnets import fidfvd
+
+    rows: list[dict[str, Any]] = []
+    loaded: tuple[list[np.ndarray], list[np.ndarray]] | None = None
+    for metric in ("FID", "FVD"):
+        try:
+            fidfvd.require_weights(metric, config.weights_dir)
+        except MetricUnavailable as exc:
+            rows.append(row("III", metric, status="unavailable", note=str(exc)))
+            continue
+        loaded = loaded or clips()
+        real = [c.astype(np.float32) / 255.0 for c in loaded[0]]
+        fake = [c.astype(np.float32) / 255.0 for c in loaded[1]]
         if len(fake) < 2:
-            rows.append(row("III", metric, status="unavailable",
-                            note=f"needs reference clips of at least 2 clips (found {len(fake)})"))
+            rows.append(row("III", metric, status="unavailable", note=f"needs at least 2 clips (have {len(fake)})"))
             continue
         # "gram" is the exact Frechet distance through the samples' Gram matrix: milliseconds for few
         # samples, where sqrtm of the 2048x2048 covariance product takes ~25 s on 2 cores.
-        wd = config.evaluation.weights_dir
         if metric == "FID":
             a, b = np.concatenate(real), np.concatenate(fake)
-            value = fidfvd.fid(a, b, wd, method="gram" if len(a) < 2048 else "sqrtm")
+            value = fidfvd.fid(a, b, config.weights_dir, method="gram" if len(a) < 2048 else "sqrtm")
         else:
-            value = fidfvd.fvd(np.stack(real), np.stack(fake), wd, method="gram" if len(real) < 400 else "sqrtm")
-        rows.append(row("III", metric, value, None, note=f"{len(fake)} clips; " + SIM_REFERENCE_NOTE))
+            value = fidfvd.fvd(np.stack(real), np.stack(fake), config.weights_dir,
+                               method="gram" if len(real) < 400 else "sqrtm")
+        rows.append(row("III", metric, value, None, note="; ".join(x for x in (f"{len(fake)} clips", note) if x)))
     return rows
 
 
