@@ -292,6 +292,78 @@ def status(
     console.print(", ".join(f"{v} {k}" for k, v in counts.items() if v))
 
 
+@app.command()
+def submit(
+    collection: Annotated[Path, typer.Argument(
+        help="A folder of images, one image, or a list file (.txt/.lst/.list: one image path per line).")],
+    store: Annotated[str, typer.Option("--store", help="Store directory (or fsspec URL) the workers write to.")],
+    deployment: Annotated[str, typer.Option(help="Deployment 'flow/name' to create runs of.")] =
+        "explore-collection/default",
+    per_image: Annotated[bool, typer.Option("--per-image", help="One flow run per image (list files always).")] =
+        False,
+    tag: Annotated[Optional[list[str]], typer.Option("--tag", help="Tag for the flow runs (repeatable).")] = None,
+    work_pool: Annotated[Optional[str], typer.Option(
+        help="First create/update the deployment from this checkout on this process work pool.")] = None,
+    preset: Annotated[str, typer.Option(help="Config preset: 'paper' (defaults of the paper) or 'tiny'.")] =
+        "paper",
+    config: Annotated[Optional[Path], typer.Option(help="YAML/JSON config file applied over the preset.")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="Override, e.g. --set lift.max_views=8.")] = None,
+) -> None:
+    """Submit a collection to a Prefect deployment (workers explore it); prints the flow-run ids."""
+    cfg = _load_config(config, preset, _parse_sets(set_ or []))
+    _prefect_env()
+    from navcrafter.flows.submit import (
+        SubmitError,
+        absolute,
+        collection_items,
+        deploy_local,
+        require_server,
+        submit_collection,
+        ui_url,
+    )
+
+    try:  # usage errors first, before the (slow) flow imports
+        collection_items(collection, per_image)
+        require_server()
+    except SubmitError as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(EXIT_USAGE) from None
+    from navcrafter.flows.explore import preflight
+
+    problems = preflight(cfg)
+    if problems:
+        for p in problems:
+            err.print(f"[red]{p}[/red]")
+        raise typer.Exit(EXIT_USAGE)
+    try:
+        if work_pool:
+            flow_name, _, name = deployment.partition("/")
+            if flow_name != "explore-collection" or not name:
+                err.print(f"[red]--work-pool deploys 'explore-collection/NAME'; got --deployment {deployment!r}[/red]")
+                raise typer.Exit(EXIT_USAGE)
+            dep_id = deploy_local(work_pool, name=name)
+            console.print(f"deployment {deployment} ({dep_id}) on work pool {work_pool}")
+        sub = submit_collection(collection, store, cfg, deployment=deployment, per_image=per_image, tags=tag or [])
+    except SubmitError as exc:
+        err.print(f"[red]{exc}[/red]")
+        raise typer.Exit(EXIT_USAGE) from None
+    ui = ui_url()
+    console.print(f"submitted {len(sub.flow_run_ids)} flow run(s) of {sub.deployment}:")
+    for run_id, name, photos in zip(sub.flow_run_ids, sub.names, sub.photos):
+        print(f"flow run {run_id} ({name}): {photos}")  # plain print: one line each, easy to parse
+    console.print("watch them:")
+    if ui:
+        for run_id in sub.flow_run_ids[:5]:
+            console.print(f"  {ui}/runs/flow-run/{run_id}")
+        if len(sub.flow_run_ids) > 5:
+            console.print(f"  ... all runs: {ui}/runs")
+    console.print(f"  prefect flow-run inspect {sub.flow_run_ids[0]}")
+    console.print(f"  navcrafter status {absolute(store)}")
+    console.print("Runs wait for a worker: `prefect worker start --pool POOL` on a machine with navcrafter "
+                  "installed. A killed run is finished by submitting the collection again (completed steps "
+                  "are kept).")
+
+
 def main() -> None:
     _prefect_env()
     app()

@@ -74,12 +74,17 @@ _SOURCE = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _
 _STEP = {**_SOURCE, "task_run_name": _step_run_name}
 identify_task = task(ingest.identify, name="identify", task_run_name=_source_run_name("identify"), **_SOURCE)
 ingest_task = task(ingest.ingest, name="ingest", task_run_name=_source_run_name("ingest"), **_SOURCE)
+# Steps that run learned models carry this tag, so a Prefect tag concurrency limit bounds how many
+# run at once across all flows and workers (one per GPU): `prefect concurrency-limit create
+# navcrafter-gpu <number of GPUs>`. Planning, export and evaluation are CPU work and stay unbounded.
+GPU_TAG = "navcrafter-gpu"
+_GPU = {**_STEP, "tags": [GPU_TAG]}
 STEP_TASKS = {  # Prefect tasks by step name (the order of steps is tasks.pipeline.scene_steps)
-    "geometry": task(geometry.initial_geometry, name="geometry", **_STEP),
+    "geometry": task(geometry.initial_geometry, name="geometry", **_GPU),
     "plan": task(plan.plan, name="plan", **_STEP),
-    "synthesize": task(synthesize.synthesize, name="synthesize", **_STEP),
-    "lift": task(lift.lift, name="lift", **_STEP),
-    "fit": task(fit.fit, name="fit", **_STEP),
+    "synthesize": task(synthesize.synthesize, name="synthesize", **_GPU),
+    "lift": task(lift.lift, name="lift", **_GPU),
+    "fit": task(fit.fit, name="fit", **_GPU),
     "export": task(export.export, name="export", **_STEP),
 }
 evaluate_task = task(evaluate.evaluate_scene, name="evaluate", **_STEP)

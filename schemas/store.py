@@ -6,17 +6,24 @@ Step protocol (what makes runs resumable):
    afresh with ``complete = false``;
 2. the step writes its arrays (validated against ``schemas.layout``) and files;
 3. ``StepWriter.commit()`` sets ``complete = true`` (plus key, timing, backend) in the group's
-   attributes, a single key write, which is atomic on local disks and object stores.
+   attributes, a single write of the group's ``zarr.json`` (``update_attributes``, never
+   ``attrs.update``, which zarr writes once per key), atomic on local disks and object stores.
 
 A step whose group is complete with the expected key is skipped; any other state is rewritten.
 For fault testing, ``NAVCRAFTER_FAULT_INJECT=<group path>`` makes the process kill itself (SIGKILL)
 just before committing that group, e.g. ``iter_1/lift``.
+
+Object stores (S3, MinIO, GCS... through fsspec): see ``Store``. They have no lock, so the scene
+lock is a no-op there; what keeps them consistent is the commit order (arrays and files first, the
+``complete`` marker last, in one PUT of the group's ``zarr.json``) and a check, just before that
+PUT, that the group still belongs to this writer (see ``StepWriter.commit``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import os
 import signal
 import uuid
@@ -52,32 +59,76 @@ class StepStatus:
         return self.attrs.get("key")
 
 
-class Store:
-    """Root of a navcrafter store. ``uri``: a local path, ``file://...`` or any fsspec URL."""
+S3_PROTOCOLS = ("s3", "s3a")
+# where an S3 endpoint other than AWS (MinIO, Ceph, moto...) is read from, first found wins
+S3_ENDPOINT_ENVS = ("FSSPEC_S3_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3", "AWS_ENDPOINT_URL")
 
-    def __init__(self, uri: str | os.PathLike, *, create: bool = True) -> None:
+
+def storage_options_for(uri: str, storage_options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """fsspec storage options for ``uri``: ``storage_options`` over defaults read from the environment.
+
+    For ``s3://`` URLs the endpoint comes from ``FSSPEC_S3_ENDPOINT_URL``, ``AWS_ENDPOINT_URL_S3`` or
+    ``AWS_ENDPOINT_URL`` (read now, not when fsspec was imported), and directory listings are not
+    cached (other processes write the same bucket). Credentials are left to botocore, which reads
+    ``AWS_ACCESS_KEY_ID`` / ``AWS_SECRET_ACCESS_KEY`` / ``AWS_SESSION_TOKEN`` / ``AWS_PROFILE`` etc.
+    """
+    opts: dict[str, Any] = {}
+    protocol = fsspec.core.split_protocol(uri)[0]
+    if protocol in S3_PROTOCOLS:
+        opts["use_listings_cache"] = False
+        endpoint = next((os.environ[v] for v in S3_ENDPOINT_ENVS if os.environ.get(v)), None)
+        if endpoint:
+            opts["endpoint_url"] = endpoint
+    opts.update(storage_options or {})
+    return opts
+
+
+class Store:
+    """Root of a navcrafter store. ``uri``: a local path, ``file://...`` or any fsspec URL.
+
+    On S3 or an S3-compatible server (MinIO, Ceph...), ``uri`` is ``s3://bucket/prefix`` (the bucket
+    must exist; s3fs must be installed). Point it at the server the fsspec/AWS way, e.g. for MinIO::
+
+        export AWS_ENDPOINT_URL=http://minio.local:9000      # or FSSPEC_S3_ENDPOINT_URL
+        export AWS_ACCESS_KEY_ID=...  AWS_SECRET_ACCESS_KEY=...
+        navcrafter explore photos/ --store s3://bucket/stores/run1
+
+    or in Python ``Store("s3://bucket/prefix", storage_options={"endpoint_url": ..., "key": ...,
+    "secret": ...})`` (any s3fs argument; explicit options win over the environment). Worker processes
+    open the store from its URI alone, so with several processes prefer the environment variables.
+
+    Zarr arrays go through ``zarr.storage.FsspecStore`` (async s3fs); tables and export files are
+    written with one PUT each. What object stores do not give: a lock (``scene_lock`` is a no-op,
+    so two runs over one S3 store must not work on the same scene at the same time; a commit that
+    finds another writer took its group over fails rather than marking mixed outputs complete) and
+    table compaction (skipped; readers read every file).
+    """
+
+    def __init__(self, uri: str | os.PathLike, *, create: bool = True,
+                 storage_options: dict[str, Any] | None = None) -> None:
         self.uri = str(uri)
-        self.fs, root = fsspec.core.url_to_fs(self.uri)
+        self.storage_options = storage_options_for(self.uri, storage_options)
+        self.fs, root = fsspec.core.url_to_fs(self.uri, **self.storage_options)
         self.local = isinstance(self.fs, LocalFileSystem)
         self.root = root.rstrip("/") if not self.local else str(Path(root).resolve())
         if self.local:
             zstore = zarr.storage.LocalStore(self.root)
         else:
-            zstore = zarr.storage.FsspecStore.from_url(self.uri)
+            zstore = zarr.storage.FsspecStore.from_url(self.uri, storage_options=self.storage_options)
         self._zstore = zstore
         exists = self.fs.exists(f"{self.root}/zarr.json")
         if not exists and not create:
             raise StoreError(f"no navcrafter store at {self.uri}: run `navcrafter explore` to create one")
         if exists:
-            group = zarr.open_group(store=zstore, mode="r+")
+            group = zarr.open_group(store=zstore, mode="r+", zarr_format=3)
             version = group.attrs.get("navcrafter_schema_version")
             if version != SCHEMA_VERSION:
                 raise StoreError(f"{self.uri} is not a navcrafter store of schema v{SCHEMA_VERSION} "
                                  f"(found {version!r}); use a new store directory")
         else:
             self.fs.makedirs(self.root, exist_ok=True)
-            group = zarr.open_group(store=zstore, mode="a")
-            group.attrs.update({"navcrafter_schema_version": SCHEMA_VERSION})
+            group = zarr.open_group(store=zstore, mode="a", zarr_format=3)
+            group.update_attributes({"navcrafter_schema_version": SCHEMA_VERSION})
         self.group = group
         self.tables = Tables(self.fs, self.root, self.local)
 
@@ -109,7 +160,9 @@ class Store:
         Local stores use ``flock`` on ``locks/<scene_id>.lock``: it works across threads and
         processes on one machine and is released by the kernel when a process dies (even by
         SIGKILL), so a crashed run never leaves a stale lock. Object stores have no such primitive;
-        there the lock is a no-op (locking across machines is part of distributed operation).
+        there the lock is a no-op (locking across machines is part of distributed operation): a
+        crashed or repeated step is still safe, since a group is only trusted once its ``complete``
+        marker, written last, is there, and a rerun rewrites any incomplete group from scratch.
         """
         if not self.local:
             yield
@@ -133,7 +186,8 @@ class SceneStore:
 
     def _open(self, path: str) -> zarr.Group | None:
         try:
-            return zarr.open_group(store=self.store._zstore, path=f"{self.prefix}/{path}", mode="r")
+            return zarr.open_group(store=self.store._zstore, path=f"{self.prefix}/{path}", mode="r",
+                                   zarr_format=3)
         except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
             return None
 
@@ -174,10 +228,10 @@ class SceneStore:
             self.store.fs.rm(self.store.path(full), recursive=True)
         scene_group_ = root.require_group(self.prefix)
         if scene_group_.attrs.get("scene_id") != self.scene_id:
-            scene_group_.attrs.update({"scene_id": self.scene_id})
+            scene_group_.update_attributes({"scene_id": self.scene_id})
         g = root.create_group(full)
         exec_id = uuid.uuid4().hex
-        g.attrs.update({"step": step.name, "complete": False, "key": key, "exec_id": exec_id,
+        g.update_attributes({"step": step.name, "complete": False, "key": key, "exec_id": exec_id,
                         "backend": backend, "started_at": utcnow().isoformat(),
                         "schema_version": SCHEMA_VERSION})
         return StepWriter(self, step, k, g, exec_id)
@@ -242,7 +296,26 @@ class StepWriter:
         final.update({"complete": True, "finished_at": utcnow().isoformat(), "seconds": float(seconds)})
         if os.environ.get(FAULT_ENV) == self.path:
             os.kill(os.getpid(), signal.SIGKILL)  # fault injection: die with the group incomplete
-        self.group.attrs.update(final)
+        if not self.scene.store.local:
+            self._check_still_ours()
+        self.group.update_attributes(final)  # the complete marker: one write of the group's zarr.json
         out = self.group.attrs.asdict()
         assert all(a in out for a in COMMON_ATTRS)
         return out
+
+    def _check_still_ours(self) -> None:
+        """Without a lock (object stores), another run may have restarted this group meanwhile
+        (``begin`` deletes and recreates it). Marking it complete then could certify a mix of two
+        writers' arrays, so refuse: the group stays incomplete and a rerun recomputes it."""
+        store = self.scene.store
+        group_dir = store.path(self.scene.file_rel(self.step, self.k, ""))
+        try:  # one GET and one LIST, bypassing zarr (which would open every array)
+            on_store = json.loads(store.fs.cat_file(f"{group_dir}zarr.json"))["attributes"].get("exec_id")
+            present = {p.rstrip("/").rsplit("/", 1)[-1] for p in store.fs.ls(group_dir, detail=False)}
+        except FileNotFoundError:
+            on_store, present = None, set()
+        missing = sorted(self.written - present)
+        if on_store != self.exec_id or missing:
+            raise StoreError(f"scene {self.scene.scene_id[:12]}: {self.path} was rewritten by another "
+                             f"run (exec_id {on_store!r}, missing arrays {missing}) while this one "
+                             f"wrote it; not committed, rerun to recompute it")

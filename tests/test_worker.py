@@ -1,0 +1,300 @@
+"""Distributed operation with real processes: a Prefect server, a process work pool, the deployment made
+from this checkout, workers, and ``navcrafter submit``; then a worker killed mid-scene.
+
+The server here is its own (own PREFECT_HOME, SQLite), not the session's test server: workers and
+flow runs are separate processes and need a server they can reach over HTTP.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+from conftest import TINY
+from test_flows import _assert_same_outputs, _step_state, completed_counts
+
+from navcrafter.schemas.store import Store
+from navcrafter.tasks.pipeline import scene_steps
+from navcrafter.tasks.report import read_manifest
+
+POOL = "navcrafter-test"
+DEPLOYMENT = "explore-collection/test"
+VENV_BIN = str(Path(sys.executable).parent)
+UUID = re.compile(r"flow run ([0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12})")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _env(home: Path, api_url: str | None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(PATH=f"{VENV_BIN}{os.pathsep}{env.get('PATH', '')}", PREFECT_HOME=str(home),
+               PREFECT_SERVER_ANALYTICS_ENABLED="false", PREFECT_WORKER_QUERY_SECONDS="1",
+               PREFECT_LOGGING_LEVEL="INFO")
+    if api_url:
+        env["PREFECT_API_URL"] = api_url
+    return env
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (Linux /proc; psutil is not a dependency)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        out += kids
+        todo += kids
+    return out
+
+
+def _kill_tree(proc: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
+    """Kill a process started with start_new_session=True: its group and the groups of its descendants
+    (Prefect starts each flow run in a session of its own)."""
+    groups = {proc.pid}
+    for pid in _descendants(proc.pid):
+        try:
+            groups.add(os.getpgid(pid))
+        except ProcessLookupError:
+            pass
+    groups.discard(os.getpgrp())
+    for pgid in groups:
+        try:
+            os.killpg(pgid, sig)
+        except ProcessLookupError:
+            pass
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+
+
+def _tail(path: Path, n: int = 4000) -> str:
+    return path.read_text(errors="replace")[-n:] if path.exists() else ""
+
+
+def _get(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    home = tmp_path_factory.mktemp("prefect-home")
+    port = _free_port()
+    api = f"http://127.0.0.1:{port}/api"
+    log = home / "server.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen([f"{VENV_BIN}/prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+                                env=_env(home, None), stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.time() + 120
+        while True:
+            try:
+                _get(f"{api}/health")
+                break
+            except OSError:
+                if proc.poll() is not None or time.time() > deadline:
+                    raise RuntimeError(f"the Prefect server did not start:\n{_tail(log)}") from None
+                time.sleep(0.5)
+        res = subprocess.run([f"{VENV_BIN}/prefect", "work-pool", "create", "--type", "process", POOL],
+                             env=_env(home, api), capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stdout + res.stderr
+        yield {"api": api, "home": home}
+    finally:
+        _kill_tree(proc, signal.SIGTERM)
+
+
+class Worker:
+    def __init__(self, server, log: Path) -> None:
+        self.log = log
+        with open(log, "ab") as out:
+            self.proc = subprocess.Popen([f"{VENV_BIN}/prefect", "worker", "start", "--pool", POOL],
+                                         env=_env(server["home"], server["api"]), stdout=out,
+                                         stderr=subprocess.STDOUT, start_new_session=True)
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            _kill_tree(self.proc)
+
+
+@pytest.fixture
+def start_worker(server, tmp_path):
+    workers: list[Worker] = []
+
+    def start() -> Worker:
+        workers.append(Worker(server, tmp_path / f"worker-{len(workers)}.log"))
+        return workers[-1]
+
+    yield start
+    for w in workers:
+        w.kill()
+
+
+def _submit(server, collection: Path, store: Path, *extra: str) -> list[str]:
+    res = subprocess.run([sys.executable, "-m", "navcrafter.flows.cli", "submit", str(collection), "--store",
+                          str(store), "--preset", "tiny", "--deployment", DEPLOYMENT, "--work-pool", POOL, *extra],
+                         env=_env(server["home"], server["api"]), capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stdout + res.stderr
+    ids = UUID.findall(res.stdout)
+    assert ids and f"{server['api'].removesuffix('/api')}/runs/flow-run/{ids[0]}" in res.stdout  # dashboard
+    return ids
+
+
+def _state(server, run_id: str) -> str:
+    return _get(f"{server['api']}/flow_runs/{run_id}")["state"]["type"]
+
+
+def _wait_completed(server, ids: list[str], workers: list[Worker], timeout: float = 240) -> None:
+    deadline = time.time() + timeout
+    states: dict[str, str] = {}
+    while time.time() < deadline:
+        states = {i: _state(server, i) for i in ids}
+        if all(s == "COMPLETED" for s in states.values()):
+            return
+        if any(s in ("FAILED", "CRASHED", "CANCELLED") for s in states.values()):
+            break
+        time.sleep(1)
+    logs = "\n".join(_tail(w.log) for w in workers)
+    raise AssertionError(f"flow runs did not complete: {states}\n{logs}")
+
+
+@pytest.fixture(scope="module")
+def two_photos(tmp_path_factory) -> Path:
+    from navcrafter.models.simulation.demo import write_demo_collection
+
+    folder = tmp_path_factory.mktemp("worker-demo") / "photos"
+    write_demo_collection(folder, ("room", "tabletop"), width=320, height=240, supersample=1)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(server, two_photos, tmp_path_factory):
+    """The two images explored by a worker from one submitted run, uninterrupted."""
+    store = tmp_path_factory.mktemp("worker-full") / "store"
+    worker = Worker(server, store.parent / "worker.log")
+    try:
+        ids = _submit(server, two_photos, store, "--tag", "test")
+        assert len(ids) == 1
+        _wait_completed(server, ids, [worker])
+    finally:
+        worker.kill()
+    run = _get(f"{server['api']}/flow_runs/{ids[0]}")
+    return store, run
+
+
+@pytest.mark.slow
+def test_submitted_collection_is_explored_by_a_worker(uninterrupted, two_photos):
+    store, run = uninterrupted
+    assert {"navcrafter", "test"} <= set(run["tags"])
+    assert run["parameters"]["store"] == str(store) and run["parameters"]["config"]["iterations"] == TINY.iterations
+    manifest = {Path(r["source"]).name: r for r in read_manifest(Store(str(store))).to_pylist()}
+    assert {k: v["status"] for k, v in manifest.items()} == {"room-0.png": "done", "tabletop-0.png": "done"}
+    counts = completed_counts(store)
+    assert len(counts) == 2 * (2 + len(scene_steps(TINY))) and set(counts.values()) == {1}  # + input, evaluation
+
+
+@pytest.mark.slow
+def test_submit_errors_are_clear(server, two_photos, tmp_path):
+    env = _env(server["home"], server["api"])
+    base = [sys.executable, "-m", "navcrafter.flows.cli", "submit", str(two_photos), "--store", str(tmp_path / "s"),
+            "--preset", "tiny"]
+    res = subprocess.run([*base, "--deployment", "explore-collection/nope"], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 2 and "no deployment" in res.stderr and "prefect deploy" in res.stderr, res.stderr
+    env.pop("PREFECT_API_URL")
+    res = subprocess.run(base, env=env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "prefect server start" in res.stderr, res.stderr
+    listing = tmp_path / "photos.txt"
+    listing.write_text(f"{two_photos / 'room-0.png'}\nmissing.png\n")
+    res = subprocess.run([*base[:4], str(listing), *base[5:]], env={**env, "PREFECT_API_URL": server["api"]},
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "missing.png" in res.stderr, res.stderr
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.slow
+def test_worker_killed_mid_scene_then_resubmitted(server, start_worker, uninterrupted, two_photos, tmp_path):
+    store = tmp_path / "store"
+    worker = start_worker()
+    [first] = _submit(server, two_photos, store)
+    deadline = time.time() + 240
+    killed_at = None
+    while time.time() < deadline:
+        state = _step_state(store) if (store / "zarr.json").exists() else {}
+        done = {(sid, p) for (sid, p), (complete, _) in state.items() if complete}
+        if any(p == "iter_1/synthesize" for _, p in done) and sum(p == "exports" for _, p in done) == 0:
+            worker.kill()  # the worker and its flow run process: nothing is left to finish the run
+            killed_at = state
+            break
+        if _state(server, first) in ("COMPLETED", "FAILED", "CRASHED"):
+            break
+        time.sleep(0.05)
+    assert killed_at is not None, f"the run ended before it could be killed\n{_tail(worker.log)}"
+    time.sleep(1)
+    after_kill = _step_state(store)
+    assert not any(p == "exports" and c for (_, p), (c, _) in after_kill.items())  # really killed mid-scene
+    assert _state(server, first) in ("RUNNING", "CRASHED")  # nobody finishes it: it is resubmitted
+
+    # a new worker; the collection resubmitted as a list file, one run per image (two runs at once)
+    worker = start_worker()
+    listing = tmp_path / "photos.txt"
+    listing.write_text("# the two demo photos\nroom-0.png\n\ntabletop-0.png\n")
+    (tmp_path / "room-0.png").symlink_to(two_photos / "room-0.png")
+    (tmp_path / "tabletop-0.png").symlink_to(two_photos / "tabletop-0.png")
+    ids = _submit(server, listing, store, "--tag", "resubmitted")
+    assert len(ids) == 2
+    _wait_completed(server, ids, [worker])
+    after = _step_state(store)
+    for path, (complete, exec_id) in after_kill.items():
+        if complete:
+            assert after[path] == (True, exec_id), path  # completed steps were not recomputed
+    assert all(c == 1 for c in completed_counts(store).values())
+    manifest = read_manifest(Store(str(store))).to_pylist()
+    assert {r["scene_id"]: r["status"] for r in manifest} == dict.fromkeys(Store(str(store)).scene_ids(), "done")
+    _assert_same_outputs(uninterrupted[0], store)  # identical to the uninterrupted run
+
+
+def test_collection_items_and_list_files(tmp_path, monkeypatch):
+    from navcrafter.flows.submit import SubmitError, absolute, collection_items, ui_url
+
+    photos = tmp_path / "photos"
+    (photos / "sub").mkdir(parents=True)
+    for name in ("a.png", "sub/b.png", ".groundtruth"):
+        (photos / name).write_bytes(b"x")
+    assert collection_items(photos, per_image=False) == [str(photos.resolve())]
+    assert collection_items(photos, per_image=True) == [str(photos / "a.png"), str(photos / "sub" / "b.png")]
+    listing = tmp_path / "list.txt"
+    listing.write_text("# comment\n\nphotos/a.png\n  s3://bucket/c.png  \n" + str(photos / "sub/b.png") + "\n")
+    assert collection_items(listing, per_image=False) == [str(photos / "a.png"), "s3://bucket/c.png",
+                                                         str(photos / "sub" / "b.png")]
+    listing.write_text("# nothing\n")
+    with pytest.raises(SubmitError, match="names no images"):
+        collection_items(listing, per_image=False)
+    with pytest.raises(SubmitError, match="does not exist"):
+        collection_items(tmp_path / "nope", per_image=False)
+    assert absolute("s3://b/store") == "s3://b/store" and absolute("rel") == str(Path("rel").resolve())
+    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
+
+    with temporary_settings({PREFECT_API_URL: "http://h:4200/api"}):
+        assert ui_url() == "http://h:4200"
+    with temporary_settings({PREFECT_API_URL: "http://h:4200/api", PREFECT_UI_URL: "https://ui.example/"}):
+        assert ui_url() == "https://ui.example"
