@@ -174,8 +174,8 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
     """Explore every image of a collection into ``store``; one result per image (or per scene, when
     several files hold the same image).
 
-    The thread pool size is set by the caller (``with_options``); the CLI uses
-    ``config.max_parallel_scenes``.
+    At most ``config.max_parallel_scenes`` scenes run at once (the thread pool, 2 by default, can be
+    resized with ``with_options``; the CLI sizes it to the same number).
     """
     problems = preflight(config)
     if problems:
@@ -211,9 +211,17 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
                 SceneResult(sid, by_scene[sid], "pending", step="ingest", backend=config.backend), run_id))
         else:
             fail(sid, by_scene.pop(sid), res)
-    futures = {sid: scene_task.submit(store, sid, config, run_id, srcs) for sid, srcs in by_scene.items()}
-    for sid, fut in futures.items():
+    # at most max_parallel_scenes scenes in flight, whatever the task runner's size (deployment runs
+    # use the decorator's pool; scene i + n starts when scene i is done)
+    items = list(by_scene.items())
+    n = config.max_parallel_scenes
+    futures = {sid: scene_task.submit(store, sid, config, run_id, srcs) for sid, srcs in items[:n]}
+    for i, (sid, _) in enumerate(items):
+        fut = futures[sid]
         fut.wait()
+        if i + n < len(items):
+            nxt, srcs = items[i + n]
+            futures[nxt] = scene_task.submit(store, nxt, config, run_id, srcs)
         res = fut.state.result(raise_on_failure=False)
         if not isinstance(res, SceneResult):  # the orchestration itself broke for this scene
             res = SceneResult(sid, by_scene[sid], "failed", error=f"scene run crashed: {res!r}",
