@@ -22,6 +22,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
 from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.tables import utcnow
+from navcrafter.tasks import clips as clip_tasks
 from navcrafter.tasks import score
 from navcrafter.tasks.common import open_store
 from navcrafter.tasks.report import read_manifest
@@ -51,6 +52,8 @@ def evaluable_scenes(store_uri: str) -> tuple[list[str], dict[str, str]]:
 score_task = task(score.score_scene, name="score", task_run_name="score-{scene_id:.12}",
                   retries=1, retry_delay_seconds=2)
 distribution_task = task(score.distribution_rows, name="fid-fvd")
+score_clip_task = task(clip_tasks.score_clip, name="score-clip", task_run_name="score-clip-{key}")
+clip_distribution_task = task(clip_tasks.clip_distribution_rows, name="fid-fvd")
 
 
 @flow(name="evaluate-store", persist_result=False)
@@ -109,13 +112,11 @@ def evaluate_clips(clips: str, generated: str, out: str, config: EvaluationConfi
     import pyarrow.parquet as pq
 
     from navcrafter.schemas.tables import to_table
-    from navcrafter.tasks import clips as clip_tasks
 
     evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
     keys = clip_tasks.clip_keys(clips)
     result = EvaluationRun(evaluation_id)
-    score_clip = task(clip_tasks.score_clip, name="score-clip", task_run_name="score-clip-{key}")
-    futures = [score_clip.submit(Path(clips), Path(generated), key, config) for key in keys]
+    futures = [score_clip_task.submit(Path(clips), Path(generated), key, config) for key in keys]
     for key, fut in zip(keys, futures):
         rows = fut.result()
         result.rows += rows
@@ -123,8 +124,7 @@ def evaluate_clips(clips: str, generated: str, out: str, config: EvaluationConfi
         if failed:
             result.failed[key] = failed[0]
     scored = [k for k in keys if k not in result.failed]
-    result.rows += task(clip_tasks.clip_distribution_rows, name="fid-fvd")(Path(clips), Path(generated),
-                                                                              scored, config)
+    result.rows += clip_distribution_task(Path(clips), Path(generated), scored, config)
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     now = utcnow()

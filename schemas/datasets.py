@@ -253,6 +253,16 @@ def _read_image(path: Path) -> np.ndarray:
         raise DatasetError(f"cannot read image {path} (corrupt or truncated?): {e}; re-extract or remove it") from None
 
 
+def _read_lines(path: Path, what: str) -> list[str]:
+    """The lines of a text file, or a ``DatasetError`` naming ``what`` and the file."""
+    try:
+        return path.read_text().splitlines()
+    except FileNotFoundError:
+        raise DatasetError(f"{what} {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise DatasetError(f"cannot read {what} {path}: {e}") from None
+
+
 def _rescale_K(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int], where: str) -> np.ndarray:
     """Intrinsics of an image of ``size_from`` resampled (whole extent) to ``size_to`` (width, height)."""
     (w0, h0), (w1, h1) = size_from, size_to
@@ -305,12 +315,7 @@ class RE10KCameras:
 def read_re10k_cameras(path: str | Path) -> RE10KCameras:
     """Parse a RealEstate10K camera file (URL line, then 19 numbers per frame; see the module doc)."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"RealEstate10K camera file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read RealEstate10K camera file {path}: {e}") from None
+    lines = _read_lines(path, "RealEstate10K camera file")
     if not lines or not lines[0].strip():
         raise DatasetError(f"{path}: empty file; a RealEstate10K camera file starts with the video URL line")
     url = lines[0].strip()
@@ -426,12 +431,7 @@ def read_nerfstudio_transforms(path: str | Path) -> tuple[list[NerfstudioFrame],
 def read_trajectory_log(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Parse a TnT/Redwood ``.log``: metadata ``[N, 3]`` int and camera-to-world ``[N, 4, 4]``."""
     path = Path(path)
-    try:
-        raw = path.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"camera log {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read camera log {path}: {e}") from None
+    raw = _read_lines(path, "camera log")
     lines = [(n, ln.split()) for n, ln in enumerate(raw, start=1) if ln.strip()]
     if not lines:
         raise DatasetError(f"{path}: empty camera log")
@@ -472,12 +472,7 @@ def read_colmap_cameras(path: str | Path) -> dict[int, tuple[str, Intrinsics]]:
     the top-left pixel at (0.5, 0.5)) is navcrafter's, so ``cx, cy`` are used as they are.
     """
     path = Path(path)
-    try:
-        raw = path.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"COLMAP cameras file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read COLMAP cameras file {path}: {e}") from None
+    raw = _read_lines(path, "COLMAP cameras file")
     out: dict[int, tuple[str, Intrinsics]] = {}
     for n, line in enumerate(raw, start=1):
         tok = line.split()

@@ -93,6 +93,17 @@ def run_step(store_uri: str, scene_id: str, step: StepSpec, k: int | None, confi
         return _run_step_locked(store, scene_id, step, k, config, run_id, body, prepare)
 
 
+def run_step_attrs(store_uri: str, scene_id: str, step: StepSpec, config: RunConfig, run_id: str,
+                   body: Callable[[StepWriter, int, Any], dict[str, Any]]) -> dict[str, Any]:
+    """``run_step`` for a step whose result is its attributes (evaluation, scores): runs or skips it,
+    then returns the committed attributes, read back so that a skipped step returns the same."""
+    ref = run_step(store_uri, scene_id, step, None, config, run_id, body)
+    status = open_store(store_uri).scene(scene_id).status(step)
+    if status.key != ref.key:
+        raise RuntimeError(f"scene {scene_id[:12]}: {step.path} changed while being read; run again")
+    return status.attrs
+
+
 def _run_step_locked(store: Store, scene_id: str, step: StepSpec, k: int | None, config: RunConfig,
                      run_id: str, body, prepare) -> StepRef:
     scene = store.scene(scene_id)

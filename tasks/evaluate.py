@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, EXPORT, GEOMETRY, LIFT, PLAN
 from navcrafter.schemas.tables import utcnow
-from navcrafter.tasks.common import load_cloud, open_store, run_step, simulation_truth
+from navcrafter.tasks.common import load_cloud, open_store, run_step_attrs, simulation_truth
 from navcrafter.tasks.plan import planner_config, scene_centre
 
 THRESHOLD_M = 0.02
@@ -79,11 +79,8 @@ def evaluate_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str
                                        for k, v in metrics.items()], part=f"scene-{scene_id}-{writer.exec_id}")
         return {"metrics": metrics, "iterations": config.iterations}
 
-    ref = run_step(store_uri, scene_id, EVALUATE, None, config, run_id, body)
-    status = open_store(store_uri).scene(scene_id).status(EVALUATE)
-    if status.key != ref.key:
-        raise RuntimeError(f"scene {scene_id[:12]}: evaluation changed while being read; run again")
-    return {k: float(v) for k, v in status.attrs["metrics"].items()}
+    attrs = run_step_attrs(store_uri, scene_id, EVALUATE, config, run_id, body)
+    return {k: float(v) for k, v in attrs["metrics"].items()}
 
 
 def compute_metrics(scene, config: RunConfig) -> dict[str, float]:

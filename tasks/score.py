@@ -29,7 +29,7 @@ from navcrafter.models.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
 from navcrafter.schemas.layout import EVALUATE, LIFT, PLAN, SCORE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
-from navcrafter.tasks.common import open_store, run_step, simulation_truth
+from navcrafter.tasks.common import open_store, run_step_attrs, simulation_truth
 
 TABLES = {
     "III": "Synthesis quality",
@@ -82,8 +82,7 @@ def reference_frames(scene: SceneStore, k: int, idx: np.ndarray) -> np.ndarray |
 def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[dict[str, Any]]:
     fake, real = [], []
     for k in range(1, iterations + 1):
-        n = scene.status(SYNTHESIZE, k).attrs.get("num_frames") or len(scene.read(PLAN, k, "trajectory"))
-        idx = clip_indices(int(n), config.evaluation.pose_frames)
+        idx = clip_indices(len(scene.read(PLAN, k, "trajectory")), config.evaluation.pose_frames)
         ref = reference_frames(scene, k, idx)
         if ref is None:
             note = "no reference frames for a single photo (score dataset clips for these metrics)"
@@ -210,11 +209,7 @@ def score_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -
     def body(writer, seed, _):
         return {"rows": scene_rows(open_store(store_uri).scene(scene_id), config)}
 
-    ref = run_step(store_uri, scene_id, SCORE, None, config, run_id, body)
-    status = open_store(store_uri).scene(scene_id).status(SCORE)
-    if status.key != ref.key:
-        raise RuntimeError(f"scene {scene_id[:12]}: scores changed while being read; run again")
-    return [dict(r) for r in status.attrs["rows"]]
+    return [dict(r) for r in run_step_attrs(store_uri, scene_id, SCORE, config, run_id, body)["rows"]]
 
 
 # -- over all scenes: FID / FVD --------------------------------------------------------------------
