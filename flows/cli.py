@@ -79,7 +79,8 @@ def _load_config(path: Optional[Path], preset: str, overrides: dict):
 
 @app.command()
 def explore(
-    photos: Annotated[Path, typer.Argument(help="A folder of images (searched recursively) or one image.")],
+    photos: Annotated[str, typer.Argument(
+        help="A folder of images (searched recursively), one image, or an fsspec URL prefix (s3://bucket/photos/).")],
     store: Annotated[str, typer.Option("--store", help="Store directory (or fsspec URL) for all outputs.")],
     preset: Annotated[str, typer.Option(help="Config preset: 'paper' (defaults of the paper) or 'tiny'.")] =
         "paper",
@@ -88,6 +89,9 @@ def explore(
     backend: Annotated[Optional[str], typer.Option(help="'simulation' or 'onnx'.")] = None,
     models: Annotated[Optional[Path], typer.Option(help="Directory of exported ONNX models.")] = None,
     parallel: Annotated[Optional[int], typer.Option(min=1, help="Scenes processed at once.")] = None,
+    scene_deployment: Annotated[Optional[str], typer.Option(
+        help="Run each scene as a flow run of this deployment (e.g. explore-scene/NAME on a GPU work pool; "
+             "needs PREFECT_API_URL) instead of in this process.")] = None,
 ) -> None:
     """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
     from navcrafter.models.simulation import LABEL
@@ -100,7 +104,15 @@ def explore(
     if parallel is not None:
         overrides["max_parallel_scenes"] = parallel
     cfg = _load_config(config, preset, overrides)
-    if not photos.exists():
+    if "://" in photos:
+        from navcrafter.tasks.ingest import CollectionError, list_collection
+
+        try:
+            list_collection(photos)
+        except CollectionError as exc:
+            err.print(f"[red]{exc}[/red]")
+            raise typer.Exit(EXIT_USAGE) from None
+    elif not Path(photos).exists():
         err.print(f"[red]{photos} does not exist[/red]; make a demo collection with "
                   f"`navcrafter demo-data {photos}`")
         raise typer.Exit(EXIT_USAGE)
@@ -116,9 +128,19 @@ def explore(
         for p in problems:
             err.print(f"[red]{p}[/red]")
         raise typer.Exit(EXIT_USAGE)
+    if scene_deployment:  # scene runs go to workers elsewhere: they need a server they can reach
+        from navcrafter.flows.dispatch import DispatchError, check_scene_deployment
+        from navcrafter.flows.submit import SubmitError, require_server
+
+        try:
+            require_server()
+            check_scene_deployment(scene_deployment)
+        except (SubmitError, DispatchError) as exc:
+            err.print(f"[red]{exc}[/red]")
+            raise typer.Exit(EXIT_USAGE) from None
 
     flow_ = explore_collection.with_options(task_runner=ThreadPoolTaskRunner(max_workers=cfg.max_parallel_scenes))
-    run = flow_(str(photos), store, cfg)
+    run = flow_(photos, store, cfg, scene_deployment=scene_deployment)
     results = run.scenes
     from navcrafter.tasks.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
 
@@ -133,7 +155,10 @@ def explore(
         console.print(line)
     console.print(f"outputs: {store}/scenes/<scene id>/exports/ ({EXPORT_FILES})")
     failed = [r for r in results if r.status != "done"]
-    console.print(f"summary: {store}/{run.summary}   status: navcrafter status {store}")
+    if run.summary:
+        console.print(f"summary: {store}/{run.summary}   status: navcrafter status {store}")
+    for note in run.store_errors:  # the store was down or full: the table above is all there is
+        err.print(f"[yellow]{note}[/yellow]")
     if failed:
         err.print(f"[red]{len(failed)} of {len(results)} images failed[/red] (see the error column); "
                   f"completed work is kept, rerun the same command to retry.")
@@ -249,8 +274,14 @@ def status(
     store: Annotated[str, typer.Argument(help="Store directory or URL.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the manifest as JSON lines.")] = False,
     compact: Annotated[bool, typer.Option(help="Merge the store's table files first.")] = False,
+    api_url: Annotated[Optional[str], typer.Option(
+        help="Prefect API to read the runs' states from (default: PREFECT_API_URL).")] = None,
+    no_progress_after: Annotated[float, typer.Option(
+        min=1, help="Seconds without a finished step before a RUNNING scene is flagged.")] = 1800.0,
 ) -> None:
-    """Show the manifest: one row per image with its status, last step, metrics and error."""
+    """Show the manifest (one row per image: status, last step, metrics, error) beside the Prefect
+    state of its flow run, and flag scenes that need action (stale, possibly dead worker)."""
+    from navcrafter.flows.runstates import run_states
     from navcrafter.schemas.store import Store, StoreError
     from navcrafter.tasks.report import read_manifest
 
@@ -263,26 +294,43 @@ def status(
         for name in ("manifest", "steps", "metrics", "evaluations"):
             st.tables.compact(name)
     rows = read_manifest(st).to_pylist()
+    states = run_states(st, rows, api_url, no_progress_after=no_progress_after)
     if as_json:
-        for r in rows:
+        for r, s in zip(rows, states.scenes):
             r["updated_at"] = r["updated_at"].isoformat()
             r["timings"] = dict(r["timings"] or [])
             r["metrics"] = dict(r["metrics"] or [])
+            run = s.run
+            r.update({"prefect_api": "reachable" if states.reachable else "unknown",
+                      "prefect_state": s.prefect_state, "prefect_state_name": run.state_name if run else None,
+                      "prefect_flow_run_id": run.id if run else None,
+                      "prefect_flow_run_name": run.name if run else None,
+                      "prefect_collection_state": s.collection_run.state if s.collection_run else None,
+                      "last_progress_at": s.last_progress.isoformat() if s.last_progress else None,
+                      "issue": s.issue, "advice": s.advice})
             print(json.dumps(r))
         return
     if not rows:
         console.print(f"{store}: no images yet")
         return
     table = Table(title=f"navcrafter store {store}")
-    for col in ("image", "scene", "status", "step", "backend", "points", "median dist.", "seconds", "error"):
+    columns = ["image", "scene", "status", "prefect", "step", "backend", "points", "median dist.", "seconds", "error"]
+    if not states.reachable:
+        columns.remove("prefect")
+    for col in columns:
         table.add_column(col, overflow="fold")
-    for r in rows:
+    for r, s in zip(rows, states.scenes):
         metrics = dict(r["metrics"] or [])
         med = metrics.get("cloud_median_dist_m")
         colour = {"done": "green", "failed": "red", "running": "yellow"}.get(r["status"], "")
+        prefect = []
+        if states.reachable:
+            state = (s.run.state_name or s.run.state or "?") if s.run else "not found"
+            prefect = [f"[red]{state} ({s.issue})[/red]" if s.issue else state]
         table.add_row(Path(r["source"]).name, (r["scene_id"] or "")[:12], f"[{colour}]{r['status']}[/{colour}]",
-                      r["step"] or "", r["backend"] or "", "" if r["n_points"] is None else str(r["n_points"]),
-                      "" if med is None else f"{med:.4f} m", f"{r['seconds'] or 0:.1f}", r["error"] or "")
+                      *prefect, r["step"] or "", r["backend"] or "",
+                      "" if r["n_points"] is None else str(r["n_points"]), "" if med is None else f"{med:.4f} m",
+                      f"{r['seconds'] or 0:.1f}", r["error"] or "")
     console.print(table)
     if any(r["backend"] == "simulation" for r in rows):
         from navcrafter.models.simulation import LABEL
@@ -290,12 +338,17 @@ def status(
         console.print(f"[yellow]backend 'simulation': {LABEL}.[/yellow]")
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "running", "failed", "pending")}
     console.print(", ".join(f"{v} {k}" for k, v in counts.items() if v))
+    if not states.reachable:
+        console.print(f"Prefect state: unknown ({states.error}); the table shows the store's manifest only.")
+    for s in states.issues:
+        console.print(f"[red]{Path(s.source).name} ({(s.scene_id or '')[:12]}): {s.issue}[/red]: {s.advice}")
 
 
 @app.command()
 def submit(
-    collection: Annotated[Path, typer.Argument(
-        help="A folder of images, one image, or a list file (.txt/.lst/.list: one image path per line).")],
+    collection: Annotated[str, typer.Argument(
+        help="A folder of images, one image, a list file (.txt/.lst/.list: one image path per line), or an "
+             "fsspec URL prefix (s3://bucket/photos/).")],
     store: Annotated[str, typer.Option("--store", help="Store directory (or fsspec URL) the workers write to.")],
     deployment: Annotated[str, typer.Option(help="Deployment 'flow/name' to create runs of.")] =
         "explore-collection/default",
@@ -304,6 +357,12 @@ def submit(
     tag: Annotated[Optional[list[str]], typer.Option("--tag", help="Tag for the flow runs (repeatable).")] = None,
     work_pool: Annotated[Optional[str], typer.Option(
         help="First create/update the deployment from this checkout on this process work pool.")] = None,
+    scene_deployment: Annotated[Optional[str], typer.Option(
+        help="The runs start each scene as a flow run of this deployment (explore-scene/NAME).")] = None,
+    scene_pool: Annotated[Optional[str], typer.Option(
+        help="First create/update explore-scene/NAME (NAME: --scene-deployment's, else --deployment's) from "
+             "this checkout on this process work pool (e.g. GPU machines' workers), and dispatch scenes to it.")] =
+        None,
     preset: Annotated[str, typer.Option(help="Config preset: 'paper' (defaults of the paper) or 'tiny'.")] =
         "paper",
     config: Annotated[Optional[Path], typer.Option(help="YAML/JSON config file applied over the preset.")] = None,
@@ -313,6 +372,8 @@ def submit(
     cfg = _load_config(config, preset, _parse_sets(set_ or []))
     _prefect_env()
     from navcrafter.flows.submit import (
+        SCENE_ENTRYPOINT,
+        SCENE_FLOW_NAME,
         SubmitError,
         absolute,
         collection_items,
@@ -343,7 +404,18 @@ def submit(
                 raise typer.Exit(EXIT_USAGE)
             dep_id = deploy_local(work_pool, name=name)
             console.print(f"deployment {deployment} ({dep_id}) on work pool {work_pool}")
-        sub = submit_collection(collection, store, cfg, deployment=deployment, per_image=per_image, tags=tag or [])
+        if scene_pool:
+            scene_dep = scene_deployment or f"{SCENE_FLOW_NAME}/{deployment.partition('/')[2] or 'default'}"
+            flow_name, _, name = scene_dep.partition("/")
+            if flow_name != SCENE_FLOW_NAME or not name:
+                err.print(f"[red]--scene-pool deploys '{SCENE_FLOW_NAME}/NAME'; got --scene-deployment "
+                          f"{scene_deployment!r}[/red]")
+                raise typer.Exit(EXIT_USAGE)
+            dep_id = deploy_local(scene_pool, name=name, entrypoint=SCENE_ENTRYPOINT)
+            console.print(f"deployment {scene_dep} ({dep_id}) on work pool {scene_pool}: scenes run there")
+            scene_deployment = scene_dep
+        sub = submit_collection(collection, store, cfg, deployment=deployment, per_image=per_image, tags=tag or [],
+                                scene_deployment=scene_deployment)
     except SubmitError as exc:
         err.print(f"[red]{exc}[/red]")
         raise typer.Exit(EXIT_USAGE) from None

@@ -2,27 +2,33 @@
 
 * ``explore_collection(photos, store, config)`` ingests every file of a collection and explores each
   valid image as its own ``explore_scene`` flow run, several at once; a failing image is recorded in
-  the manifest and never stops the others.
+  the manifest and never stops the others. With ``scene_deployment`` the scenes are flow runs of that
+  deployment (e.g. on a GPU work pool) instead of in-process subflows (``flows/dispatch.py``).
 * ``explore_scene(store, scene_id, config, run_id, sources)``: initial geometry, then N x (plan ->
-  synthesize -> lift), then (fit, when built) and export. Each step is a Prefect task whose body
+  synthesize -> lift), then fit (when fit.enabled) and export. Each step is a Prefect task whose body
   skips itself when its group in the store is already complete: rerunning after a crash resumes.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import PurePath
 
 from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact
+from prefect.concurrency.sync import concurrency
 from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
+from navcrafter.flows import dashboard, dispatch
 from navcrafter.models.backends import ONNX_NOT_BUILT
 from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
 from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, synthesize
-from navcrafter.tasks.common import StepError, open_store
+from navcrafter.tasks.common import StepError, logger, open_store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import (
     SceneResult,
@@ -35,20 +41,39 @@ from navcrafter.tasks.report import (
     write_summary,
 )
 
-TRANSIENT = (OSError, TimeoutError, ConnectionError)
+TRANSIENT = (OSError, TimeoutError, ConnectionError, StoreUnavailable)
 
 
 def _transient(task_, task_run_, state) -> bool:
-    """Retry only errors that can go away (I/O, network); never bad input or bugs."""
+    """Retry only errors that can go away (I/O, network, the store unreachable); never bad input or
+    bugs, and never a full disk (``StoreFull``): it does not free itself within the retry delays, and
+    each retry would recompute the step only to fill the disk again; the error says to free space."""
     try:
         state.result()
-    except StepError as exc:
-        return isinstance(exc.cause, TRANSIENT)
-    except TRANSIENT:
-        return True
-    except Exception:
-        return False
+    except Exception as exc:
+        cause = exc.cause if isinstance(exc, StepError) else exc
+        problem = store_problem("", cause)  # botocore/aiohttp errors are not OSError: classify them
+        if problem is not None:
+            return not isinstance(problem, StoreFull)
+        return isinstance(cause, TRANSIENT)
     return False
+
+
+def _best_effort(store: str, what: str, fn, *args, notes: list[str] | None = None):
+    """Bookkeeping (manifest rows, summaries, compaction, artifacts) with the store down or full: the
+    failure is logged (and added to ``notes``) instead of raised, so that it never turns a scene's
+    result into a crash nor hides what happened; a rerun writes it again. Other errors are raised."""
+    try:
+        return fn(*args)
+    except Exception as exc:
+        problem = store_problem(store, exc)
+        if problem is None and not isinstance(exc, OSError):
+            raise
+        message = f"{what} not written: {problem or exc}"
+        logger().warning(message)
+        if notes is not None:
+            notes.append(message)
+        return None
 
 
 def _short(scene_id: str) -> str:
@@ -74,44 +99,81 @@ _SOURCE = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _
 _STEP = {**_SOURCE, "task_run_name": _step_run_name}
 identify_task = task(ingest.identify, name="identify", task_run_name=_source_run_name("identify"), **_SOURCE)
 ingest_task = task(ingest.ingest, name="ingest", task_run_name=_source_run_name("ingest"), **_SOURCE)
-# Steps that run learned models carry this tag, so a Prefect tag concurrency limit bounds how many
-# run at once across all flows and workers (one per GPU): `prefect concurrency-limit create
-# navcrafter-gpu <number of GPUs>`. Planning, export and evaluation are CPU work and stay unbounded.
-GPU_TAG = "navcrafter-gpu"
-_GPU = {**_STEP, "tags": [GPU_TAG]}
+# Steps that run learned models occupy one slot of the Prefect global concurrency limit named by
+# `config.gpu_limit` (e.g. `prefect gcl create navcrafter-gpu --limit <number of GPUs>`), which bounds
+# how many run at once across all flows and workers. Planning, export and evaluation are CPU work and
+# stay unbounded. No limit configured: no API call at all (a Prefect *tag* would cost one per task run,
+# whether or not a limit exists: ~0.5 s per step on a busy server, measured).
+def _gpu_bound(fn):
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        limit = signature.bind(*args, **kwargs).arguments["config"].gpu_limit
+        if limit is None:
+            return fn(*args, **kwargs)
+        with concurrency(limit, occupy=1, strict=True):
+            return fn(*args, **kwargs)
+    return run
+
+
 STEP_TASKS = {  # Prefect tasks by step name (the order of steps is tasks.pipeline.scene_steps)
-    "geometry": task(geometry.initial_geometry, name="geometry", **_GPU),
+    "geometry": task(_gpu_bound(geometry.initial_geometry), name="geometry", **_STEP),
     "plan": task(plan.plan, name="plan", **_STEP),
-    "synthesize": task(synthesize.synthesize, name="synthesize", **_GPU),
-    "lift": task(lift.lift, name="lift", **_GPU),
-    "fit": task(fit.fit, name="fit", **_GPU),
+    "synthesize": task(_gpu_bound(synthesize.synthesize), name="synthesize", **_STEP),
+    "lift": task(_gpu_bound(lift.lift), name="lift", **_STEP),
+    "fit": task(_gpu_bound(fit.fit), name="fit", **_STEP),
     "export": task(export.export, name="export", **_STEP),
 }
 evaluate_task = task(evaluate.evaluate_scene, name="evaluate", **_STEP)
 
 
 def publish_plan_artifact(store: str, scene_id: str, k: int) -> None:
-    markdown = plan_artifact_markdown(store, scene_id, k)
+    """The planner's dashboard view. Never fails the scene: with the store down the view is skipped, and
+    with the Prefect server down the call blocks while Prefect's client retries (about a minute), then
+    is skipped, so the steps go on into the store (a rerun or resubmission finds them complete)."""
+    markdown = _best_effort(store, f"plan artifact {k}", plan_artifact_markdown, store, scene_id, k)
     if markdown:
-        create_markdown_artifact(key=f"plan-{_short(scene_id)}-{k}", markdown=markdown,
-                                 description=f"planner state, scene {_short(scene_id)}, iteration {k}")
+        try:
+            create_markdown_artifact(key=f"plan-{_short(scene_id)}-{k}", markdown=markdown,
+                                     description=f"planner state, scene {_short(scene_id)}, iteration {k}")
+        except Exception as exc:  # the Prefect API unreachable past its client's retries
+            logger().warning("scene %s: plan artifact %d not published: %s", _short(scene_id), k, exc)
 
 
 def preflight(config: RunConfig) -> list[str]:
-    """What the configuration asks for that is not built yet (checked before any work starts)."""
+    """What the configuration asks for that is not built yet or cannot work (checked before any work starts)."""
     problems = []
     if config.backend == "onnx":
         problems.append(ONNX_NOT_BUILT)
-    if config.fit.enabled:
-        problems.append(fit.NOT_BUILT)
+    if config.fit.enabled and config.iterations < 1:
+        problems.append("fit.enabled needs iterations >= 1: the Gaussians are fitted to the synthesized frames")
     return problems
+
+
+def check_gpu_limit(config: RunConfig) -> None:
+    """A named GPU limit must exist on the server (a typo would otherwise fail every model step)."""
+    if config.gpu_limit is None:
+        return
+    from prefect.client.orchestration import get_client
+    from prefect.exceptions import ObjectNotFound
+
+    with get_client(sync_client=True) as client:
+        try:
+            client.read_global_concurrency_limit_by_name(config.gpu_limit)
+        except ObjectNotFound:
+            raise ValueError(
+                f"gpu_limit {config.gpu_limit!r} names no global concurrency limit on the Prefect server; "
+                f"create it with `prefect gcl create {config.gpu_limit} --limit <number of GPUs>` "
+                "or unset gpu_limit") from None
 
 
 @dataclass
 class CollectionResult:
     run_id: str
     scenes: list[SceneResult]
-    summary: str  # store-relative path of the Markdown summary
+    summary: str  # store-relative path of the Markdown summary ("" when it could not be written)
+    store_errors: list[str] = field(default_factory=list)  # bookkeeping the store refused (down, full)
 
 
 class SceneFailed(RuntimeError):
@@ -127,32 +189,43 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
                   sources: list[str] | None = None) -> SceneResult:
     """Explore one ingested scene; records its manifest rows (running, then done or failed)."""
     sources = sources or [scene_id]
-    write_manifest(store, manifest_rows_for(SceneResult(scene_id, sources, "running", backend=config.backend),
-                                            run_id))
+    _best_effort(store, "manifest", write_manifest, store,
+                 manifest_rows_for(SceneResult(scene_id, sources, "running", backend=config.backend), run_id))
+    dashboard.tag_scene_run(store, scene_id)
+    steps = scene_steps(config)
+    progress = dashboard.SceneProgress(scene_id, len(steps) + 1)  # the steps, then the evaluation
     metrics: dict[str, float] = {}
     failure: Exception | None = None
     try:
-        for step in scene_steps(config):
+        for step in steps:
             STEP_TASKS[step.spec.name](store_uri=store, scene_id=scene_id, config=config, run_id=run_id,
                                        **step.kwargs())
+            progress.advance()
             if step.spec.name == "plan":
                 publish_plan_artifact(store, scene_id, step.k)
         metrics = evaluate_task(store, scene_id, config, run_id)
+        progress.advance()
     except Exception as exc:  # recorded, then raised so that the flow run shows as failed
         failure = exc
-    scene = open_store(store).scene(scene_id)
-    timings = step_timings(scene, config)
-    result = SceneResult(scene_id, sources, "done" if failure is None else "failed",
-                         step=last_step(scene, config), backend=config.backend,
-                         seconds=sum(timings.values()), timings=timings, metrics=metrics)
+
+    def progress_in_store() -> tuple[dict[str, float], str | None]:
+        scene = open_store(store).scene(scene_id)
+        return step_timings(scene, config), last_step(scene, config)
+
+    timings, last = _best_effort(store, "timings", progress_in_store) or ({}, None)
+    result = SceneResult(scene_id, sources, "done" if failure is None else "failed", step=last,
+                         backend=config.backend, seconds=sum(timings.values()), timings=timings, metrics=metrics)
     if failure is None:
         result.outputs = f"scenes/{scene_id}/exports"
     else:
         result.step = getattr(failure, "step", result.step)
-        result.error = str(failure)
-    write_manifest(store, manifest_rows_for(result, run_id))
+        problem = None if isinstance(failure, StepError) else store_problem(store, failure)
+        result.error = str(failure) if problem is None else f"scene {_short(scene_id)}: {problem}"
+    _best_effort(store, "manifest", write_manifest, store, manifest_rows_for(result, run_id))
     create_markdown_artifact(key=f"scene-{_short(scene_id)}", markdown=summary_markdown(run_id, config, [result]),
                              description=f"navcrafter scene {_short(scene_id)} ({config.backend})")
+    progress.flush()
+    dashboard.publish_scene_dashboard(store, scene_id, config)
     if failure is not None:
         raise SceneFailed(result) from failure
     return result
@@ -170,26 +243,42 @@ def scene_task(store: str, scene_id: str, config: RunConfig, run_id: str, source
 
 @flow(name="explore-collection", persist_result=False,
       task_runner=ThreadPoolTaskRunner(max_workers=2))
-def explore_collection(photos: str, store: str, config: RunConfig) -> CollectionResult:
+def explore_collection(photos: str, store: str, config: RunConfig,
+                       scene_deployment: str | None = None) -> CollectionResult:
     """Explore every image of a collection into ``store``; one result per image (or per scene, when
-    several files hold the same image).
+    several files hold the same image). ``photos``: a folder, one image, or an fsspec URL (a prefix
+    such as ``s3://bucket/photos/``, or one object).
 
     At most ``config.max_parallel_scenes`` scenes run at once (the thread pool, 2 by default, can be
-    resized with ``with_options``; the CLI sizes it to the same number).
+    resized with ``with_options``; the CLI sizes it to the same number). With ``scene_deployment``
+    ('explore-scene/NAME') each scene is instead a flow run of that deployment (e.g. on a GPU work
+    pool), at most ``config.max_parallel_scenes`` in flight (``flows/dispatch.py``).
     """
     problems = preflight(config)
     if problems:
         raise NotImplementedError(" ".join(problems))
+    if scene_deployment:
+        dispatch.check_scene_deployment(scene_deployment)
     run_id = str(flow_run.id or uuid.uuid4().hex)
     sources = ingest.list_collection(photos)
     if not sources:
         raise ValueError(f"the collection {photos} holds no files")
     results: list[SceneResult] = []
 
+    notes: list[str] = []  # bookkeeping the store refused
+
+    def record(rows) -> None:
+        _best_effort(store, "manifest", write_manifest, store, rows, notes=notes)
+
     def fail(scene_id: str | None, srcs: list[str], res) -> None:
-        error = res.error if isinstance(res, ingest.IngestResult) else f"ingest crashed: {res!r}"
+        if isinstance(res, ingest.IngestResult):
+            error = res.error
+        elif isinstance(res, StepError) or store_problem(store, res) is not None:
+            error = str(res if isinstance(res, StepError) else store_problem(store, res))
+        else:
+            error = f"ingest crashed: {res!r}"
         failed = SceneResult(scene_id or "", srcs, "failed", step="ingest", error=error, backend=config.backend)
-        write_manifest(store, manifest_rows_for(failed, run_id))
+        record(manifest_rows_for(failed, run_id))
         results.append(failed)
 
     # hash every file, then ingest each distinct image once (files with equal bytes share a scene)
@@ -207,7 +296,7 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
         fut.wait()
         res = fut.state.result(raise_on_failure=False)
         if isinstance(res, ingest.IngestResult) and res.ok:
-            write_manifest(store, manifest_rows_for(
+            record(manifest_rows_for(
                 SceneResult(sid, by_scene[sid], "pending", step="ingest", backend=config.backend), run_id))
         else:
             fail(sid, by_scene.pop(sid), res)
@@ -215,6 +304,9 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
     # use the decorator's pool; scene i + n starts when scene i is done)
     items = list(by_scene.items())
     n = config.max_parallel_scenes
+    if scene_deployment:
+        results += dispatch.dispatch_scenes(scene_deployment, store, items, config, run_id)
+        items = []
     futures = {sid: scene_task.submit(store, sid, config, run_id, srcs) for sid, srcs in items[:n]}
     for i, (sid, _) in enumerate(items):
         fut = futures[sid]
@@ -226,13 +318,14 @@ def explore_collection(photos: str, store: str, config: RunConfig) -> Collection
         if not isinstance(res, SceneResult):  # the orchestration itself broke for this scene
             res = SceneResult(sid, by_scene[sid], "failed", error=f"scene run crashed: {res!r}",
                               backend=config.backend)
-            write_manifest(store, manifest_rows_for(res, run_id))
+            record(manifest_rows_for(res, run_id))
         results.append(res)
     order = {s: i for i, s in enumerate(sources)}
     results.sort(key=lambda r: order.get(r.sources[0], 0))
-    tables = open_store(store).tables
     for name in ("manifest", "steps"):
-        tables.compact(name)
-    md = write_summary(store, run_id, config, results)
+        _best_effort(store, f"compacted {name} table", lambda t=name: open_store(store).tables.compact(t), notes=notes)
+    md = _best_effort(store, "run summary", write_summary, store, run_id, config, results, notes=notes)
+    summary = f"runs/{run_id}/summary.md" if md is not None else ""
+    md = md or summary_markdown(run_id, config, results)
     create_markdown_artifact(key="run-summary", markdown=md, description="navcrafter run summary")
-    return CollectionResult(run_id, results, f"runs/{run_id}/summary.md")
+    return CollectionResult(run_id, results, summary, notes)

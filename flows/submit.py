@@ -2,10 +2,13 @@
 
 * ``deploy_local(work_pool)`` creates (or updates) the ``explore-collection/<name>`` deployment from
   this checkout on a *process* work pool: no image is built; a worker on a machine where navcrafter
-  is installed and this folder exists runs the flow from it.
+  is installed and this folder exists runs the flow from it. ``deploy_local(gpu_pool,
+  entrypoint=SCENE_ENTRYPOINT)`` does the same for ``explore-scene/<name>``, to which collection runs
+  given ``scene_deployment`` dispatch their scenes.
 * ``submit_collection(photos, store, config, ...)`` creates flow runs on such a deployment with
   ``run_deployment(..., timeout=0)`` (it returns at once) and gives back their ids: one run for a
-  folder, or one run per image (``per_image``; a list file is always submitted per image).
+  folder or an object-store prefix (``s3://bucket/photos/``), or one run per image (``per_image``; a
+  list file is always submitted per image).
 
 Each run is an ordinary ``explore_collection`` run over the shared store: completed steps are
 skipped, so a run that was killed (its flow run is then left RUNNING or CRASHED) is finished by
@@ -23,6 +26,8 @@ from navcrafter.schemas.config import RunConfig
 REPO_ROOT = Path(__file__).resolve().parent.parent
 ENTRYPOINT = "flows/explore.py:explore_collection"
 FLOW_NAME = "explore-collection"
+SCENE_ENTRYPOINT = "flows/explore.py:explore_scene"
+SCENE_FLOW_NAME = "explore-scene"
 DEFAULT_DEPLOYMENT_NAME = "default"
 DEFAULT_DEPLOYMENT = f"{FLOW_NAME}/{DEFAULT_DEPLOYMENT_NAME}"
 LIST_SUFFIXES = (".txt", ".lst", ".list")
@@ -100,9 +105,18 @@ def read_list_file(path: Path) -> list[str]:
 
 
 def collection_items(photos: str | Path, per_image: bool) -> list[str]:
-    """What each flow run is given: the folder itself, or each of its images (a list file: its images)."""
+    """What each flow run is given: the folder itself, or each of its images (a list file: its images);
+    an fsspec URL (``s3://bucket/photos/``): the prefix itself, or each object under it."""
     from navcrafter.tasks import ingest
 
+    if _is_url(str(photos)):
+        try:
+            items = ingest.list_collection(str(photos))
+        except ingest.CollectionError as exc:
+            raise SubmitError(str(exc)) from None
+        if not items:
+            raise SubmitError(f"the collection {photos} holds no files (only hidden ones)")
+        return items if per_image else [str(photos)]
     p = Path(photos).expanduser()
     if not p.exists():
         raise SubmitError(f"the collection {p} does not exist; pass a folder of images, one image or a list "
@@ -118,13 +132,14 @@ def collection_items(photos: str | Path, per_image: bool) -> list[str]:
 
 
 def deploy_local(work_pool: str, name: str = DEFAULT_DEPLOYMENT_NAME, source: str | Path = REPO_ROOT,
-                 tags: Iterable[str] = ()) -> str:
-    """Create or update ``explore-collection/<name>`` on a process work pool, running the flow from
+                 tags: Iterable[str] = (), entrypoint: str = ENTRYPOINT) -> str:
+    """Create or update ``explore-collection/<name>`` (or the flow of ``entrypoint``, e.g.
+    ``SCENE_ENTRYPOINT``: ``explore-scene/<name>``) on a process work pool, running the flow from
     ``source`` (this checkout, by default) without building an image. Returns the deployment's id."""
     from prefect import flow
 
     require_server()
-    remote = flow.from_source(source=str(source), entrypoint=ENTRYPOINT)
+    remote = flow.from_source(source=str(source), entrypoint=entrypoint)
     deployment_id = remote.deploy(name=name, work_pool_name=work_pool, build=False, push=False,
                                   tags=list(tags), print_next_steps=False, ignore_warnings=True)
     return str(deployment_id)
@@ -132,26 +147,37 @@ def deploy_local(work_pool: str, name: str = DEFAULT_DEPLOYMENT_NAME, source: st
 
 def submit_collection(photos: str | Path, store: str, config: RunConfig, deployment: str = DEFAULT_DEPLOYMENT,
                       per_image: bool = False, tags: Iterable[str] = (),
-                      job_variables: dict | None = None) -> Submitted:
+                      job_variables: dict | None = None, scene_deployment: str | None = None) -> Submitted:
     """Create flow runs of ``deployment`` for a collection and return at once (``timeout=0``).
 
-    ``photos``: a folder (one run, or one per image with ``per_image``), one image, or a list file
-    (always one run per listed image). ``store`` and local photo paths are made absolute, since the
-    worker's working directory is not ours.
+    ``photos``: a folder or object-store prefix (one run, or one per image with ``per_image``), one
+    image, or a list file (always one run per listed image). ``store`` and local photo paths are made
+    absolute, since the worker's working directory is not ours. ``scene_deployment``: the runs start
+    each scene as a flow run of it (else the deployment's default: in-process subflows, unless set).
     """
     from prefect.deployments import run_deployment
     from prefect.exceptions import ObjectNotFound
+
+    from navcrafter.flows.dispatch import DispatchError, check_scene_deployment
 
     require_server()
     items = collection_items(photos, per_image)
     store = absolute(store)
     params_config = config.model_dump(mode="json")
+    extra = {}
+    if scene_deployment:
+        try:
+            check_scene_deployment(scene_deployment)
+        except DispatchError as exc:
+            raise SubmitError(str(exc)) from None
+        extra["scene_deployment"] = scene_deployment
     tag_list = ["navcrafter", *[t for t in tags if t != "navcrafter"]]
     ids: list[str] = []
     names: list[str] = []
     for item in items:
         try:
-            run = run_deployment(deployment, parameters={"photos": item, "store": store, "config": params_config},
+            run = run_deployment(deployment, parameters={"photos": item, "store": store, "config": params_config,
+                                                         **extra},
                                  timeout=0, tags=tag_list, as_subflow=False, job_variables=job_variables)
         except ObjectNotFound:
             raise SubmitError(

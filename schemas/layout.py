@@ -14,6 +14,9 @@ T     frames of one synthesized clip (``synthesis.num_frames``)
 S     views passed to the geometry model by one lift step (``<= lift.max_views``)
 N     points of the fused scene cloud after a step
 C     candidate poses considered by the planner
+G,B   Gaussians of the fitted 3DGS scene; higher SH bases per channel
+F,V   frames used by the fit; of them held out
+h,w   the fit's resolution; M frames with depth supervision; I training iterations
 ====  =========================================================================
 
 Scene tree::
@@ -24,7 +27,7 @@ Scene tree::
       iter_<k>/plan/              step "plan" (k = 1..N): trajectory for iteration k
       iter_<k>/synthesize/        step "synthesize": frames along the trajectory
       iter_<k>/lift/              step "lift": geometry of the frames, fused cloud after iteration k
-      gaussians/                  step "fit" (3DGS; not built yet)
+      gaussians/                  step "fit": 3DGS scene, cameras, held-out evaluation (when fit.enabled)
       exports/                    step "export": files (cloud.ply, video.mp4, trajectory.json/.parquet)
 
 The scene cloud after iteration k is the ``cloud_*`` arrays of ``iter_k/lift`` (``iter_0/geometry`` for
@@ -57,7 +60,7 @@ class ArraySpec:
         chunks = []
         for c, s in zip(self.chunks, shape):
             size = c if isinstance(c, int) else s
-            if c == "N":
+            if c in ("N", "G"):
                 size = min(s, CLOUD_CHUNK_ROWS)
             chunks.append(max(1, min(size, s) if s else 1))
         return shape, tuple(chunks)
@@ -169,7 +172,33 @@ LIFT = StepSpec(
     iterative=True,
 )
 
-FIT = StepSpec("fit", "gaussians", "3D Gaussian Splatting scene (not built yet).")
+FIT = StepSpec(
+    "fit", "gaussians",
+    "The 3D Gaussian Splatting scene fitted to the frames (tasks/fit.py), its cameras, held-out evaluation "
+    "and loss history. Parameters are 3DGS's raw ones (log-scales, opacity logits, SH), world frame.",
+    arrays=(
+        ArraySpec("means", "float32", ("G", 3), ("G", 3), "Gaussian centres, world frame"),
+        ArraySpec("quats", "float32", ("G", 4), ("G", 4), "rotations, quaternion (w, x, y, z), not normalised"),
+        ArraySpec("log_scales", "float32", ("G", 3), ("G", 3), "log of the per-axis standard deviations"),
+        ArraySpec("opacity_logits", "float32", ("G",), ("G",), "logit of the opacity"),
+        ArraySpec("sh_dc", "float32", ("G", 3), ("G", 3), "degree-0 SH coefficient per RGB channel"),
+        ArraySpec("sh_rest", "float32", ("G", "B", 3), ("G", "B", 3),
+                  "higher SH bands [G, (degree+1)^2 - 1, 3], coefficient-major (gsplat's layout)"),
+        ArraySpec("frame_ref", "int32", ("F", 2), ("F", 2),
+                  "(iteration k, frame index in iter_k/synthesize) of each frame of the fit, in order"),
+        ArraySpec("c2w", "float64", ("F", 4, 4), ("F", 4, 4), "camera of each frame (the planned pose)"),
+        ArraySpec("K", "float64", ("F", 3, 3), ("F", 3, 3), "intrinsics of each frame at the fit resolution"),
+        ArraySpec("holdout", "bool", ("F",), ("F",), "frames held out of training (every holdout_every-th)"),
+        ArraySpec("holdout_renders", "uint8", ("V", "h", "w", 3), (1, "h", "w", 3),
+                  "the fitted model rendered at the held-out cameras"),
+        ArraySpec("depth_calibration", "float64", ("M", 5), ("M", 5),
+                  "per depth-supervised frame: (frame, scale s, bias b, inlier fraction, robust sigma)"),
+        ArraySpec("history", "float32", ("I", 6), ("I", 6),
+                  "per iteration: loss, l1, lpips, depth (NaN when off), drop rate, number of Gaussians"),
+    ),
+    attrs=("n_gaussians", "sh_degree", "resolution", "holdout_every", "n_train", "n_holdout", "psnr", "ssim",
+           "lpips", "lpips_note", "init_psnr", "scene_scale", "train_seconds", "final_loss"),
+)
 
 EXPORT = StepSpec(
     "export", "exports",
@@ -204,8 +233,9 @@ def cloud_step(k: int) -> tuple[StepSpec, int | None]:
     return (GEOMETRY, None) if k == 0 else (LIFT, k)
 
 
-def dependencies(step: str, k: int | None, iterations: int) -> list[tuple[StepSpec, int | None]]:
-    """Upstream steps whose outputs a step reads (their keys enter its cache key)."""
+def dependencies(step: str, k: int | None, iterations: int, fit: bool = False) -> list[tuple[StepSpec, int | None]]:
+    """Upstream steps whose outputs a step reads (their keys enter its cache key); ``fit``: whether the
+    fit step runs (the export then reads it)."""
     if step == "ingest":
         return []
     if step == "geometry":
@@ -221,7 +251,7 @@ def dependencies(step: str, k: int | None, iterations: int) -> list[tuple[StepSp
         deps: list[tuple[StepSpec, int | None]] = [(INGEST, None), (GEOMETRY, None)]
         for i in range(1, iterations + 1):
             deps += [(PLAN, i), (SYNTHESIZE, i), (LIFT, i)]
-        return deps
+        return deps + ([(FIT, None)] if step == "export" and fit else [])
     if step == "evaluate":
         return [(EXPORT, None)]  # the export's key covers every step before it
     if step == "score":

@@ -22,10 +22,12 @@ PUT, that the group still belongs to this writer (see ``StepWriter.commit``).
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
 import signal
+import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -45,6 +47,53 @@ FAULT_ENV = "NAVCRAFTER_FAULT_INJECT"
 
 class StoreError(RuntimeError):
     pass
+
+
+class StoreUnavailable(StoreError):
+    """The store cannot be reached (object-store server down, network outage, timeouts): retried."""
+
+
+class StoreFull(StoreError):
+    """The store's disk or quota is full: not retried (it does not free itself within seconds)."""
+
+
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _unreachable_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that mean "the store did not answer": builtin connection errors and timeouts, and
+    botocore's and aiohttp's own (s3fs raises those as they are; they are not ``OSError``)."""
+    types: list[type[BaseException]] = [ConnectionError, TimeoutError]
+    with contextlib.suppress(ImportError):
+        from botocore.exceptions import ConnectionError as BotoConnectionError
+        from botocore.exceptions import HTTPClientError
+
+        types += [BotoConnectionError, HTTPClientError]
+    with contextlib.suppress(ImportError):
+        from aiohttp import ClientConnectionError
+
+        types.append(ClientConnectionError)
+    return tuple(types)
+
+
+def store_problem(uri: str, exc: BaseException) -> StoreError | None:
+    """A clear error (naming the store and the fix) when ``exc``, or what caused it, means the store
+    itself is in trouble: full (``StoreFull``) or unreachable (``StoreUnavailable``); else ``None``."""
+    seen = 0
+    while exc is not None and seen < 5:
+        if isinstance(exc, (StoreFull, StoreUnavailable)):
+            return exc
+        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+            return StoreFull(f"the store {uri} is full ({exc.strerror or exc}): free space on its disk (or "
+                             f"enlarge it / raise the quota), then rerun the same command; completed steps are kept")
+        if isinstance(exc, _unreachable_errors()):
+            return StoreUnavailable(f"the store {uri} cannot be reached ({type(exc).__name__}: {exc}): check that "
+                                    f"its server is up and reachable from here (endpoint, network, credentials), "
+                                    f"then rerun the same command; completed steps are kept")
+        if isinstance(exc, (ValueError, TypeError, KeyError, StoreError)):
+            return None  # bad input or a bug, whatever it was raised while handling
+        exc, seen = exc.__cause__ or exc.__context__, seen + 1
+    return None
 
 
 @dataclass(frozen=True)
@@ -120,19 +169,33 @@ class Store:
         if not exists and not create:
             raise StoreError(f"no navcrafter store at {self.uri}: run `navcrafter explore` to create one")
         if exists:
-            group = zarr.open_group(store=zstore, mode="r+", zarr_format=3)
-            version = group.attrs.get("navcrafter_schema_version")
-            if version != SCHEMA_VERSION:
-                raise StoreError(f"{self.uri} is not a navcrafter store of schema v{SCHEMA_VERSION} "
-                                 f"(found {version!r}); use a new store directory")
-        else:
+            group = self._open_root(zstore)
+        else:  # the root zarr.json is written once, with its version (another process may be reading)
             self.fs.makedirs(self.root, exist_ok=True)
-            group = zarr.open_group(store=zstore, mode="a", zarr_format=3)
-            group.update_attributes({"navcrafter_schema_version": SCHEMA_VERSION})
+            group = zarr.open_group(store=zstore, mode="a", zarr_format=3,
+                                    attributes={"navcrafter_schema_version": SCHEMA_VERSION})
         self.group = group
         self.tables = Tables(self.fs, self.root, self.local)
 
     # -- scenes -----------------------------------------------------------------------------------
+    def _open_root(self, zstore, attempts: int = 20) -> zarr.Group:
+        """The existing root group; a root another process is creating this instant (its zarr.json
+        not yet whole) is waited for briefly rather than taken for a foreign store."""
+        version = None
+        for attempt in range(attempts):
+            try:
+                group = zarr.open_group(store=zstore, mode="r+", zarr_format=3)
+                version = group.attrs.get("navcrafter_schema_version")
+            except ValueError:  # a zarr.json being written
+                version = None
+            if version == SCHEMA_VERSION:
+                return group
+            if version is not None:
+                break
+            time.sleep(0.05 * (attempt + 1))
+        raise StoreError(f"{self.uri} is not a navcrafter store of schema v{SCHEMA_VERSION} "
+                         f"(found {version!r}); use a new store directory")
+
     def scene(self, scene_id: str) -> SceneStore:
         return SceneStore(self, scene_id)
 
@@ -212,6 +275,12 @@ class SceneStore:
         g = self._open(step.group_path(k))
         return g[name][...]
 
+    def read_rows(self, step: StepSpec, k: int | None, name: str, rows: list[int]) -> np.ndarray:
+        """``read(...)[rows]``, reading only the chunks that hold those rows (e.g. a few frames)."""
+        step.array(name)
+        self.require_complete(step, k)
+        return self._open(step.group_path(k))[name].oindex[list(rows)]
+
     def read_all(self, step: StepSpec, k: int | None = None) -> dict[str, np.ndarray]:
         self.require_complete(step, k)
         g = self._open(step.group_path(k))
@@ -235,6 +304,13 @@ class SceneStore:
                         "backend": backend, "started_at": utcnow().isoformat(),
                         "schema_version": SCHEMA_VERSION})
         return StepWriter(self, step, k, g, exec_id)
+
+    def discard(self, step: StepSpec, k: int | None, exec_id: str) -> None:
+        """Remove an incomplete group that writer ``exec_id`` began (e.g. to give a full disk back the
+        space of a step that failed; a rerun rewrites it from scratch anyway)."""
+        st = self.status(step, k)
+        if st.exists and not st.complete and st.attrs.get("exec_id") == exec_id:
+            self.store.fs.rm(self.store.path(f"{self.prefix}/{st.path}"), recursive=True)
 
     def file_rel(self, step: StepSpec, k: int | None, name: str) -> str:
         return f"{self.prefix}/{step.group_path(k)}/{name}"

@@ -8,6 +8,7 @@ Readers concatenate all files; ``latest`` de-duplicates by key; ``compact`` merg
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import fcntl
 import io
@@ -209,8 +210,13 @@ def atomic_write(fs, path: str, data: bytes, local: bool) -> None:
     fs.makedirs(parent, exist_ok=True)
     if local:
         tmp = f"{parent}/.tmp-{uuid.uuid4().hex}"
-        with fs.open(tmp, "wb") as fh:
-            fh.write(data)
-        fs.mv(tmp, path)
+        try:
+            with fs.open(tmp, "wb") as fh:
+                fh.write(data)
+            fs.mv(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):  # e.g. a full disk: leave no partial temp file behind
+                fs.rm(tmp)
+            raise
     else:  # one PUT is atomic on object stores
         fs.pipe_file(path, data)

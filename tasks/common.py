@@ -7,6 +7,7 @@ numbers), so orchestration never carries arrays.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -19,7 +20,7 @@ from navcrafter.models.pointcloud import Cloud
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig, stable_hash
 from navcrafter.schemas.layout import GEOMETRY, INGEST, SCHEMA_VERSION, StepSpec, cloud_step, dependencies
-from navcrafter.schemas.store import SceneStore, StepWriter, Store
+from navcrafter.schemas.store import SceneStore, StepWriter, Store, StoreFull, store_problem
 from navcrafter.schemas.tables import utcnow
 
 _log = logging.getLogger("navcrafter")
@@ -68,7 +69,8 @@ def open_store(uri: str) -> Store:
 
 def step_key(scene: SceneStore, step: StepSpec, k: int | None, config: RunConfig) -> str:
     """Cache key: the step, its config section, and the keys of the upstream outputs it reads."""
-    deps = [scene.require_complete(s, kk).key for s, kk in dependencies(step.name, k, config.iterations)]
+    deps = [scene.require_complete(s, kk).key
+            for s, kk in dependencies(step.name, k, config.iterations, fit=config.fit.enabled)]
     return stable_hash({"step": step.name, "k": k, "scene": scene.scene_id, "schema": SCHEMA_VERSION,
                         "config": config.step_config(step.name), "deps": deps}, length=32)
 
@@ -87,10 +89,21 @@ def run_step(store_uri: str, scene_id: str, step: StepSpec, k: int | None, confi
     which writes arrays through the writer and returns extra attributes for the commit.
     Runs under the scene's lock, so two runs over one store never write a scene at once: the
     second waits, then finds the step complete and skips it.
+
+    A store that is down or full (``schemas.store.store_problem``) fails the step with a
+    ``StepError`` whose cause names the store and the fix (``StoreUnavailable`` / ``StoreFull``).
     """
-    store = open_store(store_uri)
-    with store.scene_lock(scene_id):
-        return _run_step_locked(store, scene_id, step, k, config, run_id, body, prepare)
+    try:
+        store = open_store(store_uri)
+        with store.scene_lock(scene_id):
+            return _run_step_locked(store, scene_id, step, k, config, run_id, body, prepare)
+    except StepError:
+        raise
+    except Exception as exc:  # the store failed outside the step's body (opening, key, status)
+        problem = store_problem(store_uri, exc)
+        if problem is None:
+            raise
+        raise StepError(scene_id, step.group_path(k), problem) from exc
 
 
 def run_step_attrs(store_uri: str, scene_id: str, step: StepSpec, config: RunConfig, run_id: str,
@@ -126,11 +139,16 @@ def _run_step_locked(store: Store, scene_id: str, step: StepSpec, k: int | None,
         seconds = time.perf_counter() - t0
         writer.commit(seconds, **attrs)
     except Exception as exc:
+        problem = None if isinstance(exc, StepError) else store_problem(store.uri, exc)
+        if isinstance(problem, StoreFull) and writer is not None and store.local:
+            with contextlib.suppress(Exception):  # give the disk back what the failed step wrote
+                scene.discard(step, k, writer.exec_id)
+        cause = problem or exc
         _record(store, scene_id, path, "failed", key, writer.exec_id if writer else None, run_id,
-                config.backend, error=f"{type(exc).__name__}: {exc}")
+                config.backend, error=f"{type(cause).__name__}: {cause}")
         if isinstance(exc, StepError):
             raise
-        raise StepError(scene_id, path, exc) from exc
+        raise StepError(scene_id, path, cause) from exc
     _record(store, scene_id, path, "completed", key, writer.exec_id, run_id, config.backend, seconds)
     log.info("scene %s: %s done in %.2fs", scene_id[:12], path, seconds)
     return StepRef(scene_id, path, key, writer.exec_id, False, seconds,
@@ -139,9 +157,17 @@ def _run_step_locked(store: Store, scene_id: str, step: StepSpec, k: int | None,
 
 def _record(store: Store, scene_id: str, path: str, event: str, key: str | None, exec_id: str | None,
             run_id: str, backend: str, seconds: float | None = None, error: str | None = None) -> None:
-    store.tables.write("steps", [{"scene_id": scene_id, "step": path, "event": event, "key": key,
-                                  "exec_id": exec_id, "run_id": run_id, "backend": backend,
-                                  "at": utcnow(), "seconds": seconds, "error": error}])
+    """Best effort: an event that cannot be written (store down or full) is logged, never raised, so
+    it neither hides the step's own error nor fails a step that completed."""
+    try:
+        store.tables.write("steps", [{"scene_id": scene_id, "step": path, "event": event, "key": key,
+                                      "exec_id": exec_id, "run_id": run_id, "backend": backend,
+                                      "at": utcnow(), "seconds": seconds, "error": error}])
+    except Exception as exc:
+        if store_problem(store.uri, exc) is None and not isinstance(exc, OSError):
+            raise
+        logger().warning("scene %s: the %s event of %s was not recorded in the steps table: %s",
+                         scene_id[:12], event, path, store_problem(store.uri, exc) or exc)
 
 
 # The steps table is an event log for people and tests: the group's completion marker is the truth

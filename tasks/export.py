@@ -3,10 +3,12 @@
 * ``cloud.ply``          the fused cloud (binary PLY: x y z, RGB, confidence), world frame;
 * ``video.mp4``          every synthesized clip, in iteration order (H.264, ``synthesis.fps``);
 * ``trajectory.json``    per frame: iteration, index, OpenCV camera-to-world pose, intrinsics;
-* ``trajectory.parquet`` the same rows with the ``schemas.tables.TRAJECTORIES`` schema.
+* ``trajectory.parquet`` the same rows with the ``schemas.tables.TRAJECTORIES`` schema;
+* when the fit ran (``fit.enabled``): ``gaussians.ply`` (the standard 3DGS PLY, ``models/gaussians/ply.py``)
+  and ``flythrough.mp4`` (the Gaussians rendered along the explored trajectory at the fit's resolution).
 
-Outputs of the simulation backend say so: a PLY header comment, a label burnt into the video, a
-``backend``/``label`` field in the JSON and a ``backend`` column in the table.
+Outputs of the simulation backend say so: a PLY header comment (both PLYs), a label burnt into the videos,
+a ``backend``/``label`` field in the JSON and a ``backend`` column in the table.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from navcrafter.models.cameras import Intrinsics
 from navcrafter.models.pointcloud import ply_bytes
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, PLAN, SYNTHESIZE
+from navcrafter.schemas.layout import EXPORT, FIT, PLAN, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
 from navcrafter.tasks.common import StepRef, load_cloud, open_store, run_step
 
@@ -77,6 +79,30 @@ def trajectory_rows(scene, scene_id: str, iterations: int, backend: str, width: 
     return rows
 
 
+def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str], sim: bool, fps: int) -> None:
+    """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group)."""
+    from navcrafter.models.gaussians.ply import save_ply
+    from navcrafter.models.gaussians.train import render_model
+    from navcrafter.tasks.fit import load_gaussians
+
+    model = load_gaussians(scene)
+    fd, path = tempfile.mkstemp(suffix=".ply")
+    os.close(fd)
+    try:
+        save_ply(path, model, comments=[*comments, "3D Gaussian Splatting (navcrafter fit step)"])
+        with open(path, "rb") as fh:
+            writer.write_file("gaussians.ply", fh.read())
+    finally:
+        if os.path.exists(path):
+            os.unlink(path)
+    w, h = scene.status(FIT).attrs["resolution"]
+    c2w = np.stack([r["c2w"] for r in rows])
+    K = np.stack([Intrinsics(r["fx"], r["fy"], r["cx"], r["cy"], r["width"], r["height"]).resize(w, h).K
+                  for r in rows])
+    frames = render_model(model, c2w, K, w, h)
+    writer.write_file("flythrough.mp4", encode_mp4(label_frames(frames) if sim else frames, fps))
+
+
 def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
     N = config.iterations
 
@@ -103,6 +129,8 @@ def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
         if sim:
             doc["label"] = SIM_LABEL
         writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
+        if config.fit.enabled:
+            write_gaussian_exports(writer, scene, rows, comments, sim, config.synthesis.fps)
         table = to_table("trajectories", rows)
         buf = io.BytesIO()
         import pyarrow.parquet as pq

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import posixpath
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,11 +28,17 @@ from navcrafter.models.cameras import Intrinsics
 from navcrafter.models.simulation import GROUNDTRUTH_DIR
 from navcrafter.schemas.config import IngestConfig, RunConfig
 from navcrafter.schemas.layout import INGEST
+from navcrafter.schemas.store import storage_options_for
 from navcrafter.tasks.common import StepRef, run_step
 
 
 class IngestError(ValueError):
     """An input file cannot be used; the message says which and what to do."""
+
+
+class CollectionError(ValueError):
+    """A collection URL cannot be listed (no such bucket or prefix, no credentials, ...); the message
+    names the URL and the fix."""
 
 
 @dataclass(frozen=True)
@@ -54,13 +61,65 @@ class LoadedImage:
 # --------------------------------------------------------------------------------------------------
 # Collections
 # --------------------------------------------------------------------------------------------------
+def is_url(location: str | Path) -> bool:
+    return "://" in str(location)
+
+
+def source_fs(url: str):
+    """``(filesystem, path)`` of an fsspec URL, with the store's endpoint and credential handling
+    (``schemas.store.storage_options_for``: ``AWS_ENDPOINT_URL`` etc. for ``s3://``)."""
+    return fsspec.core.url_to_fs(url, **storage_options_for(url))
+
+
+def access_problem(url: str, exc: BaseException) -> str | None:
+    """What to tell the user when reading ``url`` failed for lack of access, else ``None``."""
+    if type(exc).__name__ in ("NoCredentialsError", "PartialCredentialsError"):  # botocore's
+        return (f"{url}: no credentials for the object store ({exc}); set AWS_ACCESS_KEY_ID and "
+                f"AWS_SECRET_ACCESS_KEY (or AWS_PROFILE), and AWS_ENDPOINT_URL for MinIO/Ceph/other S3 servers")
+    if isinstance(exc, PermissionError):
+        return (f"{url}: access denied ({exc}); check that the credentials (AWS_ACCESS_KEY_ID, AWS_PROFILE, ...) "
+                f"may read it and that AWS_ENDPOINT_URL points at the right server")
+    if isinstance(exc, FileNotFoundError) and "bucket" in str(exc).lower():
+        return f"{url}: the bucket does not exist ({exc}); check the bucket name in the URL (or create the bucket)"
+    return None
+
+
+def _list_url(url: str) -> list[str]:
+    """Every visible object under a URL prefix (sorted, as URLs), or the single object named."""
+    try:
+        fs, root = source_fs(url)
+        if fs.isfile(root):
+            return [url]
+        found = fs.find(root)
+    except (ImportError, ValueError) as exc:  # no fsspec implementation for the protocol (e.g. gcsfs)
+        raise CollectionError(f"{url}: cannot open this URL ({exc}); install the fsspec package of its "
+                              f"protocol or fix the URL") from exc
+    except Exception as exc:
+        problem = access_problem(url, exc)
+        if problem is None and isinstance(exc, FileNotFoundError):
+            problem = f"{url} does not exist ({exc}); check the URL"
+        if problem is None:
+            raise
+        raise CollectionError(problem) from exc
+    root = root.rstrip("/")
+    keys = [k for k in sorted(found) if not k.endswith("/") and k.startswith(f"{root}/")]
+    if not keys:
+        raise CollectionError(f"no objects under {url}: check the prefix (and the endpoint, AWS_ENDPOINT_URL), "
+                              f"or upload the images there first")
+    visible = [k for k in keys if not any(part.startswith(".") for part in k[len(root) + 1:].split("/"))]
+    return [fs.unstrip_protocol(k) for k in visible]
+
+
 def list_collection(photos: str | Path) -> list[str]:
-    """Every visible file under a folder (recursively, sorted), or the single file given.
+    """Every visible file under a folder (recursively, sorted), or the single file given; for an fsspec
+    URL (``s3://bucket/photos/``, ...) every visible object under that prefix, as URLs.
 
     Non-image files are listed too: ingest records them as failed instead of silently skipping them.
     Hidden files and folders (names starting with '.') are skipped; that is where demo ground truth
     lives.
     """
+    if is_url(photos):
+        return _list_url(str(photos))
     p = Path(photos).expanduser()
     if not p.exists():
         raise FileNotFoundError(f"photo collection {p} does not exist; pass a folder of images "
@@ -76,7 +135,19 @@ def list_collection(photos: str | Path) -> list[str]:
 # Decoding and normalisation
 # --------------------------------------------------------------------------------------------------
 def read_source(source: str, cfg: IngestConfig) -> bytes:
-    fs, path = fsspec.core.url_to_fs(source)
+    try:
+        return _read_source(source, cfg)
+    except IngestError:
+        raise
+    except Exception as exc:  # no credentials, access denied, no bucket: the fix is the user's
+        problem = access_problem(source, exc)
+        if problem is None:
+            raise
+        raise IngestError(problem) from exc
+
+
+def _read_source(source: str, cfg: IngestConfig) -> bytes:
+    fs, path = source_fs(source)
     if not fs.exists(path):
         raise IngestError(f"{source}: file not found; check the path")
     size = fs.size(path)
@@ -192,16 +263,28 @@ def make_work_image(image: np.ndarray, height: int, width: int) -> tuple[np.ndar
 # Simulation ground truth of demo images
 # --------------------------------------------------------------------------------------------------
 def groundtruth_record(source: str, sha256: str) -> dict | None:
-    """The ground-truth record beside a demo photo (``<dir>/.groundtruth/<stem>/scene.json``) if it
-    exists and was written for exactly these image bytes; ``None`` otherwise."""
-    p = Path(source)
-    sidecar = p.parent / GROUNDTRUTH_DIR / p.stem / "scene.json"
-    if not sidecar.is_file():
-        return None
-    record = json.loads(sidecar.read_text())
+    """The ground-truth record beside a demo photo (``<dir>/.groundtruth/<stem>/scene.json``, also
+    beside an object of an object store) if it exists and was written for exactly these image bytes;
+    ``None`` otherwise."""
+    if is_url(source):
+        fs, path = source_fs(source)
+        parent, name = posixpath.split(path)
+        sidecar = f"{parent}/{GROUNDTRUTH_DIR}/{posixpath.splitext(name)[0]}/scene.json"
+        try:
+            text = fs.cat_file(sidecar).decode()
+        except FileNotFoundError:
+            return None
+        folder = fs.unstrip_protocol(posixpath.dirname(sidecar))
+    else:
+        p = Path(source)
+        local = p.parent / GROUNDTRUTH_DIR / p.stem / "scene.json"
+        if not local.is_file():
+            return None
+        text, folder = local.read_text(), str(local.parent)
+    record = json.loads(text)
     if record.get("photo", {}).get("sha256") != sha256:
         return None  # the photo was changed since the ground truth was written
-    record["groundtruth"] = str(sidecar.parent)
+    record["groundtruth"] = folder
     return record
 
 

@@ -10,7 +10,7 @@ Tables (the ``table`` column of the ``evaluations`` Arrow table, ``schemas/table
   against the requested trajectory (``models/posemetrics.py``): R_err, T_err, registered frames.
 * **V, runtime**: seconds per stage, from the steps' recorded execution times.
 * **VI, exploration geometry**: Coverage, Noise ratio, F-score at 2 cm and collisions (``tasks/evaluate``).
-* **VII, 3DGS rendering**: 3DGS fitting is not built yet; its rows say so.
+* **VII, 3DGS rendering**: held-out PSNR / SSIM / LPIPS of the fit step (``unavailable`` when it did not run).
 
 A metric that cannot be computed here has ``status`` ``unavailable`` (weights missing, no reference)
 or ``not_built`` and a ``note`` saying why; it is never filled with a made-up value.
@@ -27,7 +27,7 @@ import numpy as np
 
 from navcrafter.models.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
-from navcrafter.schemas.layout import EVALUATE, LIFT, PLAN, SCORE, SYNTHESIZE
+from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, SCORE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks.common import open_store, run_step_attrs, simulation_truth
 
@@ -187,16 +187,28 @@ def geometry_rows(scene: SceneStore, config: RunConfig) -> list[dict[str, Any]]:
     return rows
 
 
-def gaussian_rows() -> list[dict[str, Any]]:
-    note = "3D Gaussian Splatting fitting is not built yet (fit.enabled must stay false)"
-    return [row("VII", m, status="not_built", note=note) for m in ("PSNR", "SSIM", "LPIPS")]
+def gaussian_rows(scene: SceneStore) -> list[dict[str, Any]]:
+    """Held-out rendering quality of the fitted 3DGS scene (the fit step's attrs), when the fit ran."""
+    status = scene.status(FIT)
+    if not status.complete:
+        note = "the 3DGS fit did not run for this scene (fit.enabled is false)"
+        return [row("VII", m, status="unavailable", note=note) for m in ("PSNR", "SSIM", "LPIPS")]
+    a = status.attrs
+    note = f"{a['n_holdout']} held-out frames (every {a['holdout_every']}th), {a['resolution'][0]}x{a['resolution'][1]}"
+    rows = [row("VII", "PSNR", float(a["psnr"]), "dB", note=note),
+            row("VII", "SSIM", float(a["ssim"]), None, note=note)]
+    if a.get("lpips") is None:
+        rows.append(row("VII", "LPIPS", status="unavailable", note=a.get("lpips_note", "")))
+    else:
+        rows.append(row("VII", "LPIPS", float(a["lpips"]), None, note=f"{note}; {a.get('lpips_note', '')}"))
+    return rows
 
 
 def scene_rows(scene: SceneStore, config: RunConfig) -> list[dict[str, Any]]:
     """All per-scene rows of the evaluation suite."""
     iterations = scene_iterations(scene)
     rows = (synthesis_rows(scene, config, iterations) + camera_rows(scene, config, iterations)
-            + runtime_rows(scene, iterations) + geometry_rows(scene, config) + gaussian_rows())
+            + runtime_rows(scene, iterations) + geometry_rows(scene, config) + gaussian_rows(scene))
     for r in rows:
         r["scene_id"] = scene.scene_id
     return rows

@@ -140,6 +140,26 @@ def test_deployment_parameters_fit_the_flow_signatures(deployments, loaded_flows
             assert validated["config"].backend == params["config"]["backend"]
 
 
+def test_collections_dispatch_their_scenes_to_the_gpu_deployment(deployments, loaded_flows):
+    """explore-collection (CPU pool) starts each scene as a flow run of explore-scene (GPU pool), with
+    parameters that the scene flow accepts."""
+    from navcrafter.flows.dispatch import scene_parameters
+    from navcrafter.schemas.config import RunConfig
+
+    target = deployments["explore-collection"]["parameters"]["scene_deployment"]
+    flow_name, _, name = target.partition("/")
+    assert flow_name == loaded_flows["explore-scene"].name == "explore-scene" and name in deployments
+    assert deployments[name]["entrypoint"] == EXPECTED["explore-scene"][0]
+    assert deployments[name]["work_pool"]["name"] == POOLS["gpu"]
+    assert deployments["explore-collection"]["work_pool"]["name"] == POOLS["cpu"]
+    config = RunConfig.model_validate(deployments["explore-collection"]["parameters"]["config"])
+    params = scene_parameters("s3://navcrafter/store", "a" * 64, config, "run", ["/data/photos/a.png"])
+    scene_flow = loaded_flows["explore-scene"]
+    validate_schema(params, scene_flow.parameters.model_dump_for_openapi(), raise_on_error=True)
+    validated = scene_flow.validate_parameters(params)
+    assert validated["config"] == config and validated["sources"] == ["/data/photos/a.png"]
+
+
 def test_store_parameter_is_the_compose_bucket(deployments, compose):
     init = compose["services"]["minio-init"]
     script = " ".join(init["command"]) if isinstance(init["command"], list) else init["command"]

@@ -56,8 +56,9 @@ def test_every_finished_scene_gets_every_table(evaluated, full_run):
         for m in ("R_err", "T_err"):
             r = by[(sid, "IV", m)]
             assert (r["status"] == "ok" and r["value"] >= 0) or (r["status"] == "failed" and r["note"])
-        # VII: not built, and it says so
-        assert {by[(sid, "VII", m)]["status"] for m in ("PSNR", "SSIM", "LPIPS")} == {"not_built"}
+        # VII: the fit did not run (fit.enabled is false), and it says so
+        assert {by[(sid, "VII", m)]["status"] for m in ("PSNR", "SSIM", "LPIPS")} == {"unavailable"}
+        assert "fit.enabled" in by[(sid, "VII", "PSNR")]["note"]
 
 
 def test_metrics_without_weights_are_unavailable_not_invented(evaluated):

@@ -4,6 +4,7 @@ real S3-compatible server process (moto's server mode) started by these tests.""
 from __future__ import annotations
 
 import logging
+import shutil
 import uuid
 
 import numpy as np
@@ -149,19 +150,24 @@ def test_tables_on_s3(s3_endpoint):
     assert fresh.read("metrics").num_rows == 4
 
 
-def test_explore_collection_on_s3_matches_local(s3_endpoint, prefect_api_url, demo_photos, full_run):
+def test_explore_collection_on_s3_matches_local(s3_endpoint, prefect_api_url, demo_photos, full_run, tmp_path):
+    """One image (the table-top; test_faults runs the room over S3 through a flaky proxy)."""
     from navcrafter.flows.explore import explore_collection
     from navcrafter.models.pointcloud import read_ply
     from navcrafter.tasks.pipeline import scene_steps
     from navcrafter.tasks.report import read_manifest
 
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    shutil.copy(demo_photos / "tabletop-0.png", photos / "tabletop-0.png")
+    shutil.copytree(demo_photos / ".groundtruth", photos / ".groundtruth")
     uri = f"s3://{BUCKET}/store"
-    run = explore_collection(str(demo_photos), uri, TINY)
-    assert sorted(src.rsplit("/", 1)[-1] for r in run.scenes for src in r.sources) == sorted(DEMO)
+    run = explore_collection(str(photos), uri, TINY)
+    assert [src.rsplit("/", 1)[-1] for r in run.scenes for src in r.sources] == ["tabletop-0.png"]
     assert all(r.status == "done" for r in run.scenes), [r.error for r in run.scenes]
 
     s3, local = Store(uri, create=False), Store(str(full_run[0]), create=False)
-    assert len(s3.scene_ids()) == len(DEMO) and set(s3.scene_ids()) <= set(local.scene_ids())
+    assert len(s3.scene_ids()) == 1 and set(s3.scene_ids()) <= set(local.scene_ids())
     manifest = {r["scene_id"]: r for r in read_manifest(s3).to_pylist()}
     local_metrics = {r.scene_id: r.metrics for r in full_run[1].scenes}
     for r in run.scenes:
@@ -184,6 +190,55 @@ def test_explore_collection_on_s3_matches_local(s3_endpoint, prefect_api_url, de
         assert len(cloud) > 2000 and any("SIMULATION" in c for c in comments)
         assert a.status(EVALUATE).complete
     # the same flow again over the S3 store recomputes nothing
-    again = explore_collection(str(demo_photos), uri, TINY)
+    again = explore_collection(str(photos), uri, TINY)
     events = [e for e in s3.tables.read("steps").to_pylist() if e["run_id"] == again.run_id]
     assert events and {e["event"] for e in events} == {"skipped"}
+
+
+def test_photos_under_an_s3_prefix(s3_endpoint, prefect_api_url, demo_photos, full_run, tmp_path, monkeypatch):
+    """A collection under an s3:// prefix (demo photos with their ground-truth sidecars, uploaded as
+    objects) explored by the CLI into a local store: the same arrays and files as from the local photos.
+    One image, to stay fast; listing, per-image submission and the errors are checked on three."""
+    from test_flows import _assert_same_outputs
+    from typer.testing import CliRunner
+
+    from navcrafter.flows.cli import app
+    from navcrafter.flows.submit import collection_items
+    from navcrafter.tasks.ingest import CollectionError, list_collection, source_fs
+    from navcrafter.tasks.report import read_manifest
+
+    fs, _ = source_fs(f"s3://{BUCKET}")
+    everything = s3_url("photos")
+    fs.put(str(demo_photos), everything.removeprefix("s3://"), recursive=True)  # photos + .groundtruth/
+    assert list_collection(f"{everything}/") == [f"{everything}/{name}" for name in DEMO]  # sidecars hidden
+    assert collection_items(everything, per_image=True) == [f"{everything}/{name}" for name in DEMO]
+    assert collection_items(everything, per_image=False) == [everything]
+    one = s3_url("one")
+    for rel in ("tabletop-0.png", ".groundtruth/tabletop-0/scene.json"):
+        fs.put_file(str(demo_photos / rel), f"{one.removeprefix('s3://')}/{rel}")
+
+    store = tmp_path / "store"
+    runner = CliRunner()
+    res = runner.invoke(app, ["explore", f"{one}/", "--store", str(store), "--preset", "tiny"])
+    assert res.exit_code == 0, res.output
+    [row] = read_manifest(Store(str(store))).to_pylist()
+    assert row["source"] == f"{one}/tabletop-0.png" and row["status"] == "done", row
+    _assert_same_outputs(full_run[0], store)
+
+    # clear errors, naming the URL and the fix; nothing is written
+    errors = {f"s3://{BUCKET}/nothing-here/": "no objects under",
+              "s3://no-such-bucket/photos/": "bucket does not exist"}
+    for url, message in errors.items():
+        with pytest.raises(CollectionError, match=message):
+            list_collection(url)
+        res = runner.invoke(app, ["explore", url, "--store", str(tmp_path / "s")])
+        assert res.exit_code == 2 and message in res.output and url in res.output, res.output
+    monkeypatch.delenv("AWS_ACCESS_KEY_ID")
+    monkeypatch.delenv("AWS_SECRET_ACCESS_KEY")
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "none"))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "none"))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    fs.clear_instance_cache()
+    with pytest.raises(CollectionError, match="no credentials.*AWS_ACCESS_KEY_ID"):
+        list_collection(everything)
+    assert not (tmp_path / "s").exists()

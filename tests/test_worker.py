@@ -1,5 +1,6 @@
-"""Distributed operation with real processes: a Prefect server, a process work pool, the deployment made
-from this checkout, workers, and ``navcrafter submit``; then a worker killed mid-scene.
+"""Distributed operation with real processes: a Prefect server, process work pools (a CPU one for the
+collection runs, a "GPU" one for the scene runs they dispatch), the deployments made from this checkout,
+workers, and ``navcrafter submit``; then a worker killed mid-scene.
 
 The server here is its own (own PREFECT_HOME, SQLite), not the session's test server: workers and
 flow runs are separate processes and need a server they can reach over HTTP.
@@ -27,7 +28,9 @@ from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
 
 POOL = "navcrafter-test"
+GPU_POOL = "navcrafter-test-gpu"  # process pool standing in for the GPU machines
 DEPLOYMENT = "explore-collection/test"
+SCENE_DEPLOYMENT = "explore-scene/test"
 VENV_BIN = str(Path(sys.executable).parent)
 UUID = re.compile(r"flow run ([0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12})")
 
@@ -91,8 +94,11 @@ def _tail(path: Path, n: int = 4000) -> str:
     return path.read_text(errors="replace")[-n:] if path.exists() else ""
 
 
-def _get(url: str) -> dict:
-    with urllib.request.urlopen(url, timeout=10) as r:
+def _get(url: str, body: dict | None = None):
+    """GET ``url``, or POST ``body`` to it as JSON (the API's filter endpoints)."""
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=10) as r:
         return json.loads(r.read())
 
 
@@ -115,19 +121,20 @@ def server(tmp_path_factory):
                 if proc.poll() is not None or time.time() > deadline:
                     raise RuntimeError(f"the Prefect server did not start:\n{_tail(log)}") from None
                 time.sleep(0.5)
-        res = subprocess.run([f"{VENV_BIN}/prefect", "work-pool", "create", "--type", "process", POOL],
-                             env=_env(home, api), capture_output=True, text=True, timeout=120)
-        assert res.returncode == 0, res.stdout + res.stderr
+        for pool in (POOL, GPU_POOL):
+            res = subprocess.run([f"{VENV_BIN}/prefect", "work-pool", "create", "--type", "process", pool],
+                                 env=_env(home, api), capture_output=True, text=True, timeout=120)
+            assert res.returncode == 0, res.stdout + res.stderr
         yield {"api": api, "home": home}
     finally:
         _kill_tree(proc, signal.SIGTERM)
 
 
 class Worker:
-    def __init__(self, server, log: Path) -> None:
+    def __init__(self, server, log: Path, pool: str = POOL) -> None:
         self.log = log
         with open(log, "ab") as out:
-            self.proc = subprocess.Popen([f"{VENV_BIN}/prefect", "worker", "start", "--pool", POOL],
+            self.proc = subprocess.Popen([f"{VENV_BIN}/prefect", "worker", "start", "--pool", pool],
                                          env=_env(server["home"], server["api"]), stdout=out,
                                          stderr=subprocess.STDOUT, start_new_session=True)
 
@@ -188,28 +195,43 @@ def two_photos(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def uninterrupted(server, two_photos, tmp_path_factory):
-    """The two images explored by a worker from one submitted run, uninterrupted."""
+    """The two images explored from one submitted run, uninterrupted: the collection run on the CPU
+    pool's worker, each scene dispatched as a flow run of explore-scene to the GPU pool's worker."""
     store = tmp_path_factory.mktemp("worker-full") / "store"
-    worker = Worker(server, store.parent / "worker.log")
+    workers = [Worker(server, store.parent / "worker.log"), Worker(server, store.parent / "gpu-worker.log", GPU_POOL)]
     try:
-        ids = _submit(server, two_photos, store, "--tag", "test")
+        ids = _submit(server, two_photos, store, "--tag", "test", "--scene-pool", GPU_POOL)
         assert len(ids) == 1
-        _wait_completed(server, ids, [worker])
+        _wait_completed(server, ids, workers)
     finally:
-        worker.kill()
+        for w in workers:
+            w.kill()
     run = _get(f"{server['api']}/flow_runs/{ids[0]}")
     return store, run
 
 
 @pytest.mark.slow
-def test_submitted_collection_is_explored_by_a_worker(uninterrupted, two_photos):
+def test_submitted_collection_is_explored_by_a_worker(server, uninterrupted, two_photos):
     store, run = uninterrupted
-    assert {"navcrafter", "test"} <= set(run["tags"])
+    assert {"navcrafter", "test"} <= set(run["tags"]) and run["work_pool_name"] == POOL
     assert run["parameters"]["store"] == str(store) and run["parameters"]["config"]["iterations"] == TINY.iterations
+    assert run["parameters"]["scene_deployment"] == SCENE_DEPLOYMENT
     manifest = {Path(r["source"]).name: r for r in read_manifest(Store(str(store))).to_pylist()}
     assert {k: v["status"] for k, v in manifest.items()} == {"room-0.png": "done", "tabletop-0.png": "done"}
     counts = completed_counts(store)
     assert len(counts) == 2 * (2 + len(scene_steps(TINY))) and set(counts.values()) == {1}  # + input, evaluation
+    # the scenes ran as child flow runs of the explore-scene deployment, on the GPU pool
+    children = _get(f"{server['api']}/flow_runs/filter",
+                    {"flow_runs": {"parent_flow_run_id": {"any_": [run["id"]]}}})
+    assert sorted(c["parameters"]["scene_id"] for c in children) == sorted(Store(str(store)).scene_ids())
+    for child in children:
+        deployment = _get(f"{server['api']}/deployments/{child['deployment_id']}")
+        flow = _get(f"{server['api']}/flows/{deployment['flow_id']}")
+        assert f"{flow['name']}/{deployment['name']}" == SCENE_DEPLOYMENT
+        assert child["work_pool_name"] == GPU_POOL and child["state"]["type"] == "COMPLETED"
+        assert child["parameters"]["run_id"] == run["id"] and child["parameters"]["store"] == str(store)
+        assert child["name"] == f"scene-{child['parameters']['scene_id'][:12]}" and "test" in child["tags"]
+    assert {r["run_id"] for r in manifest.values()} == {run["id"]}
 
 
 @pytest.mark.slow
@@ -298,3 +320,31 @@ def test_collection_items_and_list_files(tmp_path, monkeypatch):
         assert ui_url() == "http://h:4200"
     with temporary_settings({PREFECT_API_URL: "http://h:4200/api", PREFECT_UI_URL: "https://ui.example/"}):
         assert ui_url() == "https://ui.example"
+
+
+def test_dispatched_scene_results_come_from_the_manifest_or_the_run_state(tmp_path):
+    """What the collection run makes of its scene runs: the scene's final manifest row of this run, else
+    (killed, crashed, cancelled before writing it) a failure carrying the Prefect state's message."""
+    from prefect.states import Crashed
+
+    from navcrafter.flows.dispatch import _FinalRows, result_from_row, result_without_row
+    from navcrafter.tasks.report import SceneResult, manifest_rows_for, write_manifest
+
+    store, a, b = str(tmp_path / "store"), "a" * 64, "b" * 64
+    done = SceneResult(b, ["/p/b.png"], "done", step="export", backend="simulation", seconds=3.0,
+                       timings={"iter_0/geometry": 1.0}, metrics={"n_points": 5.0}, outputs=f"scenes/{b}/exports")
+    write_manifest(store, manifest_rows_for(SceneResult(a, ["/p/a.png"], "done", backend="simulation"), "earlier"))
+    write_manifest(store, manifest_rows_for(SceneResult(a, ["/p/a.png"], "running", backend="simulation"), "run"))
+    write_manifest(store, manifest_rows_for(done, "run"))
+    rows = _FinalRows(store, "run")
+    rows.refresh()
+    assert set(rows.rows) == {b}  # another run's final row does not count, nor a "running" one
+    assert result_from_row(rows.rows[b], ["/p/b.png"]) == done
+    state = Crashed(message="Flow run infrastructure exited with non-zero status code -9.")
+    failed = result_without_row(store, a, ["/p/a.png"], TINY, "run", f"scene-{a[:12]}", state)
+    assert failed.status == "failed" and failed.step is None
+    assert failed.error == f"scene run scene-{a[:12]} ended CRASHED: {state.message}"
+    rows.refresh()  # only the new file is read; the failure just recorded is this run's final row
+    assert result_from_row(rows.rows[a], ["/p/a.png"]) == failed
+    latest = {r["scene_id"]: r["status"] for r in read_manifest(Store(store)).to_pylist()}
+    assert latest == {a: "failed", b: "done"}

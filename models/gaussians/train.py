@@ -1,0 +1,260 @@
+"""Training a 3DGS model on posed images: the geometry-aware loss of the paper with DropGaussian.
+
+Per iteration ``t`` one training view (a seeded permutation, one epoch after another) is rendered with the
+``RGB+ED`` mode; with DropGaussian's rate ``r_t = gamma * t / T`` applied to the opacities (training only)::
+
+    L = L1(rgb, image) + lambda_lpips * LPIPS(rgb, image) + lambda_depth * L1(ED, D_cal) / median(D_cal)
+
+``ED`` is the rendered expected depth, ``D_cal`` the view's calibrated monocular depth (``models.depthcalib``);
+the depth term is the mean over pixels where ``D_cal > 0``, divided by the view's median ``D_cal`` so that
+``lambda_depth`` does not depend on the scene's units. A term with ``lambda = 0`` is neither computed nor
+added; the LPIPS term needs a perceptual model (the official LPIPS weights) and is skipped otherwise.
+
+Optimisation is 3DGS's: one Adam (eps 1e-15) per parameter with its own learning rate; the position rate is
+multiplied by the scene scale and decays exponentially from ``lr_means`` to ``lr_means_final`` over the
+run; the active SH degree grows by one every ``sh_degree_interval`` iterations. Density control is a
+:class:`~navcrafter.models.gaussians.densify.Strategy`. Everything random is seeded, so a run is
+deterministic on the CPU.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from navcrafter.models.gaussians.densify import DefaultStrategy, NoStrategy, Strategy
+from navcrafter.models.gaussians.model import GaussianModel
+from navcrafter.models.gaussians.rasterize import rasterization
+from navcrafter.models.gaussians.strategy import DropGaussian
+
+PerceptualLoss = Callable[[Tensor, Tensor], Tensor]  # (rendered, target) [1, 3, H, W] in [-1, 1] -> scalar
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Defaults: 3DGS's learning rates, gsplat's density control, DropGaussian's schedule."""
+
+    iterations: int = 10_000
+    lr_means: float = 1.6e-4  # times the scene scale
+    lr_means_final: float = 1.6e-6  # times the scene scale, reached at the last iteration
+    lr_quats: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    lambda_lpips: float = 0.2
+    lambda_depth: float = 0.1
+    drop_gamma: float = 0.1  # DropGaussian r_t = gamma t / T; 0 disables it
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000
+    densify: bool = True
+    # density control: the defaults are DefaultStrategy's (gsplat's)
+    grow_grad2d: float = DefaultStrategy.grow_grad2d
+    grow_scale3d: float = DefaultStrategy.grow_scale3d
+    prune_opa: float = DefaultStrategy.prune_opa
+    prune_scale3d: float = DefaultStrategy.prune_scale3d
+    refine_start: int = DefaultStrategy.refine_start
+    refine_stop: int = DefaultStrategy.refine_stop
+    refine_every: int = DefaultStrategy.refine_every
+    reset_every: int = DefaultStrategy.reset_every
+    max_gaussians: int = DefaultStrategy.max_gaussians
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    seed: int = 0
+
+    def strategy(self) -> Strategy:
+        if not self.densify:
+            return NoStrategy()
+        return DefaultStrategy(grow_grad2d=self.grow_grad2d, grow_scale3d=self.grow_scale3d,
+                               prune_opa=self.prune_opa, prune_scale3d=self.prune_scale3d,
+                               refine_start=self.refine_start, refine_stop=self.refine_stop,
+                               refine_every=self.refine_every, reset_every=self.reset_every,
+                               max_gaussians=self.max_gaussians, seed=self.seed + 1)
+
+
+@dataclass
+class TrainView:
+    """One posed image: ``image`` [H, W, 3] float in [0, 1], OpenCV ``c2w`` [4, 4], ``K`` [3, 3] and optional
+    calibrated depth [H, W] (0 = no supervision)."""
+
+    image: Tensor
+    c2w: Tensor
+    K: Tensor
+    depth: Tensor | None = None
+
+    @property
+    def viewmat(self) -> Tensor:
+        return torch.linalg.inv(self.c2w)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+@dataclass
+class TrainResult:
+    model: GaussianModel
+    history: dict[str, list[float]] = field(default_factory=dict)  # per iteration: loss, l1, lpips, depth, ...
+    seconds: float = 0.0
+    strategy_state: dict = field(default_factory=dict)
+
+    def summary(self) -> dict[str, float]:
+        h = self.history
+        return {"iterations": len(h.get("loss", [])), "final_loss": h["loss"][-1] if h.get("loss") else math.nan,
+                "n_gaussians": len(self.model), "seconds": self.seconds}
+
+
+def position_lr(step: int, total: int, lr0: float, lr1: float) -> float:
+    """Log-linear decay from ``lr0`` (step 0) to ``lr1`` (step ``total``)."""
+    t = min(max(step / max(total, 1), 0.0), 1.0)
+    return math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+
+
+class GaussianTrainer:
+    """Holds the parameters, optimisers, DropGaussian and the strategy of one training run."""
+
+    PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+    def __init__(self, model: GaussianModel, views: list[TrainView], config: TrainConfig, *, scene_scale: float,
+                 perceptual: PerceptualLoss | None = None, strategy: Strategy | None = None) -> None:
+        if not views:
+            raise ValueError("training needs at least one view")
+        if model.sh_degree < config.sh_degree:
+            raise ValueError(f"the model has SH degree {model.sh_degree} < config.sh_degree {config.sh_degree}")
+        if config.lambda_lpips > 0 and perceptual is None:
+            raise ValueError("lambda_lpips > 0 needs a perceptual model (pass lambda_lpips=0 without LPIPS weights)")
+        self.config, self.views, self.scene_scale = config, views, float(scene_scale)
+        self.perceptual = perceptual
+        self.params = {name: t.detach().clone().float().requires_grad_(True)
+                       for name, t in model.tensors().items()}
+        lrs = {"means": config.lr_means * self.scene_scale, "quats": config.lr_quats, "log_scales": config.lr_scales,
+               "opacity_logits": config.lr_opacities, "sh_dc": config.lr_sh0, "sh_rest": config.lr_shN}
+        self.optimizers = {name: torch.optim.Adam([{"params": [self.params[name]], "lr": lrs[name]}], eps=1e-15)
+                           for name in self.PARAMS}
+        self.strategy = strategy if strategy is not None else config.strategy()
+        self.state = self.strategy.initialize_state(self.scene_scale)
+        self.drop = DropGaussian(config.drop_gamma, max(config.iterations, 1), seed=config.seed + 2)
+        self.order = torch.Generator().manual_seed(config.seed)
+        self._queue: list[int] = []
+        self.background = torch.tensor(config.background, dtype=torch.float32)
+        self.history: dict[str, list[float]] = {k: [] for k in ("loss", "l1", "lpips", "depth", "drop_rate",
+                                                                "n_gaussians")}
+
+    # ----------------------------------------------------------------------------------------------
+    @property
+    def model(self) -> GaussianModel:
+        return GaussianModel(**{k: v.detach().clone() for k, v in self.params.items()})
+
+    def active_sh_degree(self, step: int) -> int:
+        c = self.config
+        return min(c.sh_degree, step // max(c.sh_degree_interval, 1))
+
+    def render(self, view: TrainView, step: int, *, training: bool, sh_degree: int | None = None
+               ) -> tuple[Tensor, Tensor, Tensor, dict]:
+        """(rgb [H, W, 3], expected depth [H, W], alpha [H, W], meta) of ``view``; DropGaussian only when
+        ``training``."""
+        p = self.params
+        opac = self.drop(torch.sigmoid(p["opacity_logits"]), step, training=training)
+        W, H = view.size
+        coeffs = torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], dim=1)
+        out, alpha, meta = rasterization(
+            p["means"], p["quats"], torch.exp(p["log_scales"]), opac, coeffs, view.viewmat[None], view.K[None],
+            W, H, sh_degree=self.active_sh_degree(step) if sh_degree is None else sh_degree,
+            backgrounds=self.background[None], render_mode="RGB+ED")
+        return out[0, ..., :3], out[0, ..., 3], alpha[0, ..., 0], meta
+
+    def losses(self, view: TrainView, rgb: Tensor, depth: Tensor) -> dict[str, Tensor]:
+        c = self.config
+        terms = {"l1": (rgb - view.image).abs().mean()}
+        if c.lambda_lpips > 0:
+            terms["lpips"] = self.perceptual(rgb.permute(2, 0, 1)[None] * 2 - 1,
+                                             view.image.permute(2, 0, 1)[None] * 2 - 1).reshape(())
+        if c.lambda_depth > 0 and view.depth is not None:
+            mask = view.depth > 0
+            if mask.any():
+                ref = view.depth[mask]
+                terms["depth"] = (depth[mask] - ref).abs().mean() / ref.median().clamp(min=1e-8)
+        total = terms["l1"]
+        if "lpips" in terms:
+            total = total + c.lambda_lpips * terms["lpips"]
+        if "depth" in terms:
+            total = total + c.lambda_depth * terms["depth"]
+        terms["loss"] = total
+        return terms
+
+    def next_view(self) -> int:
+        if not self._queue:
+            self._queue = torch.randperm(len(self.views), generator=self.order).tolist()
+        return self._queue.pop(0)
+
+    def step(self, step: int) -> dict[str, float]:
+        c = self.config
+        view = self.views[self.next_view()]
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        self.optimizers["means"].param_groups[0]["lr"] = position_lr(
+            step, c.iterations, c.lr_means * self.scene_scale, c.lr_means_final * self.scene_scale)
+        rgb, depth, _, meta = self.render(view, step, training=True)
+        terms = self.losses(view, rgb, depth)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.state, step, meta)
+        terms["loss"].backward()
+        for opt in self.optimizers.values():
+            opt.step()
+        self.strategy.step_post_backward(self.params, self.optimizers, self.state, step, meta)
+        rec = {k: float(v.detach()) for k, v in terms.items()}
+        rec.update(drop_rate=self.drop.rate(step), n_gaussians=float(self.params["means"].shape[0]))
+        for k in self.history:
+            self.history[k].append(rec.get(k, math.nan))
+        return rec
+
+    def train(self, callback: Callable[[int, dict[str, float]], None] | None = None) -> TrainResult:
+        t0 = time.perf_counter()
+        for step in range(self.config.iterations):
+            rec = self.step(step)
+            if callback is not None:
+                callback(step, rec)
+        state = {k: v for k, v in self.state.items() if isinstance(v, (int, float))}
+        return TrainResult(self.model, self.history, time.perf_counter() - t0, state)
+
+    @torch.no_grad()
+    def evaluate(self, views: list[TrainView]) -> tuple[np.ndarray, np.ndarray]:
+        """Renders (no DropGaussian, full SH degree) of ``views``: rgb [V, H, W, 3] in [0, 1] and depth."""
+        rgbs, depths = [], []
+        for v in views:
+            rgb, depth, _, _ = self.render(v, self.config.iterations, training=False, sh_degree=self.config.sh_degree)
+            rgbs.append(rgb.clamp(0, 1).numpy())
+            depths.append(depth.numpy())
+        return np.stack(rgbs), np.stack(depths)
+
+
+def train_gaussians(model: GaussianModel, views: list[TrainView], config: TrainConfig, *, scene_scale: float,
+                    perceptual: PerceptualLoss | None = None, strategy: Strategy | None = None,
+                    callback: Callable[[int, dict[str, float]], None] | None = None
+                    ) -> tuple[TrainResult, GaussianTrainer]:
+    """Train ``model`` on ``views``; returns the result and the trainer (for rendering held-out views)."""
+    trainer = GaussianTrainer(model, views, config, scene_scale=scene_scale, perceptual=perceptual,
+                              strategy=strategy)
+    return trainer.train(callback), trainer
+
+
+def render_model(model: GaussianModel, c2w: np.ndarray, K: np.ndarray, width: int, height: int,
+                 background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Evaluation renders [V, H, W, 3] uint8 of a trained model at cameras ``c2w`` [V, 4, 4], ``K`` [V, 3, 3]."""
+    out = np.empty((len(c2w), height, width, 3), dtype=np.uint8)
+    bg = torch.tensor(background, dtype=torch.float32)[None]
+    with torch.no_grad():
+        for i in range(len(c2w)):
+            vm = torch.linalg.inv(torch.as_tensor(c2w[i], dtype=torch.float32))[None]
+            img, _, _ = model.render(vm, torch.as_tensor(K[i], dtype=torch.float32)[None], width, height,
+                                     backgrounds=bg)
+            out[i] = np.round(img[0].clamp(0, 1).numpy() * 255).astype(np.uint8)
+    return out
+
+
+def config_dict(config: TrainConfig) -> dict:
+    return asdict(config)
