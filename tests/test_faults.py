@@ -20,16 +20,14 @@ import socket
 import subprocess
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 
 import pytest
 import test_s3_store
 import test_worker
 from conftest import TINY
-from test_flows import _assert_same_outputs, _run_cli, completed_counts
+from test_flows import _assert_same_outputs, _run_cli, _step_state, completed_counts
 
-from navcrafter.schemas.layout import STEPS
 from navcrafter.schemas.store import Store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
@@ -47,19 +45,6 @@ def one_photo(demo_photos, tmp_path_factory) -> Path:
     return folder
 
 
-def _state(store: Store) -> dict[tuple[str, str], tuple[bool, str | None]]:
-    """(scene, step) -> (complete, exec_id) of every step group present (``test_flows._step_state`` for
-    a ``Store`` object, so that the test can look at an S3 store while the run's own endpoint is cut)."""
-    out = {}
-    for sid in store.scene_ids():
-        scene = store.scene(sid)
-        for spec, k in [(STEPS["ingest"], None), *[(s.spec, s.k) for s in scene_steps(TINY)]]:
-            st = scene.status(spec, k)
-            if st.exists:
-                out[(sid, st.path)] = (st.complete, st.attrs.get("exec_id"))
-    return out
-
-
 def _complete(state) -> set[str]:
     return {path for (_, path), (complete, _) in state.items() if complete}
 
@@ -75,12 +60,6 @@ def _assert_complete_steps_match(store: Store, reference: Path) -> None:
             assert got.keys() == want.keys(), spec.group_path(k)
             for name in got:
                 assert (got[name] == want[name]).all(), f"{spec.group_path(k)}/{name}"
-
-
-def completed_counts_of(store: Store) -> Counter:
-    """``test_flows.completed_counts`` for a ``Store`` object."""
-    events = store.tables.read("steps").to_pylist()
-    return Counter((e["scene_id"], e["step"]) for e in events if e["event"] == "completed")
 
 
 def _assert_not_recomputed(before, after) -> None:
@@ -186,7 +165,7 @@ def _wait_for(store_fn, cond, proc: subprocess.Popen, timeout: float = 180):
     deadline = time.time() + timeout
     while time.time() < deadline and proc.poll() is None:
         try:
-            state = _state(store_fn())
+            state = _step_state(store_fn())
         except Exception:  # the store is being created
             state = {}
         if cond(state):
@@ -216,8 +195,8 @@ def test_short_store_outage_mid_run_is_ridden_out(prefect_api_url, s3_via_proxy,
     assert proc.returncode == 0, out[-3000:]
     assert "cannot be reached" in out and "Retry 1/2" in out, out[-3000:]  # a step failed and was retried
     store = view()
-    _assert_not_recomputed(before, _state(store))
-    assert set(completed_counts_of(store).values()) == {1}
+    _assert_not_recomputed(before, _step_state(store))
+    assert set(completed_counts(store).values()) == {1}
     _assert_same_outputs(full_run[0], uri)
 
 
@@ -240,7 +219,7 @@ def test_store_outage_past_all_retries_then_rerun(prefect_api_url, s3_via_proxy,
     assert f"the store {uri} cannot be reached" in flat and "then rerun the same command" in flat, out[-3000:]
     assert "1 of 1 images failed" in flat, out[-3000:]
     assert "run summary not written" in flat  # the store refused the bookkeeping: said, not crashed
-    during = _state(view())
+    during = _step_state(view())
     assert "iter_0/geometry" in _complete(during) and "exports" not in _complete(during)  # stopped mid-way
     _assert_complete_steps_match(view(), full_run[0])  # what is marked complete is whole
 
@@ -249,8 +228,8 @@ def test_store_outage_past_all_retries_then_rerun(prefect_api_url, s3_via_proxy,
     out = proc.communicate(timeout=300)[0].decode(errors="replace")
     assert proc.returncode == 0, out[-3000:]
     store = view()
-    _assert_not_recomputed(during, _state(store))
-    assert set(completed_counts_of(store).values()) == {1}
+    _assert_not_recomputed(during, _step_state(store))
+    assert set(completed_counts(store).values()) == {1}
     assert {r["status"] for r in read_manifest(store).to_pylist()} == {"done"}
     _assert_same_outputs(full_run[0], uri)
 
@@ -272,7 +251,7 @@ def _assert_disk_full_reported(run, store: Path, reference: Path) -> str:
     assert f"the store {store} is full" in scene.error and "free space" in scene.error, scene.error
     assert "rerun the same command" in scene.error and scene.step in scene.error, scene.error
     view = Store(str(store))
-    state = _state(view)
+    state = _step_state(view)
     assert "iter_0/geometry" in _complete(state) and "exports" not in _complete(state)  # failed mid-scene
     _assert_complete_steps_match(view, reference)
     return scene.step
@@ -282,7 +261,7 @@ def _rerun_and_compare(photos: Path, store: Path, before, reference: Path) -> No
     run = _explore_in_process(photos, store)
     assert [r.status for r in run.scenes] == ["done"], [r.error for r in run.scenes]
     assert not run.store_errors
-    _assert_not_recomputed(before, _state(Store(str(store))))
+    _assert_not_recomputed(before, _step_state(Store(str(store))))
     counts = completed_counts(store)
     assert set(counts.values()) == {1} and len(counts) == 2 + len(scene_steps(TINY))  # + input, evaluation
     _assert_same_outputs(reference, store)
@@ -320,7 +299,7 @@ def test_disk_full_on_a_real_small_filesystem(prefect_api_url, small_tmpfs, one_
     assert [e["step"] for e in failed] == [step] and "StoreFull" in failed[0]["error"]  # once: not retried
     assert not list(mnt.rglob(".tmp-*"))  # no partial temporary files left behind
     assert not Store(str(store)).scene(run.scenes[0].scene_id).status(*_spec(step)).exists  # space given back
-    before = _state(Store(str(store)))
+    before = _step_state(Store(str(store)))
     resize(16_000)  # the operator frees space
     _rerun_and_compare(one_photo, store, before, full_run[0])
 
@@ -383,7 +362,7 @@ def test_injected_disk_full(prefect_api_url, disk_budget, one_photo, full_run, t
     assert disk_budget.refused > 1
     assert run.summary == "" and any("run summary not written" in n and "is full" in n for n in run.store_errors)
     assert not list(store.rglob(".tmp-*"))
-    before = _state(Store(str(store)))
+    before = _step_state(Store(str(store)))
     disk_budget.left = float("inf")  # space freed
     _rerun_and_compare(one_photo, store, before, full_run[0])
 
@@ -464,11 +443,11 @@ def test_prefect_server_restart_under_a_running_flow(restartable_server, one_pho
     try:
         [run_id] = test_worker._submit(server.as_fixture(), one_photo, store)
         deadline = time.time() + 240
-        while "iter_0/geometry" not in _complete(_state(Store(str(store))) if (store / "zarr.json").exists() else {}):
+        while "iter_0/geometry" not in _complete(_step_state(store) if (store / "zarr.json").exists() else {}):
             assert time.time() < deadline and worker.proc.poll() is None, test_worker._tail(worker.log)
             time.sleep(0.2)
         server.kill()
-        at_kill = _state(Store(str(store)))
+        at_kill = _step_state(Store(str(store)))
         time.sleep(8)
         server.start()
         states = []
@@ -486,7 +465,7 @@ def test_prefect_server_restart_under_a_running_flow(restartable_server, one_pho
         assert "Unable to connect" in log  # the flow run did see the server go away
     finally:
         worker.kill()
-    _assert_not_recomputed(at_kill, _state(Store(str(store))))
+    _assert_not_recomputed(at_kill, _step_state(Store(str(store))))
     counts = completed_counts(store)
     assert set(counts.values()) == {1} and len(counts) == 2 + len(scene_steps(TINY))
     assert {r["status"] for r in read_manifest(Store(str(store))).to_pylist()} == {"done"}

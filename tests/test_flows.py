@@ -27,8 +27,8 @@ from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
 
 
-def completed_counts(store: Path) -> Counter:
-    events = Store(str(store)).tables.read("steps").to_pylist()
+def completed_counts(store: Path | Store) -> Counter:
+    events = (store if isinstance(store, Store) else Store(str(store))).tables.read("steps").to_pylist()
     return Counter((e["scene_id"], e["step"]) for e in events if e["event"] == "completed")
 
 
@@ -150,8 +150,10 @@ def _run_cli(args, env_extra, api_url, **kw):
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kw)
 
 
-def _step_state(store: Path) -> dict[tuple[str, str], tuple[bool, str | None]]:
-    s = Store(str(store))
+def _step_state(store: Path | Store) -> dict[tuple[str, str], tuple[bool, str | None]]:
+    """(scene, step) -> (complete, exec_id) of every step group present (a path, or a ``Store`` object,
+    e.g. one whose connection is not the run's own)."""
+    s = store if isinstance(store, Store) else Store(str(store))
     out = {}
     for sid in s.scene_ids():
         sc = s.scene(sid)
