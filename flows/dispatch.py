@@ -19,7 +19,7 @@ from prefect.runtime import flow_run
 
 from navcrafter.schemas.config import RunConfig
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.report import SceneResult, last_step, manifest_rows_for, step_timings, write_manifest
+from navcrafter.tasks.report import SceneResult, manifest_rows_for, scene_result, write_manifest
 
 POLL_SECONDS = 2.0  # how often the collection run reads the states of its scene runs
 FINAL_STATUSES = ("done", "failed")  # manifest statuses that only a finished scene run writes
@@ -93,13 +93,10 @@ def result_without_row(store: str, scene_id: str, sources: list[str], config: Ru
                        run_name: str, state) -> SceneResult:
     """A scene run that ended without recording its end (killed, crashed, cancelled): failed, with the
     Prefect state's message and the last step the store shows complete; recorded in the manifest."""
-    scene = open_store(store).scene(scene_id)
-    timings = step_timings(scene, config)
     message = (state.message or "no message") if state is not None else "no state"
     kind = state.type.value if state is not None else "UNKNOWN"
-    result = SceneResult(scene_id, sources, "failed", step=last_step(scene, config),
-                         error=f"scene run {run_name} ended {kind}: {message}", backend=config.backend,
-                         seconds=sum(timings.values()), timings=timings)
+    result = scene_result(open_store(store).scene(scene_id), sources, config, "failed",
+                          error=f"scene run {run_name} ended {kind}: {message}")
     write_manifest(store, manifest_rows_for(result, run_id))
     return result
 

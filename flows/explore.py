@@ -32,10 +32,9 @@ from navcrafter.tasks.common import StepError, logger, open_store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import (
     SceneResult,
-    last_step,
     manifest_rows_for,
     plan_artifact_markdown,
-    step_timings,
+    scene_result,
     summary_markdown,
     write_manifest,
     write_summary,
@@ -207,14 +206,10 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
         progress.advance()
     except Exception as exc:  # recorded, then raised so that the flow run shows as failed
         failure = exc
-
-    def progress_in_store() -> tuple[dict[str, float], str | None]:
-        scene = open_store(store).scene(scene_id)
-        return step_timings(scene, config), last_step(scene, config)
-
-    timings, last = _best_effort(store, "timings", progress_in_store) or ({}, None)
-    result = SceneResult(scene_id, sources, "done" if failure is None else "failed", step=last,
-                         backend=config.backend, seconds=sum(timings.values()), timings=timings, metrics=metrics)
+    status = "done" if failure is None else "failed"
+    result = (_best_effort(store, "timings", lambda: scene_result(open_store(store).scene(scene_id), sources, config,
+                                                                  status, metrics=metrics))
+              or SceneResult(scene_id, sources, status, backend=config.backend, metrics=metrics))
     if failure is None:
         result.outputs = f"scenes/{scene_id}/exports"
     else:
@@ -273,10 +268,9 @@ def explore_collection(photos: str, store: str, config: RunConfig,
     def fail(scene_id: str | None, srcs: list[str], res) -> None:
         if isinstance(res, ingest.IngestResult):
             error = res.error
-        elif isinstance(res, StepError) or store_problem(store, res) is not None:
-            error = str(res if isinstance(res, StepError) else store_problem(store, res))
         else:
-            error = f"ingest crashed: {res!r}"
+            problem = res if isinstance(res, StepError) else store_problem(store, res)
+            error = f"ingest crashed: {res!r}" if problem is None else str(problem)
         failed = SceneResult(scene_id or "", srcs, "failed", step="ingest", error=error, backend=config.backend)
         record(manifest_rows_for(failed, run_id))
         results.append(failed)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import functools
 import json
 import os
 import signal
@@ -60,6 +61,7 @@ class StoreFull(StoreError):
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
+@functools.cache
 def _unreachable_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that mean "the store did not answer": builtin connection errors and timeouts, and
     botocore's and aiohttp's own (s3fs raises those as they are; they are not ``OSError``)."""

@@ -59,6 +59,14 @@ def last_step(scene: SceneStore, config: RunConfig) -> str | None:
     return done
 
 
+def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, status: str,
+                 **fields: Any) -> SceneResult:
+    """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
+    timings = step_timings(scene, config)
+    return SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
+                       seconds=sum(timings.values()), timings=timings, **fields)
+
+
 def write_manifest(store_uri: str, rows: list[dict[str, Any]]) -> None:
     now = utcnow()
     open_store(store_uri).tables.write("manifest", [{"updated_at": now, **r} for r in rows])
