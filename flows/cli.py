@@ -20,6 +20,10 @@ app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a r
 console = Console(width=None if sys.stdout.isatty() else 160)
 err = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
 
+from navcrafter.flows.models_cli import models_app  # noqa: E402
+
+app.add_typer(models_app, name="models")
+
 EXIT_USAGE = 2
 EXIT_PARTIAL = 3
 
@@ -28,6 +32,8 @@ def _prefect_env() -> None:
     """Offline-friendly Prefect defaults (each can be overridden from the environment)."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "navcrafter")
+    # The temporary local server needs longer than Prefect's 20 s default on a busy 2-core machine.
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "90")
 
 
 def _parse_sets(values: list[str]) -> dict:
@@ -118,6 +124,11 @@ def explore(
         raise typer.Exit(EXIT_USAGE)
     if cfg.backend == "simulation":
         console.print(f"[bold yellow]{LABEL}.[/bold yellow]")
+    elif cfg.backend == "onnx" and cfg.model_dir is not None and Path(cfg.model_dir).is_dir():
+        from navcrafter.models.backends import run_label
+
+        if label := run_label(cfg):
+            console.print(f"[bold yellow]{label}.[/bold yellow]")
     _prefect_env()
     from prefect.task_runners import ThreadPoolTaskRunner
 

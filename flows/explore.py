@@ -24,7 +24,7 @@ from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.flows import dashboard, dispatch
-from navcrafter.models.backends import ONNX_NOT_BUILT
+from navcrafter.models.backends import onnx_problems
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
 from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, synthesize
@@ -144,7 +144,7 @@ def preflight(config: RunConfig) -> list[str]:
     """What the configuration asks for that is not built yet or cannot work (checked before any work starts)."""
     problems = []
     if config.backend == "onnx":
-        problems.append(ONNX_NOT_BUILT)
+        problems.extend(onnx_problems(config))
     if config.fit.enabled and config.iterations < 1:
         problems.append("fit.enabled needs iterations >= 1: the Gaussians are fitted to the synthesized frames")
     return problems

@@ -112,6 +112,11 @@ class LiftConfig(_Section):
     confidence_threshold: float = Field(0.5, ge=0, le=1)
     voxel_size: float = Field(0.02, gt=0, description="Fusion voxel edge, in scene units (metres).")
     max_depth: float = Field(50.0, gt=0, description="Ignore predicted depth beyond this.")
+    icp: bool = Field(True, description=(
+        "Refine each lifted view's pose by ICP against the existing cloud (accepted only with enough overlap "
+        "and a small correction); the scale always comes from the reference view."))
+    icp_distance: float = Field(0.03, gt=0, description=(
+        "ICP correspondence distance, relative to the reference view's median depth."))
 
 
 class FitConfig(_Section):
@@ -159,6 +164,13 @@ class FitConfig(_Section):
     refine_every: int = Field(100, ge=1)
     reset_every: int = Field(3000, ge=0, description="Opacity reset period (0: never).")
     max_gaussians: int = Field(1_000_000, ge=1, description="Densification never grows the model beyond this.")
+    device: str = Field(
+        "auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="Where to train: 'auto' (CUDA when torch sees a "
+        "GPU, else the CPU), 'cpu', 'cuda' or 'cuda:N'. Results come back to the CPU either way.")
+    renderer: Literal["auto", "torch", "gsplat"] = Field(
+        "auto", description="Rasterizer: 'auto' (gsplat on CUDA when it is installed, else navcrafter's PyTorch "
+        "renderer), 'torch', or 'gsplat' (CUDA only; `pip install navcrafter[cuda]`). gsplat clamps alpha at 0.999 "
+        "(ours 0.99) and is not bit-reproducible.")
 
 
 class EvaluationConfig(_Section):
@@ -244,6 +256,9 @@ class RunConfig(BaseModel):
         """The part of the config that a step's output depends on (feeds its cache key)."""
         common = {"backend": self.backend, "model_dir": str(self.model_dir) if self.model_dir else None,
                   "seed": self.seed}
+        if self.backend == "onnx" and self.model_dir is not None:
+            common["models"] = _model_versions(Path(self.model_dir))
+            common["model_dir"] = None  # the models' identity is their manifests, not where they lie
         sim = self.simulation.model_dump(mode="json") if self.backend == "simulation" else None
         parts: dict[str, dict[str, Any]] = {
             "ingest": {"ingest": self.ingest.model_dump(mode="json"),
@@ -332,3 +347,14 @@ def _dotted_to_nested(dotted: str, value: Any) -> dict[str, Any]:
     for k in reversed(keys[:-1]):
         nested = {k: nested}
     return nested
+
+
+def _model_versions(model_dir: Path) -> dict[str, str]:
+    """sha256 of each exported model's manifest (which holds every file's checksum): a step's cache key
+    changes when its model is re-exported, not when the directory is moved."""
+    out = {}
+    for role in ("synthesizer", "geometry", "monodepth"):
+        f = model_dir / role / "manifest.json"
+        if f.is_file():
+            out[role] = hashlib.sha256(f.read_bytes()).hexdigest()[:16]
+    return out

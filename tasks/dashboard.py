@@ -16,7 +16,7 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, ImageDraw
 
-from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.models.backends import run_label
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import open_store
@@ -93,10 +93,11 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig) -
     short = scene_id[:12]
     inp = scene.status(INGEST)
     sim = config.backend == "simulation"
+    label = run_label(config)
     source = PurePath(inp.attrs.get("source", "")).name or short
     lines = [f"# Scene `{short}`: {source}", ""]
-    if sim:
-        lines += [f"> **{SIM_LABEL}.**", ""]
+    if label:
+        lines += [f"> **{label}.**", ""]
     steps = scene_steps(config)
     done = sum(scene.status(s.spec, s.k).complete for s in steps)
     lines += [
@@ -134,9 +135,10 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig) -
             idx = clip_frame_indices(n)
             clips.append((k, scene.read_rows(SYNTHESIZE, k, "frames", idx), idx))
     if clips:
-        label = "SIMULATION" if sim else None
-        grid = render_grid(clips, label)
-        title = "## Synthesized views" + (" (SIMULATION: ground-truth renders, not a learned model)" if sim else "")
+        band = "SIMULATION" if sim else ("RANDOM WEIGHTS" if label else None)
+        grid = render_grid(clips, band)
+        title = "## Synthesized views" + (" (SIMULATION: ground-truth renders, not a learned model)" if sim else
+                                          " (RANDOM WEIGHTS: noise, not a result)" if label else "")
         lines += [title, "", f"![render grid]({png_data_uri(grid, palette=True)})", ""]
     ev = scene.status(EVALUATE)
     if ev.complete:

@@ -21,9 +21,9 @@ import tempfile
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from navcrafter.models.backends import run_label
 from navcrafter.models.cameras import Intrinsics
 from navcrafter.models.pointcloud import ply_bytes
-from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EXPORT, FIT, PLAN, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
@@ -50,6 +50,11 @@ def encode_mp4(frames: np.ndarray, fps: int) -> bytes:
             return fh.read()
     finally:
         os.unlink(path)
+
+
+def _band(config: RunConfig) -> str:
+    """The text burnt into the frames of a labelled run."""
+    return "SIMULATION" if config.backend == "simulation" else "RANDOM WEIGHTS"
 
 
 def label_frames(frames: np.ndarray, text: str = "SIMULATION") -> np.ndarray:
@@ -79,7 +84,8 @@ def trajectory_rows(scene, scene_id: str, iterations: int, backend: str, width: 
     return rows
 
 
-def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str], sim: bool, fps: int) -> None:
+def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str], band: str | None,
+                           fps: int) -> None:
     """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group)."""
     from navcrafter.models.gaussians.ply import save_ply
     from navcrafter.models.gaussians.train import render_model
@@ -100,7 +106,7 @@ def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str],
     K = np.stack([Intrinsics(r["fx"], r["fy"], r["cx"], r["cy"], r["width"], r["height"]).resize(w, h).K
                   for r in rows])
     frames = render_model(model, c2w, K, w, h)
-    writer.write_file("flythrough.mp4", encode_mp4(label_frames(frames) if sim else frames, fps))
+    writer.write_file("flythrough.mp4", encode_mp4(label_frames(frames, band) if band else frames, fps))
 
 
 def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
@@ -109,28 +115,31 @@ def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
     def body(writer, seed: int, _) -> dict:
         store = open_store(store_uri)
         scene = store.scene(scene_id)
-        sim = config.backend == "simulation"
+        label = run_label(config)
+        sim = label is not None  # every rendered frame of a labelled run carries a band
         cloud = load_cloud(scene, N)
         comments = [f"navcrafter scene {scene_id}", f"backend {config.backend}",
                     "frame: world = input camera (OpenCV: x right, y down, z forward)"]
-        if sim:
-            comments.append(SIM_LABEL)
+        if label:
+            comments.append(label)
         writer.write_file("cloud.ply", ply_bytes(cloud, comments))
         H, W = config.synthesis.height, config.synthesis.width
         rows = trajectory_rows(scene, scene_id, N, config.backend, W, H)
         if N > 0:
             frames = np.concatenate([scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)])
-            writer.write_file("video.mp4", encode_mp4(label_frames(frames) if sim else frames, config.synthesis.fps))
+            frames = label_frames(frames, _band(config)) if sim else frames
+            writer.write_file("video.mp4", encode_mp4(frames, config.synthesis.fps))
         doc = {"scene_id": scene_id, "backend": config.backend,
                "convention": "OpenCV camera-to-world (x right, y down, z forward); world = input camera",
                "frames": [{"iteration": r["iteration"], "frame": r["frame"], "c2w": r["c2w"].tolist(),
                            "intrinsics": {k: r[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}}
                           for r in rows]}
-        if sim:
-            doc["label"] = SIM_LABEL
+        if label:
+            doc["label"] = label
         writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
         if config.fit.enabled:
-            write_gaussian_exports(writer, scene, rows, comments, sim, config.synthesis.fps)
+            write_gaussian_exports(writer, scene, rows, comments, _band(config) if sim else None,
+                                   config.synthesis.fps)
         table = to_table("trajectories", rows)
         buf = io.BytesIO()
         import pyarrow.parquet as pq
@@ -138,6 +147,6 @@ def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
         pq.write_table(table, buf)
         writer.write_file("trajectory.parquet", buf.getvalue())
         store.tables.write("trajectories", table, part=f"scene-{scene_id}")
-        return {"n_points": len(cloud), "num_frames": len(rows), "label": SIM_LABEL if sim else ""}
+        return {"n_points": len(cloud), "num_frames": len(rows), "label": label or ""}
 
     return run_step(store_uri, scene_id, EXPORT, None, config, run_id, body)

@@ -14,6 +14,10 @@
 * **Loss** L1 + ``lambda_lpips`` LPIPS + ``lambda_depth`` depth, with DropGaussian (``models.gaussians.train``).
   LPIPS needs the official weights (``evaluation.weights_dir``); without them the term is skipped, held-out
   LPIPS is not reported, and ``lpips_note`` says why. It is never computed with a random network.
+* **Device and renderer** (``fit.device``, ``fit.renderer``; ``models.gaussians.backend``): by default the fit
+  trains on CUDA when torch sees a GPU, rendering with gsplat when it is installed (``pip install
+  navcrafter[cuda]``) and with our PyTorch rasterizer otherwise; on the CPU always with ours. Results (model,
+  renders, metrics) come back to the CPU; the attrs record the device and renderer used.
 * **Outputs** (group ``gaussians``): the Gaussians, the frames' cameras, the hold-out mask and renders,
   the calibrations, the loss history; attrs: held-out PSNR / SSIM (/ LPIPS), the initial model's held-out
   PSNR (``init_psnr``), counts and timings.
@@ -204,6 +208,7 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
                 "n_holdout": len(test_views), "init_psnr": float(np.mean(psnr(init_rgb, gt))),
                 "scene_scale": scale, "train_seconds": train_seconds, "final_loss": float(hist["loss"][-1]),
                 "n_depth_views": len(calib_rows), "lambda_lpips_used": lam_lpips,
+                "device": str(trainer.device), "renderer": trainer.renderer,
                 "densify": {k: v for k, v in result.strategy_state.items() if k.startswith("n_")}}
 
     return run_step(store_uri, scene_id, FIT, None, config, run_id, body)

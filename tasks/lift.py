@@ -2,38 +2,20 @@
 
 The geometry model sees the input (reference) view first and then up to ``lift.max_views`` frames of
 the clip, so its output frame is the world frame (the input camera is the world origin) up to scale.
-The scale is recovered by comparing its depth of the reference view with the initial geometry's
-(median ratio over pixels both trust), then the frames are unprojected, filtered by confidence and
-fused with the previous cloud by voxel averaging.
+``navcrafter.models.lifting.lift_prediction`` recovers the scale from the reference view, refines each
+view's pose by ICP against the existing cloud where they overlap, and fuses the new points.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.pointcloud import Cloud, views_to_cloud, voxel_fuse
+from navcrafter.models.lifting import align_scale, lift_prediction, pose_deviation, select_views
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, INGEST, LIFT, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import StepRef, load_backend, load_cloud, open_store, run_step
 
-
-def select_views(num_frames: int, max_views: int) -> np.ndarray:
-    """Evenly spaced frame indices in ``1 .. T-1`` (frame 0 is the current pose, already lifted),
-    always including the last frame."""
-    if num_frames < 2:
-        raise ValueError("a clip needs at least 2 frames")
-    n = min(max_views, num_frames - 1)
-    return np.unique(np.round(np.linspace(num_frames - 1, 1, n)).astype(np.int32))
-
-
-def align_scale(ref_depth: np.ndarray, ref_conf: np.ndarray, pred_depth: np.ndarray,
-                pred_conf: np.ndarray, min_confidence: float) -> float:
-    """Scale ``s`` with ``s * pred_depth ~ ref_depth``: the median ratio over mutually trusted pixels."""
-    ok = (ref_conf >= min_confidence) & (pred_conf >= min_confidence) & (ref_depth > 0) & (pred_depth > 0)
-    if ok.sum() < 16:
-        raise ValueError(f"only {int(ok.sum())} pixels of the reference view have trusted depth in both "
-                         f"predictions; cannot align the new geometry to the scene")
-    return float(np.median(ref_depth[ok] / pred_depth[ok]))
+__all__ = ["align_scale", "lift", "select_views"]
 
 
 def lift(store_uri: str, scene_id: str, k: int, config: RunConfig, run_id: str) -> StepRef:
@@ -49,26 +31,18 @@ def lift(store_uri: str, scene_id: str, k: int, config: RunConfig, run_id: str) 
         images = np.concatenate([work[None], frames[views]])
         hint = np.concatenate([np.eye(4)[None], trajectory[views]])
         pred = load_backend(scene, config).geometry.predict(images, seed=seed, hint_c2w=hint)
-        if not np.allclose(pred.c2w[0], np.eye(4), atol=1e-6):
-            raise ValueError("geometry backend returned a first-view pose that is not the identity")
-        scale = align_scale(geo["depth"], geo["confidence"], pred.depth[0], pred.confidence[0],
-                            cfg.confidence_threshold)
-        c2w = pred.c2w[1:].copy()
-        c2w[:, :3, 3] *= scale
-        depth = (pred.depth[1:] * scale).astype(np.float32)
-        conf = pred.confidence[1:].astype(np.float32)
-        K = pred.K[1:].astype(np.float64)
-        new = views_to_cloud(frames[views], depth, conf, c2w, K, cfg.confidence_threshold,
-                             cfg.pixel_stride, cfg.max_depth)
-        cloud = voxel_fuse(Cloud.concat([load_cloud(scene, k - 1), new]), cfg.voxel_size)
+        out = lift_prediction(frames[views], pred, geo["depth"], geo["confidence"], load_cloud(scene, k - 1),
+                              confidence_threshold=cfg.confidence_threshold, pixel_stride=cfg.pixel_stride,
+                              max_depth=cfg.max_depth, voxel_size=cfg.voxel_size, icp=cfg.icp,
+                              icp_distance=cfg.icp_distance)
         writer.write("view_index", views)
-        writer.write("c2w", c2w)
-        writer.write("K", K)
-        writer.write("depth", depth)
-        writer.write("confidence", conf)
-        writer.write("cloud_points", cloud.points)
-        writer.write("cloud_colors", cloud.colors)
-        writer.write("cloud_confidence", cloud.confidence)
-        return {"scale": scale, "n_new_points": len(new), "n_points": len(cloud)}
+        writer.write("c2w", out.c2w)
+        writer.write("K", out.K)
+        writer.write("depth", out.depth)
+        writer.write("confidence", out.confidence)
+        writer.write("cloud_points", out.cloud.points)
+        writer.write("cloud_colors", out.cloud.colors)
+        writer.write("cloud_confidence", out.cloud.confidence)
+        return {**out.attrs(), **pose_deviation(out.c2w, trajectory[views])}
 
     return run_step(store_uri, scene_id, LIFT, k, config, run_id, body)

@@ -9,6 +9,7 @@ from typing import Any
 
 import pyarrow as pa
 
+from navcrafter.models.backends import run_label
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
@@ -113,8 +114,11 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
 def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -> list[str]:
     done = sum(r.status == "done" for r in results)
     lines = []
+    label = run_label(config)
     if config.backend == "simulation":
         lines.append(f"{SIM_LABEL}. Distances are measured against the true scene surfaces.")
+    elif label:
+        lines.append(f"{label}.")
     lines.append(f"Run {run_id}: {done} of {len(results)} images done; backend '{config.backend}', "
                  f"{config.iterations} iterations of {config.synthesis.num_frames} frames at "
                  f"{config.synthesis.width}x{config.synthesis.height}.")
@@ -124,7 +128,7 @@ def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -
 def summary_markdown(run_id: str, config: RunConfig, results: list[SceneResult]) -> str:
     header = summary_header(run_id, config, results)
     lines = ["# navcrafter run summary", ""]
-    if config.backend == "simulation":
+    if run_label(config):
         lines += [f"> **{header.pop(0)}**", ""]
     lines += header + ["", "| " + " | ".join(SUMMARY_COLUMNS) + " |",
                        "|" + "|".join("---" if c in _TEXT_COLUMNS else "---:" for c in SUMMARY_COLUMNS) + "|"]
@@ -140,8 +144,8 @@ def write_summary(store_uri: str, run_id: str, config: RunConfig, results: list[
     md = summary_markdown(run_id, config, results)
     doc = {"run_id": run_id, "backend": config.backend, "config": config.model_dump(mode="json"),
            "scenes": [r.to_dict() for r in results]}
-    if config.backend == "simulation":
-        doc["label"] = SIM_LABEL
+    if label := run_label(config):
+        doc["label"] = label
     store.write_bytes(f"runs/{run_id}/summary.json", json.dumps(doc, indent=1, default=str).encode())
     store.write_bytes(f"runs/{run_id}/summary.md", md.encode())
     return md

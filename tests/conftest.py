@@ -44,6 +44,22 @@ def demo_photos(tmp_path_factory) -> Path:
     return folder
 
 
+# frames, height, width of the session's tiny exported synthesizer
+TINY_MODELS_SIZE = (5, 32, 32)
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory) -> Path:
+    """All three learned roles exported once per session with random weights (seed 0, tiny configs):
+    MODEL_DIR/{synthesizer,geometry,monodepth}. Tests must not modify it (copy it first)."""
+    from navcrafter.models.exports import export_all
+
+    root = tmp_path_factory.mktemp("models")
+    T, H, W = TINY_MODELS_SIZE
+    export_all(root, num_frames=T, height=H, width=W, random="tiny", seed=0, prompt="a room")
+    return root
+
+
 @pytest.fixture
 def tiny() -> RunConfig:
     return RunConfig.load(preset="tiny")

@@ -22,7 +22,7 @@ def test_usage_errors_are_clear(tmp_path):
     assert res.exit_code == 2 and "no navcrafter store" in res.output
     res = runner.invoke(app, ["explore", str(tmp_path), "--store", str(tmp_path / "s"), "--backend", "onnx",
                               "--models", str(tmp_path)])
-    assert res.exit_code == 2 and "not built yet" in res.output
+    assert res.exit_code == 2 and "not an exported synthesizer model directory" in res.output, res.output
     res = runner.invoke(app, ["explore", str(tmp_path), "--store", str(tmp_path / "s"), "--set", "fit.enabled=true",
                               "--set", "iterations=0"])
     assert res.exit_code == 2 and "fit.enabled needs iterations" in res.output, res.output

@@ -16,7 +16,9 @@ scene scale) and **split** in two when large (new means drawn from the Gaussian,
 with opacity < ``prune_opa`` (and, after the first opacity reset, those larger than ``prune_scale3d`` x scene
 scale) are **pruned**; every ``reset_every`` steps opacities are clamped to ``2 prune_opa``. The number of
 Gaussians never exceeds ``max_gaussians``: growth is limited to the candidates with the largest gradients.
-Seeded (the split samples), so deterministic on the CPU.
+Seeded (the split samples), so deterministic on the CPU. Device-agnostic: statistics and row surgery stay on
+the parameters' device (CUDA included, with either renderer of ``models.gaussians.backend``); the split
+samples are drawn on the CPU from the seeded generator and moved, so they do not depend on the device.
 """
 
 from __future__ import annotations
@@ -80,7 +82,7 @@ def _replace_rows(params: Params, optimizers: Optimizers, keep: Tensor, extra: P
                     continue
                 v = v[keep]
                 if new_rows is not None:
-                    v = torch.cat([v, torch.zeros((len(new_rows),) + v.shape[1:], dtype=v.dtype)])
+                    v = torch.cat([v, torch.zeros((len(new_rows),) + v.shape[1:], dtype=v.dtype, device=v.device)])
                 st[k] = v
             opt.state[new_p] = st
         params[name] = new_p
@@ -143,8 +145,8 @@ class DefaultStrategy:
         visible = info["radii"] > 0  # [C, N]
         norms = grads.norm(dim=-1) * visible
         if state["grad2d"] is None or state["grad2d"].shape[0] != n:
-            state["grad2d"] = torch.zeros(n, dtype=torch.float64)
-            state["count"] = torch.zeros(n, dtype=torch.float64)
+            state["grad2d"] = torch.zeros(n, dtype=torch.float64, device=norms.device)
+            state["count"] = torch.zeros(n, dtype=torch.float64, device=norms.device)
         state["grad2d"] += norms.sum(0).double()
         state["count"] += visible.sum(0).double()
 
@@ -163,7 +165,7 @@ class DefaultStrategy:
         cand = torch.nonzero(clone | split, as_tuple=True)[0]
         if len(cand) > room:  # keep the candidates with the largest gradients (ties: lower index)
             order = torch.argsort(-grads[cand], stable=True)[:room]
-            chosen = torch.zeros(n, dtype=torch.bool)
+            chosen = torch.zeros(n, dtype=torch.bool, device=grads.device)
             chosen[cand[order]] = True
             clone, split = clone & chosen, split & chosen
         with torch.no_grad():
@@ -174,7 +176,8 @@ class DefaultStrategy:
                 scales = torch.exp(params["log_scales"][idx])
                 rot = quat_to_rotmat(params["quats"][idx])
                 gen = state["generator"]
-                samples = torch.randn((2, len(idx), 3), generator=gen, dtype=scales.dtype)
+                # drawn on the CPU (where the generator lives): the same samples on any device
+                samples = torch.randn((2, len(idx), 3), generator=gen, dtype=scales.dtype).to(scales.device)
                 offsets = torch.einsum("nij,knj->kni", rot, samples * scales[None])
                 new_log_scales = torch.log(scales / 1.6)
                 appended = {name: p[idx] for name, p in params.items()}
@@ -186,7 +189,7 @@ class DefaultStrategy:
         state["n_clone"] += int(clone.sum())
         state["n_split"] += int(split.sum())
         if len(extra["means"]):
-            _replace_rows(params, optimizers, torch.ones(n, dtype=torch.bool), extra)
+            _replace_rows(params, optimizers, torch.ones(n, dtype=torch.bool, device=grads.device), extra)
 
     def _prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> None:
         with torch.no_grad():

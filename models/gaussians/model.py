@@ -15,7 +15,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from navcrafter.models.gaussians.rasterize import rasterization
+from navcrafter.models.gaussians.backend import rasterize
 from navcrafter.models.gaussians.sh import num_sh_bases, rgb_to_sh_dc, sh_degree_from_bases
 
 INIT_OPACITY = 0.1
@@ -158,11 +158,13 @@ class GaussianModel:
         *,
         sh_degree: int | None = None,
         opacities: Tensor | None = None,
+        backend: str = "auto",
         **kwargs,
     ) -> tuple[Tensor, Tensor, dict]:
-        """:func:`rasterization` of this model (``sh_degree`` defaults to the model's; ``opacities`` replaces
-        the activated opacities, e.g. with DropGaussian's)."""
-        return rasterization(
+        """:func:`~navcrafter.models.gaussians.backend.rasterize` of this model (``sh_degree`` defaults to the
+        model's; ``opacities`` replaces the activated opacities, e.g. with DropGaussian's; ``backend``: "auto" is
+        our PyTorch renderer for CPU tensors, gsplat for CUDA tensors when it is installed)."""
+        return rasterize(
             self.means,
             self.quats,
             self.scales,
@@ -173,5 +175,6 @@ class GaussianModel:
             width,
             height,
             sh_degree=self.sh_degree if sh_degree is None else sh_degree,
+            backend=backend,
             **kwargs,
         )

@@ -15,6 +15,15 @@ multiplied by the scene scale and decays exponentially from ``lr_means`` to ``lr
 run; the active SH degree grows by one every ``sh_degree_interval`` iterations. Density control is a
 :class:`~navcrafter.models.gaussians.densify.Strategy`. Everything random is seeded, so a run is
 deterministic on the CPU.
+
+Devices and renderers (``TrainConfig.device`` / ``renderer``, ``models.gaussians.backend``): parameters, the
+training views, optimiser state and density statistics live on ``device`` (default ``"cpu"``; ``"auto"``, the
+fit step's default: CUDA when available); views are rendered with ``rasterize(..., backend=renderer)``
+(``"auto"``: gsplat on CUDA when it imports, our PyTorch renderer otherwise). Density control is our
+:class:`~navcrafter.models.gaussians.densify.DefaultStrategy` with either renderer (it is device-agnostic;
+gsplat's own strategy is an opt-in, ``backend.GsplatStrategy``). The trained model, evaluation renders and
+histories come back on the CPU. With gsplat the alpha clamp is 0.999 instead of our 0.99, and CUDA runs are
+not bit-reproducible.
 """
 
 from __future__ import annotations
@@ -28,9 +37,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from navcrafter.models.gaussians.backend import rasterize, resolve_backend, resolve_device
 from navcrafter.models.gaussians.densify import DefaultStrategy, NoStrategy, Strategy
 from navcrafter.models.gaussians.model import GaussianModel
-from navcrafter.models.gaussians.rasterize import rasterization
 from navcrafter.models.gaussians.strategy import DropGaussian
 
 PerceptualLoss = Callable[[Tensor, Tensor], Tensor]  # (rendered, target) [1, 3, H, W] in [-1, 1] -> scalar
@@ -66,6 +75,10 @@ class TrainConfig:
     max_gaussians: int = DefaultStrategy.max_gaussians
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
+    # "cpu", "cuda", "cuda:1", or "auto" (cuda if available, else cpu). The library default stays on the CPU
+    # (deterministic, as before); the fit step passes fit.device, whose default is "auto".
+    device: str = "cpu"
+    renderer: str = "auto"  # "auto" | "torch" | "gsplat": models.gaussians.backend.rasterize's backend
 
     def strategy(self) -> Strategy:
         if not self.densify:
@@ -128,9 +141,14 @@ class GaussianTrainer:
             raise ValueError(f"the model has SH degree {model.sh_degree} < config.sh_degree {config.sh_degree}")
         if config.lambda_lpips > 0 and perceptual is None:
             raise ValueError("lambda_lpips > 0 needs a perceptual model (pass lambda_lpips=0 without LPIPS weights)")
-        self.config, self.views, self.scene_scale = config, views, float(scene_scale)
+        self.device = resolve_device(config.device)
+        self.renderer = resolve_backend(config.renderer, self.device)  # "torch" | "gsplat"; raises early
+        self.config, self.scene_scale = config, float(scene_scale)
+        self.views = [self._on_device(v) for v in views]
+        if isinstance(perceptual, torch.nn.Module):
+            perceptual.to(self.device)  # in place (LPIPS; lpips_distance follows the module's device)
         self.perceptual = perceptual
-        self.params = {name: t.detach().clone().float().requires_grad_(True)
+        self.params = {name: t.detach().to(device=self.device, dtype=torch.float32, copy=True).requires_grad_(True)
                        for name, t in model.tensors().items()}
         lrs = {"means": config.lr_means * self.scene_scale, "quats": config.lr_quats, "log_scales": config.lr_scales,
                "opacity_logits": config.lr_opacities, "sh_dc": config.lr_sh0, "sh_rest": config.lr_shN}
@@ -141,14 +159,23 @@ class GaussianTrainer:
         self.drop = DropGaussian(config.drop_gamma, max(config.iterations, 1), seed=config.seed + 2)
         self.order = torch.Generator().manual_seed(config.seed)
         self._queue: list[int] = []
-        self.background = torch.tensor(config.background, dtype=torch.float32)
+        self.background = torch.tensor(config.background, dtype=torch.float32, device=self.device)
         self.history: dict[str, list[float]] = {k: [] for k in ("loss", "l1", "lpips", "depth", "drop_rate",
                                                                 "n_gaussians")}
 
     # ----------------------------------------------------------------------------------------------
     @property
     def model(self) -> GaussianModel:
-        return GaussianModel(**{k: v.detach().clone() for k, v in self.params.items()})
+        """A copy of the current parameters, on the CPU."""
+        return GaussianModel(**{k: v.detach().to("cpu", copy=True) for k, v in self.params.items()})
+
+    def _on_device(self, view: TrainView) -> TrainView:
+        """``view`` itself when its tensors are on the training device, else a copy moved there."""
+        tensors = (view.image, view.c2w, view.K) + (() if view.depth is None else (view.depth,))
+        if all(t.device == self.device for t in tensors):
+            return view
+        return TrainView(view.image.to(self.device), view.c2w.to(self.device), view.K.to(self.device),
+                         None if view.depth is None else view.depth.to(self.device))
 
     def active_sh_degree(self, step: int) -> int:
         c = self.config
@@ -157,19 +184,21 @@ class GaussianTrainer:
     def render(self, view: TrainView, step: int, *, training: bool, sh_degree: int | None = None
                ) -> tuple[Tensor, Tensor, Tensor, dict]:
         """(rgb [H, W, 3], expected depth [H, W], alpha [H, W], meta) of ``view``; DropGaussian only when
-        ``training``."""
+        ``training``. Tensors on the training device."""
+        view = self._on_device(view)
         p = self.params
         opac = self.drop(torch.sigmoid(p["opacity_logits"]), step, training=training)
         W, H = view.size
         coeffs = torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], dim=1)
-        out, alpha, meta = rasterization(
+        out, alpha, meta = rasterize(
             p["means"], p["quats"], torch.exp(p["log_scales"]), opac, coeffs, view.viewmat[None], view.K[None],
             W, H, sh_degree=self.active_sh_degree(step) if sh_degree is None else sh_degree,
-            backgrounds=self.background[None], render_mode="RGB+ED")
+            backgrounds=self.background[None], render_mode="RGB+ED", packed=False, backend=self.renderer)
         return out[0, ..., :3], out[0, ..., 3], alpha[0, ..., 0], meta
 
     def losses(self, view: TrainView, rgb: Tensor, depth: Tensor) -> dict[str, Tensor]:
         c = self.config
+        view = self._on_device(view)
         terms = {"l1": (rgb - view.image).abs().mean()}
         if c.lambda_lpips > 0:
             terms["lpips"] = self.perceptual(rgb.permute(2, 0, 1)[None] * 2 - 1,
@@ -227,8 +256,8 @@ class GaussianTrainer:
         rgbs, depths = [], []
         for v in views:
             rgb, depth, _, _ = self.render(v, self.config.iterations, training=False, sh_degree=self.config.sh_degree)
-            rgbs.append(rgb.clamp(0, 1).numpy())
-            depths.append(depth.numpy())
+            rgbs.append(rgb.clamp(0, 1).cpu().numpy())
+            depths.append(depth.cpu().numpy())
         return np.stack(rgbs), np.stack(depths)
 
 
@@ -243,16 +272,22 @@ def train_gaussians(model: GaussianModel, views: list[TrainView], config: TrainC
 
 
 def render_model(model: GaussianModel, c2w: np.ndarray, K: np.ndarray, width: int, height: int,
-                 background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """Evaluation renders [V, H, W, 3] uint8 of a trained model at cameras ``c2w`` [V, 4, 4], ``K`` [V, 3, 3]."""
+                 background: tuple[float, float, float] = (0.0, 0.0, 0.0), *, device: str = "cpu",
+                 renderer: str = "auto") -> np.ndarray:
+    """Evaluation renders [V, H, W, 3] uint8 of a trained model at cameras ``c2w`` [V, 4, 4], ``K`` [V, 3, 3].
+
+    ``device`` / ``renderer`` as in :class:`TrainConfig` (default: the CPU, i.e. our renderer)."""
+    dev = resolve_device(device)
+    backend = resolve_backend(renderer, dev)
+    model = model.to(dev)
     out = np.empty((len(c2w), height, width, 3), dtype=np.uint8)
-    bg = torch.tensor(background, dtype=torch.float32)[None]
+    bg = torch.tensor(background, dtype=torch.float32, device=dev)[None]
     with torch.no_grad():
         for i in range(len(c2w)):
-            vm = torch.linalg.inv(torch.as_tensor(c2w[i], dtype=torch.float32))[None]
-            img, _, _ = model.render(vm, torch.as_tensor(K[i], dtype=torch.float32)[None], width, height,
-                                     backgrounds=bg)
-            out[i] = np.round(img[0].clamp(0, 1).numpy() * 255).astype(np.uint8)
+            vm = torch.linalg.inv(torch.as_tensor(c2w[i], dtype=torch.float32))[None].to(dev)
+            img, _, _ = model.render(vm, torch.as_tensor(K[i], dtype=torch.float32, device=dev)[None], width, height,
+                                     backgrounds=bg, backend=backend)
+            out[i] = np.round(img[0].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8)
     return out
 
 

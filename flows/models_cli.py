@@ -1,0 +1,134 @@
+"""``navcrafter models ...``: export the learned models to ONNX model directories and inspect them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+models_app = typer.Typer(help="Export the learned models (Wan2.1 camera control, VGGT, MoGe-2) to ONNX and inspect "
+                              "model directories.", no_args_is_help=True)
+
+_RANDOM = typer.Option(help="Random weights instead of a checkpoint: 'tiny' (test sizes) or 'full' (published "
+                            "sizes, for timing). Outputs of runs using them are labelled RANDOM WEIGHTS.")
+
+
+def _fail(exc: Exception) -> None:
+    from rich.console import Console
+
+    Console(stderr=True).print(f"[red]{exc}[/red]")
+    raise typer.Exit(2)
+
+
+def _done(path: Path) -> None:
+    from navcrafter.models.onnxio import load_manifest
+
+    manifest = json.loads((Path(path) / "manifest.json").read_text())
+    load_manifest(path, manifest["kind"])  # verifies what was written
+    size = sum(f.stat().st_size for f in Path(path).iterdir() if f.is_file())
+    typer.echo(f"exported {manifest['kind']} ({manifest['architecture']}, weights: {manifest['weights']['source']}) "
+               f"to {path}: {len(manifest['graphs'])} graphs, {size / 2**20:.1f} MiB")
+
+
+@models_app.command("export-geometry")
+def export_geometry_cmd(
+    out: Annotated[Path, typer.Argument(help="Directory to write (MODEL_DIR/geometry for `explore --models`).")],
+    checkpoint: Annotated[Optional[Path], typer.Option(help="VGGT-1B weights (.safetensors, or a .pt state "
+                                                             "dict loaded with weights_only).")] = None,
+    random: Annotated[Optional[str], _RANDOM] = None,
+    seed: int = 0,
+) -> None:
+    """VGGT-architecture multi-view geometry (frames -> cameras, depth, points) as ONNX."""
+    from navcrafter.models.exports import export_geometry
+
+    try:
+        _done(export_geometry(out, checkpoint=checkpoint, random=random, seed=seed))
+    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
+        _fail(exc)
+
+
+@models_app.command("export-monodepth")
+def export_monodepth_cmd(
+    out: Annotated[Path, typer.Argument(help="Directory to write (MODEL_DIR/monodepth for `explore --models`).")],
+    checkpoint: Annotated[Optional[Path], typer.Option(help="MoGe-2 ViT-L weights (.safetensors, or the official "
+                                                             "model.pt read with weights_only).")] = None,
+    random: Annotated[Optional[str], _RANDOM] = None,
+    seed: int = 0,
+) -> None:
+    """MoGe-2-architecture monocular geometry (image -> points, mask, metric scale) as ONNX."""
+    from navcrafter.models.exports import export_monodepth
+
+    try:
+        _done(export_monodepth(out, checkpoint=checkpoint, random=random, seed=seed))
+    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
+        _fail(exc)
+
+
+@models_app.command("export-synthesizer")
+def export_synthesizer_cmd(
+    out: Annotated[Path, typer.Argument(help="Directory to write (MODEL_DIR/synthesizer for `explore --models`).")],
+    base: Annotated[Optional[Path], typer.Option(help="Diffusers-format Wan2.1 I2V directory (transformer/, vae/, "
+                                                       "image_encoder/, text_encoder/, tokenizer/).")] = None,
+    control: Annotated[Optional[Path], typer.Option(help="Camera-control weights directory (safetensors + "
+                                                          "config.json); none: zero-initialised control.")] = None,
+    random: Annotated[Optional[str], _RANDOM] = None,
+    frames: Annotated[int, typer.Option(help="Frames per clip (synthesis.num_frames; 4k+1).")] = 81,
+    height: Annotated[int, typer.Option(help="synthesis.height (multiple of 16).")] = 256,
+    width: Annotated[int, typer.Option(help="synthesis.width (multiple of 16).")] = 256,
+    prompt: Annotated[str, typer.Option(help="Text prompt whose embedding is precomputed.")] = "",
+    seed: int = 0,
+) -> None:
+    """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
+    from navcrafter.models.exports import export_synthesizer
+
+    try:
+        _done(export_synthesizer(out, num_frames=frames, height=height, width=width, base_dir=base,
+                                 control_dir=control, random=random, prompt=prompt, seed=seed))
+    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
+        _fail(exc)
+
+
+@models_app.command("export-all")
+def export_all_cmd(
+    model_dir: Annotated[Path, typer.Argument(help="MODEL_DIR for `explore --backend onnx --models MODEL_DIR`.")],
+    random: Annotated[str, _RANDOM] = "tiny",
+    preset: Annotated[str, typer.Option(help="Run preset whose synthesis sizes the synthesizer is exported "
+                                             "for: 'paper' or 'tiny'.")] = "tiny",
+    seed: int = 0,
+) -> None:
+    """All three models with random weights (tests, demos of the onnx path, timing)."""
+    from navcrafter.models.exports import export_all
+    from navcrafter.schemas.config import RunConfig
+
+    s = RunConfig.load(preset=preset).synthesis
+    try:
+        for path in export_all(model_dir, num_frames=s.num_frames, height=s.height, width=s.width, random=random,
+                               seed=seed).values():
+            _done(path)
+    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
+        _fail(exc)
+
+
+@models_app.command("show")
+def show_cmd(
+    model_dir: Annotated[Path, typer.Argument(help="A model directory (or MODEL_DIR holding the three roles).")],
+    verify: Annotated[bool, typer.Option(help="Check every file's sha256.")] = True,
+) -> None:
+    """What a model directory holds, with checksum verification."""
+    from navcrafter.models.backends import ROLE_DIRS
+    from navcrafter.models.onnxio import ModelDirError, load_manifest
+
+    dirs = [model_dir] if (model_dir / "manifest.json").is_file() else [model_dir / d for d in ROLE_DIRS.values()]
+    for d in dirs:
+        if not (d / "manifest.json").is_file():
+            typer.echo(f"{d}: missing")
+            continue
+        kind = json.loads((d / "manifest.json").read_text())["kind"]
+        try:
+            m = load_manifest(d, kind, verify=verify)
+        except ModelDirError as exc:
+            _fail(exc)
+        typer.echo(f"{d}: {kind} {m['architecture']}, weights {m['weights']['source']}, graphs "
+                   f"{', '.join(m['graphs'])}, {len(m['files'])} files" + (" (checksums ok)" if verify else ""))

@@ -1,0 +1,195 @@
+"""ONNX model directories: export, manifest with checksums, and onnxruntime sessions.
+
+Every exported model directory (synthesizer, geometry, monodepth) has the same shape::
+
+    DIR/manifest.json      what the directory holds (see ``write_manifest``)
+    DIR/<graph>.onnx       one file per graph
+    DIR/<graph>.onnx.data  external weights (always written, so >2 GB models need no special case)
+    DIR/...                other files named in the manifest (e.g. precomputed text embeddings)
+
+The manifest names the model kind and architecture, the model config (enough to rebuild the torch
+module), where the weights came from (``random`` or a checkpoint with its sha256), each graph's inputs,
+outputs and dynamic axes, and the sha256 of every file. ``load_manifest`` verifies the checksums, so a
+truncated copy or a half-finished export fails with a clear error instead of a wrong result.
+
+Precision per execution provider (decided here once, used by every backend):
+- CPUExecutionProvider: fp32 (onnxruntime has no bf16 kernels on CPU; fp16 is emulated and slower).
+- CUDAExecutionProvider: the graphs are exported in fp32 as well; onnxruntime's CUDA EP runs them with
+  TF32 matmuls where the GPU allows. (bf16 has gaps in the CUDA EP's contrib ops, see ../shared/FACTS.md.)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+MANIFEST = "manifest.json"
+FORMAT = "navcrafter-onnx"
+FORMAT_VERSION = 1
+OPSET = 18
+
+
+class ModelDirError(ValueError):
+    """A model directory is missing, incomplete, corrupt or of the wrong kind."""
+
+
+def sha256_file(path: Path, chunk: int = 1 << 22) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass
+class GraphInfo:
+    """One exported graph: its file, input/output names and which axes are dynamic."""
+
+    file: str
+    inputs: list[str]
+    outputs: list[str]
+    dynamic: dict[str, list[str]] = field(default_factory=dict)  # input name -> axis names ("" = static)
+    notes: str = ""
+
+
+def export_graph(module, args: tuple, path: Path, *, input_names: list[str], output_names: list[str],
+                 dynamic_shapes: Any = None, kwargs: dict | None = None, opset: int = OPSET,
+                 optimize: bool | None = None) -> GraphInfo:
+    """Export ``module(*args, **kwargs)`` with the dynamo exporter to ``path`` (+ ``path.data``).
+
+    ``dynamic_shapes`` follows ``torch.export`` (a tuple/dict of ``{axis: torch.export.Dim}`` per input).
+    The weights always go to an external data file next to the graph, so the 2 GB protobuf limit never
+    applies. Returns the graph's ``GraphInfo`` (axis names are taken from the exported graph).
+    ``optimize`` runs onnxscript's graph optimiser (default: on; ``NAVCRAFTER_ONNX_OPTIMIZE=0`` turns it off).
+    Keep it on: without it, onnxruntime 1.32 rejects some exported 3D convolutions (bias shape) of the DiT.
+    """
+    if optimize is None:
+        optimize = os.environ.get("NAVCRAFTER_ONNX_OPTIMIZE", "1") != "0"
+    import onnx
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    module.eval()
+    with torch.no_grad():
+        program = torch.onnx.export(module, args, kwargs=kwargs, dynamo=True, input_names=input_names,
+                                    output_names=output_names, dynamic_shapes=dynamic_shapes,
+                                    opset_version=opset, verbose=False, optimize=optimize)
+    data_name = path.name + ".data"
+    for stale in (path, path.parent / data_name):
+        if stale.exists():
+            stale.unlink()
+    program.save(str(path), external_data=True)
+    model = onnx.load(str(path), load_external_data=False)
+    dynamic: dict[str, list[str]] = {}
+    for value in model.graph.input:
+        dims = value.type.tensor_type.shape.dim
+        dynamic[value.name] = [d.dim_param if d.dim_param else "" for d in dims]
+    return GraphInfo(file=path.name, inputs=[v.name for v in model.graph.input],
+                     outputs=[v.name for v in model.graph.output], dynamic=dynamic)
+
+
+def write_manifest(directory: Path, *, kind: str, architecture: str, config: dict, weights: dict,
+                   graphs: dict[str, GraphInfo], extra_files: list[str] = (), extra: dict | None = None) -> Path:
+    """Write ``directory/manifest.json`` with the sha256 of every graph, data and extra file.
+
+    ``weights`` says where the weights came from: ``{"source": "random", "seed": 0}`` or
+    ``{"source": "checkpoint", "path": ..., "sha256": ...}``. Written last (temp file + rename), so a
+    directory with a manifest is a finished export.
+    """
+    import torch
+
+    directory = Path(directory)
+    files: dict[str, str] = {}
+    for info in graphs.values():
+        for name in (info.file, info.file + ".data"):
+            if (directory / name).exists():
+                files[name] = sha256_file(directory / name)
+    for name in extra_files:
+        files[name] = sha256_file(directory / name)
+    manifest = {
+        "format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "architecture": architecture,
+        "config": config, "weights": weights,
+        "graphs": {name: info.__dict__ for name, info in graphs.items()},
+        "files": files, "opset": OPSET, "torch": torch.__version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **(extra or {}),
+    }
+    tmp = directory / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True))
+    os.replace(tmp, directory / MANIFEST)
+    return directory / MANIFEST
+
+
+def load_manifest(directory: Path, kind: str, *, verify: bool = True) -> dict:
+    """Read and check a model directory's manifest (kind, format, every file present and its sha256)."""
+    directory = Path(directory)
+    path = directory / MANIFEST
+    if not path.is_file():
+        raise ModelDirError(f"{directory} is not an exported {kind} model directory (no {MANIFEST}); "
+                            f"create one with `navcrafter models export-{kind}`")
+    manifest = json.loads(path.read_text())
+    if manifest.get("format") != FORMAT or manifest.get("format_version") != FORMAT_VERSION:
+        raise ModelDirError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest; re-export the model")
+    if manifest.get("kind") != kind:
+        raise ModelDirError(f"{path}: holds a {manifest.get('kind')!r} model, expected {kind!r}")
+    for name, digest in manifest["files"].items():
+        f = directory / name
+        if not f.is_file():
+            raise ModelDirError(f"{directory}: file {name} named in the manifest is missing; re-export the model")
+        if verify and sha256_file(f) != digest:
+            raise ModelDirError(f"{directory}: checksum of {name} does not match the manifest (corrupt or "
+                                f"partial copy); re-export or copy the directory again")
+    return manifest
+
+
+def is_random_weights(manifest: dict) -> bool:
+    return manifest.get("weights", {}).get("source") == "random"
+
+
+def default_providers() -> list[str]:
+    """CUDA first when onnxruntime has it, else CPU."""
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+
+
+def create_session(path: Path, providers: list[str] | None = None, threads: int | None = None):
+    """An ``onnxruntime.InferenceSession`` for one graph file."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    if threads:
+        options.intra_op_num_threads = threads
+    options.log_severity_level = 3
+    return ort.InferenceSession(str(path), sess_options=options, providers=providers or default_providers())
+
+
+class GraphRunner:
+    """Sessions for the graphs of one model directory, created on first use."""
+
+    def __init__(self, directory: Path, manifest: dict, providers: list[str] | None = None) -> None:
+        self.directory = Path(directory)
+        self.manifest = manifest
+        self.providers = providers or default_providers()
+        self._sessions: dict[str, Any] = {}
+
+    def session(self, graph: str):
+        if graph not in self._sessions:
+            info = self.manifest["graphs"].get(graph)
+            if info is None:
+                raise ModelDirError(f"{self.directory}: no graph {graph!r} in the manifest "
+                                    f"(has {sorted(self.manifest['graphs'])}); re-export the model")
+            self._sessions[graph] = create_session(self.directory / info["file"], self.providers)
+        return self._sessions[graph]
+
+    def run(self, graph: str, feeds: dict[str, Any]) -> dict[str, Any]:
+        sess = self.session(graph)
+        names = [o.name for o in sess.get_outputs()]
+        return dict(zip(names, sess.run(names, feeds)))

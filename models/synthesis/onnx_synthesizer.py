@@ -1,0 +1,134 @@
+"""The ``onnx`` backend's Synthesizer: the exported camera-controlled Wan2.1 I2V sampled with onnxruntime.
+
+``OnnxSynthesizer(model_dir, synthesis_config)`` turns a ``SynthesisRequest`` into the sampler's inputs:
+
+* **Plücker rays** ``[T, H, W, 6]`` of ``request.trajectory`` with ``request.intrinsics``
+  (``models.cameras.plucker_rays``) in the convention the camera control was trained with (manifest
+  ``config.plucker_convention``);
+* **point-cloud renders and visibility masks**: the current cloud splatted along the trajectory with
+  ``models.pointrender.render_points`` (nearest point per pixel, z-buffered). The world-space point size defaults
+  to ``POINT_SIZE_FACTOR`` (1.5) times the cloud's median nearest-neighbour spacing (a KD-tree over at most 20k
+  sampled points; on a fused cloud this is about the fusion voxel, so neighbouring points close up into a
+  surface without bleeding over depth edges; ``render_points`` caps the splat at ``max_radius`` 3 px), or the
+  ``point_size`` given to the constructor;
+* the request image, and the text embeddings stored in the model directory at export time;
+
+and runs ``pipeline.sample_video`` with an ``OrtRunner``, seeded with ``request.seed``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from navcrafter.models.roles import SynthesisRequest
+from navcrafter.models.synthesis.pipeline import OrtRunner, SamplerConfig, SynthesisShapeError, sample_video
+
+POINT_SIZE_FACTOR = 1.5
+_SPACING_SAMPLE = 20_000
+
+
+def cloud_spacing(points: np.ndarray, seed: int = 0) -> float:
+    """Median nearest-neighbour distance of a cloud (on a seeded sample of at most 20k points)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) < 2:
+        return 0.0
+    if len(pts) > _SPACING_SAMPLE:
+        # The sample is sparser than the cloud: measure sample->cloud distances instead of sample->sample.
+        idx = np.random.RandomState(seed).choice(len(pts), _SPACING_SAMPLE, replace=False)
+        d, _ = cKDTree(pts).query(pts[idx], k=2)
+    else:
+        d, _ = cKDTree(pts).query(pts, k=2)
+    nn = d[:, 1]
+    nn = nn[nn > 0]
+    return float(np.median(nn)) if len(nn) else 0.0
+
+
+def default_point_size(points: np.ndarray) -> float:
+    s = cloud_spacing(points)
+    return POINT_SIZE_FACTOR * s if s > 0 else 1e-3
+
+
+class OnnxSynthesizer:
+    """``Synthesizer`` role on an exported model directory (``export.export_synthesizer``)."""
+
+    backend = "onnx"
+
+    def __init__(self, model_dir: str | Path, synthesis_config, providers: list[str] | None = None,
+                 point_size: float | None = None) -> None:
+        self.model_dir = Path(model_dir)
+        self.runner = OrtRunner(self.model_dir, providers)
+        self.config = synthesis_config
+        self.point_size = point_size
+        mcfg = self.runner.config
+        have = (int(mcfg["num_frames"]), int(mcfg["height"]), int(mcfg["width"]))
+        want = (synthesis_config.num_frames, synthesis_config.height, synthesis_config.width)
+        if have != want:
+            raise SynthesisShapeError(
+                f"the synthesizer in {self.model_dir} was exported for num_frames={have[0]}, height={have[1]}, "
+                f"width={have[2]}, but the run config asks for num_frames={want[0]}, height={want[1]}, "
+                f"width={want[2]}: set synthesis.num_frames/height/width to the exported values or re-export "
+                f"with export_synthesizer(..., num_frames={want[0]}, height={want[1]}, width={want[2]})")
+        self.convention = mcfg.get("plucker_convention", "ray")
+        self.text_emb, self.neg_text_emb = self.runner.text_embeddings()
+        self.flow_shift = float(mcfg.get("scheduler", {}).get("flow_shift", SamplerConfig.flow_shift))
+
+    def sampler_config(self, seed: int) -> SamplerConfig:
+        c = self.config
+        return SamplerConfig(steps=c.steps, guidance_scale=c.guidance_scale, lora_scale=c.lora_scale,
+                             flow_shift=self.flow_shift, seed=int(seed))
+
+    def _check(self, request: SynthesisRequest) -> tuple[int, int, int]:
+        c = self.config
+        T, H, W = c.num_frames, c.height, c.width
+        traj = np.asarray(request.trajectory)
+        if traj.ndim != 3 or traj.shape[1:] != (4, 4):
+            raise SynthesisShapeError(f"request.trajectory must be [T, 4, 4], got {traj.shape}")
+        if traj.shape[0] != T:
+            raise SynthesisShapeError(
+                f"the request has a {traj.shape[0]}-pose trajectory but the synthesizer in {self.model_dir} "
+                f"makes num_frames={T} clips: plan trajectories of synthesis.num_frames={T} poses (or re-export "
+                f"the model with export_synthesizer(..., num_frames={traj.shape[0]}) and set synthesis.num_frames)")
+        img = np.asarray(request.image)
+        if img.shape != (H, W, 3):
+            raise SynthesisShapeError(
+                f"request.image is {img.shape}, the synthesizer makes {H}x{W} frames (synthesis.height={H}, "
+                f"synthesis.width={W}): resize the working image to {W}x{H} or change synthesis.height/width "
+                f"and re-export")
+        K = request.intrinsics
+        if (K.width, K.height) != (W, H):
+            raise SynthesisShapeError(f"request.intrinsics are for {K.width}x{K.height}, the frames are {W}x{H} "
+                                      f"(synthesis.width/height): scale them with Intrinsics.resize({W}, {H})")
+        return T, H, W
+
+    def conditions(self, request: SynthesisRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(Plücker rays ``[T, H, W, 6]``, renders uint8 ``[T, H, W, 3]``, visibility bool ``[T, H, W]``)."""
+        from navcrafter.models.cameras import plucker_rays
+        from navcrafter.models.pointrender import render_points
+
+        T, H, W = self._check(request)
+        K = request.intrinsics.K
+        traj = np.asarray(request.trajectory, dtype=np.float64)
+        plucker = plucker_rays(traj, K, H, W, convention=self.convention)
+        renders = np.zeros((T, H, W, 3), dtype=np.uint8)
+        masks = np.zeros((T, H, W), dtype=bool)
+        pts = np.asarray(request.cloud_points, dtype=np.float32).reshape(-1, 3)
+        if len(pts):
+            cols = np.asarray(request.cloud_colors, dtype=np.uint8).reshape(-1, 3)
+            if len(cols) != len(pts):
+                raise SynthesisShapeError(f"request.cloud_colors has {len(cols)} rows for {len(pts)} points")
+            size = self.point_size if self.point_size is not None else default_point_size(pts)
+            for i in range(T):
+                r = render_points(pts, traj[i], K, H, W, size, colors=cols)
+                renders[i], masks[i] = r.color, r.mask
+        return plucker, renders, masks
+
+    def synthesize(self, request: SynthesisRequest) -> np.ndarray:
+        """Frames ``[T, H, W, 3]`` uint8 following ``request.trajectory``."""
+        plucker, renders, masks = self.conditions(request)
+        return sample_video(self.runner, np.asarray(request.image, dtype=np.uint8), plucker, renders, masks,
+                            self.text_emb, self.neg_text_emb, self.sampler_config(request.seed))

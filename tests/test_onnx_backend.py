@@ -1,0 +1,59 @@
+"""The `onnx` backend end to end: exported (tiny, random-weight) Wan2.1 camera control, VGGT and MoGe-2 models run
+by onnxruntime inside the Prefect flow, on a photo without any ground truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import TINY, TINY_MODELS_SIZE
+
+from navcrafter.models.backends import RANDOM_WEIGHTS_LABEL, onnx_problems, run_label
+from navcrafter.schemas.layout import GEOMETRY, LIFT, SYNTHESIZE
+from navcrafter.schemas.store import Store
+
+pytestmark = pytest.mark.slow
+
+
+def _onnx_config(models: Path, **updates):
+    T, H, W = TINY_MODELS_SIZE  # the session's tiny export (conftest.tiny_models)
+    synthesis = TINY.synthesis.model_copy(update={"steps": 2, "num_frames": T, "height": H, "width": W})
+    return TINY.model_copy(update={"backend": "onnx", "model_dir": models, "iterations": 1, "synthesis": synthesis,
+                                   **updates})
+
+
+def test_preflight_names_what_is_missing(tiny_models, tmp_path):
+    assert onnx_problems(_onnx_config(tiny_models)) == []
+    problems = onnx_problems(_onnx_config(tmp_path / "nowhere"))
+    assert len(problems) == 1 and "does not exist" in problems[0] and "export-all" in problems[0]
+    wrong = _onnx_config(tiny_models, synthesis=TINY.synthesis.model_copy(update={"num_frames": 13}))
+    assert any("exported for 5 frames" in p and "synthesis.num_frames" in p for p in onnx_problems(wrong))
+    (tmp_path / "geometry").mkdir()
+    problems = onnx_problems(_onnx_config(tmp_path))
+    assert any("export-synthesizer" in p for p in problems) and any("export-geometry" in p for p in problems)
+    assert run_label(_onnx_config(tiny_models)) == RANDOM_WEIGHTS_LABEL
+
+
+def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, tiny_models, tmp_path):
+    from navcrafter.flows.explore import explore_collection
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    # a "real photo": no ground truth exists for it, so only learned models can explore it
+    (photos / "photo.png").write_bytes((collection / "no-groundtruth.png").read_bytes())
+    store = tmp_path / "store"
+    run = explore_collection(str(photos), str(store), _onnx_config(tiny_models))
+    (result,) = run.scenes
+    assert result.status == "done", result.error
+    scene = Store(str(store)).scene(result.scene_id)
+    frames = scene.read(SYNTHESIZE, 1, "frames")
+    assert frames.shape == (*TINY_MODELS_SIZE, 3) and frames.dtype == np.uint8 and frames.std() > 0
+    geo, lift = scene.status(GEOMETRY).attrs, scene.status(LIFT, 1).attrs
+    assert geo["n_points"] > 0 and lift["n_points"] >= 1 and np.isfinite(lift["scale"])
+    summary = (store / run.summary).read_text()
+    assert RANDOM_WEIGHTS_LABEL in summary and "backend 'onnx'" in summary
+    exports = store / result.outputs
+    assert json.loads((exports / "trajectory.json").read_text())["label"] == RANDOM_WEIGHTS_LABEL
+    assert RANDOM_WEIGHTS_LABEL.encode() in (exports / "cloud.ply").read_bytes()[:2000]
