@@ -126,6 +126,12 @@ def test_onnx_geometry_predict(exported):
     # hints are ignored, the result is deterministic
     again = geo.predict(frames, seed=5, hint_c2w=np.tile(np.eye(4), (3, 1, 1)))
     assert np.array_equal(again.depth, pred.depth) and np.array_equal(again.c2w, pred.c2w)
+    # one frame (the initial-geometry step) and a portrait frame (crop mode: rows outside get no depth)
+    single = geo.predict(frames[:1], seed=0)
+    assert single.c2w.shape == (1, 4, 4) and np.array_equal(single.c2w[0], np.eye(4))
+    assert single.depth.shape == (1, 40, 50)
+    tall = geo.predict(np.ascontiguousarray(frames[:2].transpose(0, 2, 1, 3)), seed=0)  # 50 x 40 -> 56 x 70 -> crop
+    assert tall.depth.shape == (2, 50, 40) and (tall.depth[:, :3] == 0).all() and (tall.depth[:, 10:40] > 0).all()
 
 
 # --------------------------------------------------------------------------------------------------
