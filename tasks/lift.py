@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.lifting import align_scale, lift_prediction, pose_deviation, select_views
+from navcrafter.models.lifting import lift_prediction, pose_deviation, select_views
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, INGEST, LIFT, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import StepRef, load_backend, load_cloud, open_store, run_step
-
-__all__ = ["align_scale", "lift", "select_views"]
 
 
 def lift(store_uri: str, scene_id: str, k: int, config: RunConfig, run_id: str) -> StepRef:

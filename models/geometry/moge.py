@@ -36,7 +36,6 @@ layout of the full-size model is committed in ``keys/moge2_vitl_normal.txt``.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -829,14 +828,6 @@ def postprocess(points: np.ndarray, mask: np.ndarray, metric_scale: float | None
 # ----------------------------------------------------------------------------------------------------
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            h.update(block)
-    return h.hexdigest()
-
-
 def export_monodepth(out_dir: Path, config: MoGe2Config, weights: Path | None = None, seed: int = 0) -> Path:
     """Export the network as graph ``monodepth`` (input ``image`` [B, 3, H, W] float in [0, 1], dynamic B and
     H, W = 14 x token rows/cols; outputs ``points``, ``normal``, ``mask``, ``metric_scale`` as ``MoGe2``)
@@ -850,7 +841,7 @@ def export_monodepth(out_dir: Path, config: MoGe2Config, weights: Path | None = 
     model = MoGe2(config).eval()
     if weights is not None:
         load_moge2_weights(model, weights)
-        weights_info = {"source": "checkpoint", "path": str(weights), "sha256": _sha256(Path(weights))}
+        weights_info = {"source": "checkpoint", "path": str(weights), "sha256": onnxio.sha256_file(Path(weights))}
     else:
         weights_info = {"source": "random", "seed": seed}
     p = config.patch_size

@@ -40,7 +40,6 @@ an index instead of an ``S - 1`` expand.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +54,8 @@ from transformers.models.dinov2_with_registers.modeling_dinov2_with_registers im
     Dinov2WithRegistersEmbeddings,
     Dinov2WithRegistersLayer,
 )
+
+from navcrafter.models.onnxio import sha256_file
 
 _RESNET_MEAN = (0.485, 0.456, 0.406)
 _RESNET_STD = (0.229, 0.224, 0.225)
@@ -842,7 +843,7 @@ def load_vggt_weights(model: VGGT, path: Path) -> dict:
     ours = vggt_state_dict_from_official({k: v for k, v in sd.items() if not k.startswith(IGNORED_PREFIXES)})
     on_meta = any(p.is_meta for p in model.parameters())
     model.load_state_dict(ours, strict=True, assign=on_meta)
-    return {"path": str(path), "loaded": len(sd) - len(ignored), "ignored": ignored, "sha256": sha256_of(path)}
+    return {"path": str(path), "loaded": len(sd) - len(ignored), "ignored": ignored, "sha256": sha256_file(path)}
 
 
 def save_official_safetensors(model: VGGT, path: Path) -> Path:
@@ -852,14 +853,6 @@ def save_official_safetensors(model: VGGT, path: Path) -> Path:
     sd = {k: v.detach().contiguous().cpu() for k, v in vggt_state_dict_official(model).items()}
     save_file(sd, str(path))
     return Path(path)
-
-
-def sha256_of(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            h.update(block)
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------------------------------
