@@ -27,7 +27,7 @@ from navcrafter.flows import dashboard, dispatch
 from navcrafter.models.backends import onnx_problems
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
-from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, synthesize
+from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, refine, synthesize
 from navcrafter.tasks.common import StepError, logger, open_store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import (
@@ -122,6 +122,7 @@ STEP_TASKS = {  # Prefect tasks by step name (the order of steps is tasks.pipeli
     "synthesize": task(_gpu_bound(synthesize.synthesize), name="synthesize", **_STEP),
     "lift": task(_gpu_bound(lift.lift), name="lift", **_STEP),
     "fit": task(_gpu_bound(fit.fit), name="fit", **_STEP),
+    "refine": task(_gpu_bound(refine.refine), name="refine", **_STEP),
     "export": task(export.export, name="export", **_STEP),
 }
 evaluate_task = task(evaluate.evaluate_scene, name="evaluate", **_STEP)
@@ -147,6 +148,8 @@ def preflight(config: RunConfig) -> list[str]:
         problems.extend(onnx_problems(config))
     if config.fit.enabled and config.iterations < 1:
         problems.append("fit.enabled needs iterations >= 1: the Gaussians are fitted to the synthesized frames")
+    if config.refine.enabled and not config.fit.enabled:
+        problems.append("refine.enabled needs fit.enabled: the refine step starts from the fitted Gaussians")
     return problems
 
 

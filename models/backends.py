@@ -22,7 +22,7 @@ from pathlib import Path
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig
 
-ROLE_DIRS = {"synthesizer": "synthesizer", "geometry": "geometry", "monodepth": "monodepth"}
+ROLE_DIRS = {"synthesizer": "synthesizer", "geometry": "geometry", "monodepth": "monodepth", "refiner": "refiner"}
 RANDOM_WEIGHTS_LABEL = ("RANDOM WEIGHTS: these models were exported with random weights (test or timing "
                         "configurations); their outputs are noise, not results")
 
@@ -49,6 +49,9 @@ class _LazyRole:
     def predict(self, *args, **kwargs):
         return self._get().predict(*args, **kwargs)
 
+    def refine(self, *args, **kwargs):
+        return self._get().refine(*args, **kwargs)
+
 
 def role_dir(model_dir: Path, role: str) -> Path:
     return Path(model_dir) / ROLE_DIRS[role]
@@ -74,7 +77,8 @@ def onnx_problems(config: RunConfig) -> list[str]:
     if not root.is_dir():
         return [f"model directory {root} does not exist; export models into it with "
                 f"`navcrafter models export-all {root}` (see README)"]
-    needed = ["synthesizer", "geometry"] + (["monodepth"] if config.fit.enabled else [])
+    needed = (["synthesizer", "geometry"] + (["monodepth"] if config.fit.enabled else [])
+              + (["refiner"] if config.fit.enabled and config.refine.enabled else []))
     problems = []
     for role in needed:
         try:
@@ -133,8 +137,15 @@ def _onnx_backend(model_dir: str, synthesis_key: str) -> Backend:
 
         return OnnxMonoDepth(role_dir(root, "monodepth"))
 
+    def refiner():
+        from navcrafter.models.refiner.onnx_refiner import OnnxRefiner
+
+        return OnnxRefiner(role_dir(root, "refiner"))
+
+    has_refiner = (role_dir(root, "refiner") / "manifest.json").is_file()
     return Backend(name="onnx", synthesizer=_LazyRole("onnx", synthesizer), geometry=_LazyRole("onnx", geometry),
-                   mono_depth=_LazyRole("onnx", mono_depth))
+                   mono_depth=_LazyRole("onnx", mono_depth),
+                   refiner=_LazyRole("onnx", refiner) if has_refiner else None)
 
 
 def create_backend(config: RunConfig, simulation_truth=None) -> Backend:

@@ -81,8 +81,11 @@ class MonoDepth(Protocol):
 class Refiner(Protocol):
     backend: str
 
-    def refine(self, rendered: np.ndarray, reference: np.ndarray | None, *, seed: int) -> np.ndarray:
-        """A refined version ``[H, W, 3]`` uint8 of a rendered view."""
+    def refine(self, rendered: np.ndarray, reference: np.ndarray | None, *, seed: int,
+               hint_c2w: np.ndarray | None = None, hint_intrinsics: Intrinsics | None = None) -> np.ndarray:
+        """A refined version ``[H, W, 3]`` uint8 of a rendered view ``[H, W, 3]`` uint8 (a render of the fitted
+        3DGS scene at a novel camera), optionally guided by a ``reference`` real view ``[H, W, 3]`` uint8 (the
+        nearest training frame). ``hint_c2w`` [4, 4] is the novel camera (used by the simulation backend only)."""
 
 
 @dataclass

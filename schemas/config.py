@@ -134,6 +134,16 @@ class FitConfig(_Section):
     enabled: bool = Field(False, description="Run the fit step after the last lift.")
     iterations: int = Field(10_000, ge=1, description="Training iterations (one view each).")
     holdout_every: int = Field(8, ge=2, description="Every n-th frame (0, n, 2n, ...) is held out for evaluation.")
+    train_stride: int = Field(
+        1, ge=1, description="Train on every n-th of the frames not held out (1: all of them). Sparser training "
+        "sets are where the depth prior and DropGaussian matter (benchmarks/fitting.py --train-stride).")
+    depth_views: Literal["lift", "all"] = Field(
+        "all", description="Training frames with depth supervision: 'lift' only those the lift step ran the "
+        "geometry model on (calibrated to its depth); 'all' also the others, calibrated to the scene cloud "
+        "rendered into the frame (z-buffered points, ``fit.depth_point_size``).")
+    depth_point_size: float = Field(
+        0.02, gt=0, description="World size of a cloud point when the cloud is rendered as a frame's multi-view "
+        "depth (depth_views='all'); the lift voxel size is a good value.")
     resolution: int | None = Field(
         None, ge=8, description="Longer image side for training and evaluation (frames box-downsampled, "
         "intrinsics scaled); None: the synthesis resolution.")
@@ -173,6 +183,24 @@ class FitConfig(_Section):
         "(ours 0.99) and is not bit-reproducible.")
 
 
+class RefineConfig(_Section):
+    """Diffusion refinement of rendered views (paper, Sec. III-D; Difix3D+-style), ``tasks/refine.py``.
+
+    After the fit, the Gaussians are rendered at ``views`` novel cameras off the explored trajectory (training
+    cameras displaced sideways/up by ``offset`` x the scene scale and turned by up to ``angle_deg``; never the
+    held-out cameras), the Refiner role cleans each render (guided by the nearest training frame), and the fit
+    goes on for ``iterations`` with the refined views as extra training views (loss weight ``weight``).
+    """
+
+    enabled: bool = Field(False, description="Run the refine step after the fit (needs fit.enabled).")
+    views: int = Field(8, ge=1, description="Novel views rendered and refined.")
+    offset: float = Field(0.08, gt=0, description="Displacement of a novel camera from its training camera, "
+                          "x the scene scale (the median camera-to-cloud distance).")
+    angle_deg: float = Field(8.0, ge=0, description="Largest turn (yaw and pitch) of a novel camera.")
+    iterations: int = Field(1000, ge=1, description="Training iterations after adding the refined views.")
+    weight: float = Field(0.5, gt=0, le=1, description="Loss weight of a refined view (real views: 1).")
+
+
 class EvaluationConfig(_Section):
     """The evaluation suite (``navcrafter evaluate``; ``flows/evaluate.py``)."""
 
@@ -210,6 +238,10 @@ class SimulationConfig(_Section):
     edge_confidence: float = Field(
         0.2, ge=0, le=1, description="Confidence assigned at depth discontinuities."
     )
+    refine_strength: float = Field(
+        0.7, ge=0, le=1, description="Refiner stand-in: how far a render is moved toward the true view "
+        "(refined = render + strength x (truth - render) + noise; 1: a perfect refiner).")
+    refine_noise: float = Field(0.02, ge=0, description="Refiner stand-in: sigma of added pixel noise (0-1 range).")
 
 
 class RunConfig(BaseModel):
@@ -237,6 +269,7 @@ class RunConfig(BaseModel):
     plan: PlanConfig = PlanConfig()
     lift: LiftConfig = LiftConfig()
     fit: FitConfig = FitConfig()
+    refine: RefineConfig = RefineConfig()
     simulation: SimulationConfig = SimulationConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
 
@@ -274,8 +307,17 @@ class RunConfig(BaseModel):
             "lift": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},
             "fit": {**common, "fit": self.fit.model_dump(mode="json"), "simulation": sim,
                     "lpips": self.evaluation.model_dump(mode="json", include={"lpips_net", "weights_dir"})},
+            "refine": {**common, **({"models": _model_versions(Path(self.model_dir), (
+                           "synthesizer", "geometry", "monodepth", "refiner"))} if "models" in common else {}),
+                       "refine": self.refine.model_dump(mode="json"), "simulation": sim,
+                       "fit": self.fit.model_dump(mode="json", include={"device", "renderer", "lr_means_final",
+                                                                         "lr_quats", "lr_scales", "lr_opacities",
+                                                                         "lr_sh0", "lr_shN", "lambda_depth",
+                                                                         "drop_gamma", "sh_degree"}),
+                       "lpips": self.evaluation.model_dump(mode="json", include={"lpips_net", "weights_dir"})},
             "export": {"fps": self.synthesis.fps, "iterations": self.iterations,
-                       **({"fit": True} if self.fit.enabled else {})},
+                       **({"fit": True} if self.fit.enabled else {}),
+                       **({"refine": True} if self.fit.enabled and self.refine.enabled else {})},
             "evaluate": {"backend": self.backend, "plan": self.plan.model_dump(mode="json"),
                          "iterations": self.iterations, "outputs": 2},  # 2: attrs record the iterations
             "score": {"backend": self.backend, "evaluation": self.evaluation.model_dump(mode="json")},
@@ -349,11 +391,13 @@ def _dotted_to_nested(dotted: str, value: Any) -> dict[str, Any]:
     return nested
 
 
-def _model_versions(model_dir: Path) -> dict[str, str]:
+def _model_versions(model_dir: Path, roles: tuple[str, ...] = ("synthesizer", "geometry", "monodepth")
+                    ) -> dict[str, str]:
     """sha256 of each exported model's manifest (which holds every file's checksum): a step's cache key
-    changes when its model is re-exported, not when the directory is moved."""
+    changes when its model is re-exported, not when the directory is moved. The refiner counts only for the
+    refine step (exporting one later does not invalidate the steps before it)."""
     out = {}
-    for role in ("synthesizer", "geometry", "monodepth"):
+    for role in roles:
         f = model_dir / role / "manifest.json"
         if f.is_file():
             out[role] = hashlib.sha256(f.read_bytes()).hexdigest()[:16]

@@ -191,13 +191,45 @@ FIT = StepSpec(
         ArraySpec("holdout", "bool", ("F",), ("F",), "frames held out of training (every holdout_every-th)"),
         ArraySpec("holdout_renders", "uint8", ("V", "h", "w", 3), (1, "h", "w", 3),
                   "the fitted model rendered at the held-out cameras"),
-        ArraySpec("depth_calibration", "float64", ("M", 5), ("M", 5),
-                  "per depth-supervised frame: (frame, scale s, bias b, inlier fraction, robust sigma)"),
+        ArraySpec("train", "bool", ("F",), ("F",),
+                  "frames trained on: not held out, every fit.train_stride-th of those"),
+        ArraySpec("depth_targets", "float32", ("F", "h", "w"), (1, "h", "w"),
+                  "calibrated depth supervising each training frame at the fit resolution (0: none)"),
+        ArraySpec("depth_calibration", "float64", ("M", 6), ("M", 6),
+                  "per depth-supervised frame: (frame, scale s, bias b, inlier fraction, robust sigma, source: "
+                  "0 the lift step's geometry depth, 1 the cloud rendered into the frame)"),
         ArraySpec("history", "float32", ("I", 6), ("I", 6),
                   "per iteration: loss, l1, lpips, depth (NaN when off), drop rate, number of Gaussians"),
     ),
     attrs=("n_gaussians", "sh_degree", "resolution", "holdout_every", "n_train", "n_holdout", "psnr", "ssim",
            "lpips", "lpips_note", "init_psnr", "scene_scale", "train_seconds", "final_loss"),
+)
+
+REFINE = StepSpec(
+    "refine", "renders",
+    "Diffusion refinement (tasks/refine.py): the fitted Gaussians rendered at novel cameras off the trajectory, "
+    "the Refiner's refined views, and the Gaussians trained further with them as extra views.",
+    arrays=(
+        ArraySpec("c2w", "float64", ("V", 4, 4), ("V", 4, 4), "novel cameras (OpenCV c2w, world frame)"),
+        ArraySpec("K", "float64", (3, 3), (3, 3), "their intrinsics at the fit resolution"),
+        ArraySpec("source_frame", "int32", ("V",), ("V",),
+                  "the fit frame (index into gaussians/frame_ref) each novel camera was displaced from"),
+        ArraySpec("reference_frame", "int32", ("V",), ("V",),
+                  "the training frame given to the refiner as reference (the nearest camera)"),
+        ArraySpec("renders", "uint8", ("V", "h", "w", 3), (1, "h", "w", 3), "the fitted model at the novel cameras"),
+        ArraySpec("refined", "uint8", ("V", "h", "w", 3), (1, "h", "w", 3), "the refiner's output"),
+        ArraySpec("means", "float32", ("G", 3), ("G", 3), "refined Gaussians (as in gaussians/)"),
+        ArraySpec("quats", "float32", ("G", 4), ("G", 4), "rotations (w, x, y, z)"),
+        ArraySpec("log_scales", "float32", ("G", 3), ("G", 3), "log standard deviations"),
+        ArraySpec("opacity_logits", "float32", ("G",), ("G",), "logit of the opacity"),
+        ArraySpec("sh_dc", "float32", ("G", 3), ("G", 3), "degree-0 SH coefficient"),
+        ArraySpec("sh_rest", "float32", ("G", "B", 3), ("G", "B", 3), "higher SH bands"),
+        ArraySpec("holdout_renders", "uint8", ("H", "h", "w", 3), (1, "h", "w", 3),
+                  "the refined model at the fit's held-out cameras"),
+        ArraySpec("history", "float32", ("I", 6), ("I", 6), "per iteration, as gaussians/history"),
+    ),
+    attrs=("psnr", "ssim", "lpips", "psnr_before", "ssim_before", "n_views", "n_gaussians", "refiner",
+           "train_seconds"),
 )
 
 EXPORT = StepSpec(
@@ -220,8 +252,8 @@ SCORE = StepSpec(
     attrs=("rows",),
 )
 
-STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, EXPORT, EVALUATE,
-                                                  SCORE)}
+STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, REFINE, EXPORT,
+                                                  EVALUATE, SCORE)}
 
 
 def scene_group(scene_id: str) -> str:
@@ -233,9 +265,10 @@ def cloud_step(k: int) -> tuple[StepSpec, int | None]:
     return (GEOMETRY, None) if k == 0 else (LIFT, k)
 
 
-def dependencies(step: str, k: int | None, iterations: int, fit: bool = False) -> list[tuple[StepSpec, int | None]]:
-    """Upstream steps whose outputs a step reads (their keys enter its cache key); ``fit``: whether the
-    fit step runs (the export then reads it)."""
+def dependencies(step: str, k: int | None, iterations: int, fit: bool = False,
+                 refine: bool = False) -> list[tuple[StepSpec, int | None]]:
+    """Upstream steps whose outputs a step reads (their keys enter its cache key); ``fit`` / ``refine``: whether
+    the fit / refine steps run (the export then reads them)."""
     if step == "ingest":
         return []
     if step == "geometry":
@@ -247,11 +280,17 @@ def dependencies(step: str, k: int | None, iterations: int, fit: bool = False) -
         return [(INGEST, None), (PLAN, k), cloud_step(k - 1)]
     if step == "lift":
         return [(INGEST, None), (GEOMETRY, None), (PLAN, k), (SYNTHESIZE, k), cloud_step(k - 1)]
-    if step in ("fit", "export"):
+    if step in ("fit", "refine", "export"):
         deps: list[tuple[StepSpec, int | None]] = [(INGEST, None), (GEOMETRY, None)]
         for i in range(1, iterations + 1):
             deps += [(PLAN, i), (SYNTHESIZE, i), (LIFT, i)]
-        return deps + ([(FIT, None)] if step == "export" and fit else [])
+        if step == "refine":
+            return deps + [(FIT, None)]
+        if step == "export" and fit:
+            deps.append((FIT, None))
+            if refine:
+                deps.append((REFINE, None))
+        return deps
     if step == "evaluate":
         return [(EXPORT, None)]  # the export's key covers every step before it
     if step == "score":

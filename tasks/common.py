@@ -70,7 +70,8 @@ def open_store(uri: str) -> Store:
 def step_key(scene: SceneStore, step: StepSpec, k: int | None, config: RunConfig) -> str:
     """Cache key: the step, its config section, and the keys of the upstream outputs it reads."""
     deps = [scene.require_complete(s, kk).key
-            for s, kk in dependencies(step.name, k, config.iterations, fit=config.fit.enabled)]
+            for s, kk in dependencies(step.name, k, config.iterations, fit=config.fit.enabled,
+                                          refine=config.fit.enabled and config.refine.enabled)]
     return stable_hash({"step": step.name, "k": k, "scene": scene.scene_id, "schema": SCHEMA_VERSION,
                         "config": config.step_config(step.name), "deps": deps}, length=32)
 

@@ -85,17 +85,20 @@ def trajectory_rows(scene, scene_id: str, iterations: int, backend: str, width: 
 
 
 def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str], band: str | None,
-                           fps: int) -> None:
-    """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group)."""
+                           fps: int, refined: bool = False) -> None:
+    """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group), or of the refined
+    one (``renders`` group) when ``refined``."""
     from navcrafter.models.gaussians.ply import save_ply
     from navcrafter.models.gaussians.train import render_model
     from navcrafter.tasks.fit import load_gaussians
+    from navcrafter.tasks.refine import load_refined_gaussians
 
-    model = load_gaussians(scene)
+    model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
     fd, path = tempfile.mkstemp(suffix=".ply")
     os.close(fd)
     try:
-        save_ply(path, model, comments=[*comments, "3D Gaussian Splatting (navcrafter fit step)"])
+        step = "fit and refine steps" if refined else "fit step"
+        save_ply(path, model, comments=[*comments, f"3D Gaussian Splatting (navcrafter {step})"])
         with open(path, "rb") as fh:
             writer.write_file("gaussians.ply", fh.read())
     finally:
@@ -139,7 +142,7 @@ def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
         writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
         if config.fit.enabled:
             write_gaussian_exports(writer, scene, rows, comments, _band(config) if sim else None,
-                                   config.synthesis.fps)
+                                   config.synthesis.fps, refined=config.refine.enabled)
         table = to_table("trajectories", rows)
         buf = io.BytesIO()
         import pyarrow.parquet as pq

@@ -4,13 +4,16 @@
   the planned pose (``iter_k/plan`` trajectory) and intrinsics. The synthesizer is camera-controlled, so
   these are its cameras; the lift step's poses are the geometry model's re-estimates of a subset. Frame 0 of
   clip k >= 2 repeats the last frame of clip k-1 (same pose) and is left out, so no held-out camera also
-  appears in training. Every ``fit.holdout_every``-th frame of that sequence (0, n, 2n, ...) is held out.
+  appears in training. Every ``fit.holdout_every``-th frame of that sequence (0, n, 2n, ...) is held out; of
+  the others every ``fit.train_stride``-th is trained on (1: all).
 * **Initialisation** from the final cloud (``iter_N/lift``; ``fit.max_init_points`` caps it by a seeded
   subset): one isotropic Gaussian per point (3DGS).
-* **Depth supervision.** For each training frame the lift step ran geometry on (``view_index``), the
-  backend's MonoDepth role gives relative inverse depth and a sky mask; ``models.depthcalib`` aligns it to
-  the lift depth (confident, non-sky pixels; trimmed least squares) and the calibrated depth supervises the
-  rendered expected depth (``lambda_depth``).
+* **Depth supervision.** For each training frame the backend's MonoDepth role gives relative inverse depth and
+  a sky mask; ``models.depthcalib`` aligns it (confident / valid, non-sky pixels; trimmed least squares) to a
+  multi-view depth: the lift step's geometry depth on the frames it ran the geometry model on, and with
+  ``fit.depth_views = "all"`` (default) the scene cloud rendered into the other frames (z-buffered points of
+  size ``fit.depth_point_size``). The calibrated depth supervises the rendered expected depth
+  (``lambda_depth``); the targets are stored (``depth_targets``) for the refine step.
 * **Loss** L1 + ``lambda_lpips`` LPIPS + ``lambda_depth`` depth, with DropGaussian (``models.gaussians.train``).
   LPIPS needs the official weights (``evaluation.weights_dir``); without them the term is skipped, held-out
   LPIPS is not reported, and ``lpips_note`` says why. It is never computed with a random network.
@@ -18,11 +21,14 @@
   trains on CUDA when torch sees a GPU, rendering with gsplat when it is installed (``pip install
   navcrafter[cuda]``) and with our PyTorch rasterizer otherwise; on the CPU always with ours. Results (model,
   renders, metrics) come back to the CPU; the attrs record the device and renderer used.
-* **Outputs** (group ``gaussians``): the Gaussians, the frames' cameras, the hold-out mask and renders,
-  the calibrations, the loss history; attrs: held-out PSNR / SSIM (/ LPIPS), the initial model's held-out
-  PSNR (``init_psnr``), counts and timings.
+* **Progress**: iteration, loss terms and Gaussian count are logged about ten times per fit (the CLI and the
+  task run's log), and a ``fit-<id12>`` progress artifact follows the iterations in the dashboard
+  (``tasks/progress.py``).
+* **Outputs** (group ``gaussians``): the Gaussians, the frames' cameras, the hold-out and training masks,
+  held-out renders, depth targets and calibrations, the loss history; attrs: held-out PSNR / SSIM (/ LPIPS),
+  the initial model's held-out PSNR (``init_psnr``), counts and timings.
 
-Not built yet: the diffusion refinement of rendered views (Refiner role) and fitting again with them.
+The diffusion refinement of rendered views and the fitting again with them is the next step, ``tasks/refine.py``.
 """
 
 from __future__ import annotations
@@ -38,9 +44,11 @@ from navcrafter.models.depthcalib import CalibrationError, calibrate_depth
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView
 from navcrafter.models.imagemetrics import psnr, ssim
+from navcrafter.models.pointrender import render_points
 from navcrafter.schemas.config import FitConfig, RunConfig
 from navcrafter.schemas.layout import FIT, LIFT, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import StepRef, load_backend, load_cloud, logger, open_store, run_step
+from navcrafter.tasks.progress import TrainingProgress
 
 
 def train_config(cfg: FitConfig, seed: int, lambda_lpips: float | None = None) -> TrainConfig:
@@ -126,7 +134,11 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
         if holdout.all() or not holdout.any():
             raise ValueError(f"{len(refs)} frames cannot be split with holdout_every={cfg.holdout_every}")
 
-        # calibrated monocular depth of the training frames the lift step has geometry for
+        train_idx, test_idx = np.nonzero(~holdout)[0][::cfg.train_stride], np.nonzero(holdout)[0]
+        cloud = load_cloud(scene, N)
+
+        # calibrated monocular depth of the training frames: against the lift step's geometry depth where it ran
+        # on the frame, else (depth_views="all") against the scene cloud rendered into the frame
         backend = load_backend(scene, config)
         lift_depth = {}
         for k in range(1, N + 1):
@@ -135,19 +147,25 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
                 lift_depth[(k, int(i))] = (lift["depth"][j], lift["confidence"][j])
         depth_for: dict[int, np.ndarray] = {}
         calib_rows = []
-        for f, ref in enumerate(refs):
-            if holdout[f] or ref not in lift_depth:
+        for f in train_idx:
+            ref = refs[f]
+            if ref in lift_depth:
+                d_v, conf = lift_depth[ref]
+                valid, source = conf >= cfg.depth_confidence, 0
+            elif cfg.depth_views == "all":
+                pr = render_points(cloud.points, c2w[f], K_full[f], H, W, point_size=cfg.depth_point_size)
+                d_v, valid, source = pr.depth, pr.mask, 1
+            else:
                 continue
-            d_v, conf = lift_depth[ref]
             img = frames[ref[0]][ref[1]]
-            mono = backend.mono_depth.predict(img, seed=seed + f, hint_c2w=c2w[f][None])
+            mono = backend.mono_depth.predict(img, seed=seed + int(f), hint_c2w=c2w[f][None])
             try:
-                cal = calibrate_depth(mono.inv_depth, d_v, conf >= cfg.depth_confidence, mono.sky)
+                cal = calibrate_depth(mono.inv_depth, d_v, valid, mono.sky)
             except CalibrationError as exc:
                 logger().warning("scene %s: no depth supervision for frame %s: %s", scene_id[:12], ref, exc)
                 continue
-            depth_for[f] = resize_depth(cal.depth, h, w)
-            calib_rows.append([f, cal.scale, cal.bias, cal.inlier_fraction, cal.sigma])
+            depth_for[int(f)] = resize_depth(cal.depth, h, w)
+            calib_rows.append([f, cal.scale, cal.bias, cal.inlier_fraction, cal.sigma, source])
 
         def view(f: int) -> TrainView:
             img = resize_image(frames[refs[f][0]][refs[f][1]], h, w).astype(np.float32) / 255.0
@@ -156,10 +174,8 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
                              torch.as_tensor(K[f], dtype=torch.float32),
                              None if d is None else torch.from_numpy(np.ascontiguousarray(d, dtype=np.float32)))
 
-        train_idx, test_idx = np.nonzero(~holdout)[0], np.nonzero(holdout)[0]
         train_views, test_views = [view(f) for f in train_idx], [view(f) for f in test_idx]
 
-        cloud = load_cloud(scene, N)
         pts, cols = cloud.points, cloud.colors
         if cfg.max_init_points is not None and len(pts) > cfg.max_init_points:
             rng = np.random.default_rng(seed)
@@ -178,7 +194,7 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
         gt = np.stack([v.image.numpy() for v in test_views]).astype(np.float64)
         init_rgb, _ = trainer.evaluate(test_views)
         t0 = time.perf_counter()
-        result = trainer.train()
+        result = trainer.train(TrainingProgress(scene_id, "fit", tcfg.iterations))
         train_seconds = time.perf_counter() - t0
         rgb, _ = trainer.evaluate(test_views)
         model = result.model
@@ -198,8 +214,15 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
         writer.write("c2w", c2w)
         writer.write("K", K.astype(np.float64))
         writer.write("holdout", holdout)
+        train_mask = np.zeros(len(refs), dtype=bool)
+        train_mask[train_idx] = True
+        writer.write("train", train_mask)
         writer.write("holdout_renders", np.round(rgb * 255).astype(np.uint8))
-        writer.write("depth_calibration", np.asarray(calib_rows, dtype=np.float64).reshape(-1, 5))
+        depth_targets = np.zeros((len(refs), h, w), dtype=np.float32)
+        for f, d in depth_for.items():
+            depth_targets[f] = d
+        writer.write("depth_targets", depth_targets)
+        writer.write("depth_calibration", np.asarray(calib_rows, dtype=np.float64).reshape(-1, 6))
         hist = result.history
         writer.write("history", np.stack([np.asarray(hist[c], dtype=np.float32) for c in
                                           ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")], axis=1))
@@ -207,7 +230,8 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
                 "resolution": [w, h], "holdout_every": cfg.holdout_every, "n_train": len(train_views),
                 "n_holdout": len(test_views), "init_psnr": float(np.mean(psnr(init_rgb, gt))),
                 "scene_scale": scale, "train_seconds": train_seconds, "final_loss": float(hist["loss"][-1]),
-                "n_depth_views": len(calib_rows), "lambda_lpips_used": lam_lpips,
+                "n_depth_views": len(calib_rows),
+                "n_depth_views_cloud": sum(1 for r in calib_rows if r[5] == 1), "lambda_lpips_used": lam_lpips,
                 "device": str(trainer.device), "renderer": trainer.renderer,
                 "densify": {k: v for k, v in result.strategy_state.items() if k.startswith("n_")}}
 
@@ -220,3 +244,26 @@ def load_gaussians(scene) -> GaussianModel:
     arrays = scene.read_all(FIT)
     return GaussianModel(**{k: torch.from_numpy(np.ascontiguousarray(arrays[k])) for k in
                             ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")})
+
+
+def load_fit_views(scene) -> tuple[list[TrainView], list[TrainView]]:
+    """The fit's training and held-out views, rebuilt from its group (frames from the synthesize steps,
+    resized as the fit did; calibrated depth targets of the training views)."""
+    scene.require_complete(FIT)
+    g = scene.read_all(FIT)
+    w, h = scene.status(FIT).attrs["resolution"]
+    frames: dict[int, np.ndarray] = {}
+    train, test = [], []
+    for f, (k, i) in enumerate(np.asarray(g["frame_ref"])):
+        if int(k) not in frames:
+            frames[int(k)] = scene.read(SYNTHESIZE, int(k), "frames")
+        img = resize_image(frames[int(k)][int(i)], h, w).astype(np.float32) / 255.0
+        d = g["depth_targets"][f]
+        view = TrainView(torch.from_numpy(img), torch.as_tensor(g["c2w"][f], dtype=torch.float32),
+                         torch.as_tensor(g["K"][f], dtype=torch.float32),
+                         torch.from_numpy(np.ascontiguousarray(d)) if (d > 0).any() else None)
+        if g["holdout"][f]:
+            test.append(view)
+        elif g["train"][f]:
+            train.append(view)
+    return train, test

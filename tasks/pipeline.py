@@ -7,8 +7,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, LIFT, PLAN, SYNTHESIZE, StepSpec
-from navcrafter.tasks import export, fit, geometry, lift, plan, synthesize
+from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, LIFT, PLAN, REFINE, SYNTHESIZE, StepSpec
+from navcrafter.tasks import export, fit, geometry, lift, plan, refine, synthesize
 from navcrafter.tasks.common import StepRef
 
 
@@ -27,12 +27,14 @@ class Step:
 
 
 def scene_steps(config: RunConfig) -> list[Step]:
-    """geometry, then N x (plan, synthesize, lift), then fit (when enabled) and export."""
+    """geometry, then N x (plan, synthesize, lift), then fit and refine (when enabled) and export."""
     steps = [Step(GEOMETRY, None, geometry.initial_geometry)]
     for k in range(1, config.iterations + 1):
         steps += [Step(PLAN, k, plan.plan), Step(SYNTHESIZE, k, synthesize.synthesize), Step(LIFT, k, lift.lift)]
     if config.fit.enabled:
         steps.append(Step(FIT, None, fit.fit))
+        if config.refine.enabled:
+            steps.append(Step(REFINE, None, refine.refine))
     return steps + [Step(EXPORT, None, export.export)]
 
 

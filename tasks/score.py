@@ -27,7 +27,7 @@ import numpy as np
 
 from navcrafter.models.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
-from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, SCORE, SYNTHESIZE
+from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SCORE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks.common import open_store, run_step_attrs, simulation_truth
 
@@ -201,6 +201,14 @@ def gaussian_rows(scene: SceneStore) -> list[dict[str, Any]]:
         rows.append(row("VII", "LPIPS", status="unavailable", note=a.get("lpips_note", "")))
     else:
         rows.append(row("VII", "LPIPS", float(a["lpips"]), None, note=f"{note}; {a.get('lpips_note', '')}"))
+    refined = scene.status(REFINE)
+    if refined.complete:  # the same held-out frames, after the refine step trained with refined views
+        r = refined.attrs
+        rnote = f"{note}; after the refine step ({r['n_views']} refined views, refiner: {r['refiner']})"
+        rows += [row("VII", "PSNR (refined)", float(r["psnr"]), "dB", note=rnote),
+                 row("VII", "SSIM (refined)", float(r["ssim"]), None, note=rnote)]
+        if r.get("lpips") is not None:
+            rows.append(row("VII", "LPIPS (refined)", float(r["lpips"]), None, note=rnote))
     return rows
 
 

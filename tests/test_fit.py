@@ -241,3 +241,183 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     # a rerun skips everything, the fit included
     again = run_scene(store, res.scene_id, cfg, "t2")
     assert all(r.skipped for r in again)
+
+
+# --------------------------------------------------------------------------------------------------
+# Sparser training sets, depth beyond the lift frames, the refine step, progress
+# --------------------------------------------------------------------------------------------------
+def test_train_stride_and_depth_from_the_cloud(demo_photos, tmp_path):
+    from navcrafter.schemas.config import RunConfig
+    from navcrafter.schemas.layout import FIT
+    from navcrafter.schemas.store import Store
+    from navcrafter.tasks.fit import fit, load_fit_views
+    from navcrafter.tasks.ingest import ingest
+    from navcrafter.tasks.pipeline import run_scene
+
+    base = {"fit.iterations": 5, "lift.max_views": 3}
+    cfg = RunConfig.load(preset="tiny", overrides=base)
+    store = str(tmp_path / "store")
+    sid = ingest(store, str(demo_photos / "room-0.png"), cfg, "t").scene_id
+    run_scene(store, sid, cfg, "t")
+    scene = Store(store).scene(sid)
+    sources = {}
+    for views, stride in (("lift", 1), ("all", 2)):
+        over = {**base, "fit.enabled": True, "fit.train_stride": stride, "fit.depth_views": views}
+        fit(store, sid, RunConfig.load(preset="tiny", overrides=over), "t")
+        a, g = scene.status(FIT).attrs, scene.read_all(FIT)
+        held = g["holdout"]
+        expect = np.zeros(len(held), dtype=bool)
+        expect[np.nonzero(~held)[0][::stride]] = True
+        assert (g["train"] == expect).all() and a["n_train"] == expect.sum() and not (g["train"] & held).any()
+        cal = g["depth_calibration"]
+        sources[views] = set(cal[:, 5].astype(int))
+        # supervised frames are training frames, and their targets are stored at the fit size
+        assert g["train"][cal[:, 0].astype(int)].all()
+        sup = (g["depth_targets"].reshape(len(held), -1) > 0).any(1)
+        assert set(np.nonzero(sup)[0]) == set(cal[:, 0].astype(int))
+        train, test = load_fit_views(scene)
+        assert len(train) == expect.sum() and len(test) == held.sum()
+        assert sum(v.depth is not None for v in train) == len(cal)
+    assert sources["lift"] == {0}  # 3 of 9 frames per clip were lifted: only those
+    assert 1 in sources["all"] and a["n_depth_views_cloud"] == (cal[:, 5] == 1).sum() > 0
+    # cloud-calibrated depth agrees with the scene: inliers dominate
+    assert (cal[cal[:, 5] == 1, 3] > 0.6).all()
+
+
+def test_novel_cameras_move_sideways_and_keep_clear():
+    from navcrafter.models.novelviews import nearest_views, novel_cameras
+
+    rng = np.random.default_rng(0)
+    c2w = np.repeat(np.eye(4)[None], 4, 0)
+    c2w[:, 0, 3] = np.arange(4) * 0.5
+    wall = np.stack(np.meshgrid(np.linspace(-2, 4, 60), np.linspace(-2, 2, 40), indexing="ij"), -1).reshape(-1, 2)
+    cloud = np.concatenate([wall, np.full((len(wall), 1), 3.0)], 1)  # a wall 3 m in front
+    out, src = novel_cameras(c2w, np.arange(4), cloud, offset=0.2, angle_deg=5.0, rng=rng)
+    assert list(src) == [0, 1, 2, 3]
+    move = out[:, :3, 3] - c2w[src, :3, 3]
+    assert np.allclose(np.linalg.norm(move, axis=1), 0.2) and np.allclose(move[:, 2], 0)  # in the image plane
+    for R in out[:, :3, :3]:
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))) <= 5 * 1.5
+    # a camera right next to a wall is never pushed into it: clearance 0.1, offset 1.0 -> needs >= 0.05
+    near = np.eye(4)
+    near[2, 3] = 2.9
+    side = np.stack([np.full(200, 0.0), np.linspace(-3, 3, 200), np.full(200, 3.0)], 1)
+    out2, src2 = novel_cameras(near[None], [0], np.concatenate([cloud, side]), offset=1.0, angle_deg=0.0,
+                               rng=np.random.default_rng(1))
+    if len(out2):
+        d = np.linalg.norm(np.concatenate([cloud, side]) - out2[0, :3, 3], axis=1).min()
+        assert d >= 0.05 - 1e-9
+    assert list(nearest_views(out, c2w)) == list(src)
+
+
+def test_simulation_refiner_moves_renders_toward_the_truth(demo_photos, tmp_path):
+    from navcrafter.models.backends import create_backend
+    from navcrafter.models.simulation.render import render
+    from navcrafter.schemas.config import RunConfig
+    from navcrafter.schemas.store import Store
+    from navcrafter.tasks.common import simulation_truth
+    from navcrafter.tasks.geometry import initial_geometry
+    from navcrafter.tasks.ingest import ingest
+
+    cfg = RunConfig.load(preset="tiny")
+    store = str(tmp_path / "store")
+    sid = ingest(store, str(demo_photos / "room-0.png"), cfg, "t").scene_id
+    initial_geometry(store, sid, cfg, "t")
+    truth = simulation_truth(Store(store).scene(sid))
+    K = truth.intrinsics_for(24, 32)
+    pose = np.eye(4)
+    gt = render(truth.scene, truth.gt_pose(pose[None])[0], K, supersample=2).rgb.astype(float)
+    blurred = np.full_like(gt, gt.mean()).astype(np.uint8)
+    errs = []
+    for strength in (0.0, 0.5, 1.0):
+        sim = cfg.simulation.model_copy(update={"refine_strength": strength, "refine_noise": 0.0})
+        refiner = create_backend(cfg.model_copy(update={"simulation": sim}), truth).refiner
+        out = refiner.refine(blurred, None, seed=0, hint_c2w=pose, hint_intrinsics=K)
+        assert out.dtype == np.uint8 and out.shape == blurred.shape
+        errs.append(np.abs(out - gt).mean())
+    assert errs[0] == pytest.approx(np.abs(blurred - gt).mean()) and errs[0] > errs[1] > errs[2] <= 0.5
+    with pytest.raises(Exception, match="hint_c2w"):
+        refiner.refine(blurred, None, seed=0)
+
+
+def test_refine_step_trains_on_refined_views_and_feeds_the_exports(demo_photos, tmp_path, caplog):
+    import logging
+
+    from navcrafter.models.gaussians.ply import load_ply
+    from navcrafter.schemas.config import RunConfig
+    from navcrafter.schemas.layout import EXPORT, FIT, REFINE
+    from navcrafter.schemas.store import Store
+    from navcrafter.tasks.ingest import ingest
+    from navcrafter.tasks.pipeline import run_scene
+    from navcrafter.tasks.refine import load_refined_gaussians
+    from navcrafter.tasks.score import gaussian_rows
+
+    cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "refine.enabled": True, "refine.views": 4,
+                                                   "refine.iterations": 30, "simulation.refine_noise": 0.0,
+                                                   "simulation.refine_strength": 1.0})
+    store = str(tmp_path / "store")
+    sid = ingest(store, str(demo_photos / "tabletop-0.png"), cfg, "t").scene_id
+    with caplog.at_level(logging.INFO, logger="navcrafter"):
+        refs = run_scene(store, sid, cfg, "t")
+    assert [r.step for r in refs][-3:] == ["gaussians", "renders", "exports"]
+    # progress lines of both training loops
+    assert any("fit iteration 40/40" in m for m in caplog.messages)
+    assert any("refine iteration 30/30" in m for m in caplog.messages)
+    scene = Store(store).scene(sid)
+    a, g, fg = scene.status(REFINE).attrs, scene.read_all(REFINE), scene.read_all(FIT)
+    V = a["n_views"]
+    assert 1 <= V <= 4 and g["renders"].shape == g["refined"].shape == (V, 32, 32, 3) and a["refiner"] == "simulation"
+    assert fg["train"][g["source_frame"]].all() and fg["train"][g["reference_frame"]].all()
+    # novel cameras are off the trajectory: never at a held-out (or any fit) camera
+    d = np.linalg.norm(g["c2w"][:, None, :3, 3] - fg["c2w"][None, :, :3, 3], axis=-1)
+    assert d.min() > 1e-3
+    assert not np.array_equal(g["renders"], g["refined"])
+    assert a["psnr_before"] == scene.status(FIT).attrs["psnr"] and np.isfinite(a["psnr"])
+    assert g["history"].shape == (30, 6)
+    # the exports carry the refined Gaussians
+    files = scene.status(EXPORT).attrs["files"]
+    loaded = load_ply(Store(store).path(files["gaussians.ply"]["path"]))
+    assert all(torch.equal(x, y) for x, y in zip(load_refined_gaussians(scene).tensors().values(),
+                                                 loaded.tensors().values()))
+    rows = {r["metric"]: r for r in gaussian_rows(scene)}
+    assert rows["PSNR (refined)"]["value"] == a["psnr"]
+    assert all(r.skipped for r in run_scene(store, sid, cfg, "t2"))
+
+
+def test_refine_needs_fit_and_a_refiner(tmp_path):
+    from navcrafter.flows.explore import preflight
+    from navcrafter.models.backends import onnx_problems
+    from navcrafter.schemas.config import RunConfig
+
+    cfg = RunConfig.load(preset="tiny", overrides={"refine.enabled": True})
+    assert any("refine.enabled needs fit.enabled" in p for p in preflight(cfg))
+    models = tmp_path / "models"
+    models.mkdir()
+    onnx = RunConfig.load(preset="tiny", overrides={"backend": "onnx", "model_dir": str(models), "fit.enabled": True,
+                                                    "refine.enabled": True})
+    assert any("refiner" in p for p in onnx_problems(onnx))
+
+
+def test_training_progress_logs_and_publishes_an_artifact(prefect_api_url):
+    from prefect import flow
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    from navcrafter.tasks.progress import TrainingProgress
+
+    plain = TrainingProgress("ab" * 32, "fit", 50)  # outside Prefect: log lines only
+    for i in range(50):
+        plain(i, {"loss": 0.5, "l1": 0.4, "depth": float("nan"), "n_gaussians": 10})
+    assert plain.artifact_id is None and plain.logged == [5, 10, 15, 20, 25, 30, 35, 40, 45, 50]
+
+    @flow
+    def train_some():
+        p = TrainingProgress("cd" * 32, "fit", 20)
+        for i in range(20):
+            p(i, {"loss": 1.0 / (i + 1), "n_gaussians": 5})
+        return p.artifact_id
+
+    assert train_some() is not None
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["fit-" + "cd" * 6])))
+    assert arts and arts[0].type == "progress" and float(arts[-1].data) == 100.0

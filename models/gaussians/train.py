@@ -92,13 +92,15 @@ class TrainConfig:
 
 @dataclass
 class TrainView:
-    """One posed image: ``image`` [H, W, 3] float in [0, 1], OpenCV ``c2w`` [4, 4], ``K`` [3, 3] and optional
-    calibrated depth [H, W] (0 = no supervision)."""
+    """One posed image: ``image`` [H, W, 3] float in [0, 1], OpenCV ``c2w`` [4, 4], ``K`` [3, 3], optional
+    calibrated depth [H, W] (0 = no supervision) and the weight of the view's loss (e.g. < 1 for refined
+    pseudo-views, tasks/refine.py)."""
 
     image: Tensor
     c2w: Tensor
     K: Tensor
     depth: Tensor | None = None
+    weight: float = 1.0
 
     @property
     def viewmat(self) -> Tensor:
@@ -175,7 +177,7 @@ class GaussianTrainer:
         if all(t.device == self.device for t in tensors):
             return view
         return TrainView(view.image.to(self.device), view.c2w.to(self.device), view.K.to(self.device),
-                         None if view.depth is None else view.depth.to(self.device))
+                         None if view.depth is None else view.depth.to(self.device), view.weight)
 
     def active_sh_degree(self, step: int) -> int:
         c = self.config
@@ -213,7 +215,7 @@ class GaussianTrainer:
             total = total + c.lambda_lpips * terms["lpips"]
         if "depth" in terms:
             total = total + c.lambda_depth * terms["depth"]
-        terms["loss"] = total
+        terms["loss"] = total if view.weight == 1.0 else view.weight * total
         return terms
 
     def next_view(self) -> int:

@@ -9,6 +9,10 @@ weights are present. Everything it produces is labelled ``backend: simulation``.
   jitter, optional focal error, low confidence at depth discontinuities, nothing on the sky.
   Results are in the first view's frame (``c2w[0] = I``), as VGGT returns them.
 * **MonoDepth** returns affine-invariant inverse depth (unknown scale and shift) and the sky mask.
+* **Refiner** moves a render of the fitted Gaussians a fraction ``refine_strength`` of the way to the true
+  view at that camera and adds pixel noise (``refine_noise``): a diffusion refiner that repairs most, not
+  all, of the artifacts. It measures the refine step's plumbing and what a good refiner can give, not
+  Difix itself.
 
 Frames of reference: the scene's *world* is the input camera's OpenCV frame at the scale of the
 first geometry call (``world_scale`` = that call's scale relative to metres). ``SimulationTruth``
@@ -204,6 +208,24 @@ class SimulationMonoDepth(_SimulationRole):
         return MonoDepthPrediction(inv_depth=rel, sky=~r.hit if self.truth.scene.sky else np.zeros_like(r.hit))
 
 
+class SimulationRefiner(_SimulationRole):
+
+    def refine(self, rendered: np.ndarray, reference: np.ndarray | None, *, seed: int,
+               hint_c2w: np.ndarray | None = None, hint_intrinsics: Intrinsics | None = None) -> np.ndarray:
+        H, W = rendered.shape[:2]
+        gt_pose = self.truth.gt_pose(_require_hint(hint_c2w, 1))[0]
+        K = hint_intrinsics if hint_intrinsics is not None else self.truth.intrinsics_for(H, W)
+        if (K.height, K.width) != (H, W):
+            raise ValueError(f"hint_intrinsics are for {K.width}x{K.height}, the render is {W}x{H}")
+        truth = render(self.truth.scene, gt_pose, K, supersample=max(2, self.config.supersample)).rgb
+        r, t = rendered.astype(np.float64) / 255.0, truth.astype(np.float64) / 255.0
+        out = r + self.config.refine_strength * (t - r)
+        if self.config.refine_noise > 0:
+            out = out + _rng(seed).normal(0.0, self.config.refine_noise, out.shape)
+        return np.round(np.clip(out, 0.0, 1.0) * 255).astype(np.uint8)
+
+
 def simulation_backend(truth: SimulationTruth, config: SimulationConfig) -> Backend:
     return Backend(name=BACKEND, synthesizer=SimulationSynthesizer(truth, config),
-                   geometry=SimulationGeometry(truth, config), mono_depth=SimulationMonoDepth(truth, config))
+                   geometry=SimulationGeometry(truth, config), mono_depth=SimulationMonoDepth(truth, config),
+                   refiner=SimulationRefiner(truth, config))

@@ -1,0 +1,131 @@
+"""Refine: diffusion refinement of rendered views as extra supervision, then more fitting (paper, Sec. III-D;
+the Difix3D+ recipe).
+
+1. **Novel cameras** (``models.novelviews``): ``refine.views`` training cameras, evenly spread over the fit's
+   training frames, each displaced sideways/up by ``refine.offset`` x the fit's scene scale and turned by up
+   to ``refine.angle_deg`` (seeded; a camera never lands closer to the cloud than half its source's
+   clearance). Held-out cameras are never used, so the held-out evaluation stays honest.
+2. **Render** the fitted Gaussians there (the fit's resolution and intrinsics).
+3. **Refine** each render with the backend's Refiner role, given the nearest training frame as reference:
+   a Difix-style single-step diffusion model (``onnx`` backend, ``models/refiner``), or the simulation
+   stand-in (the render moved toward the true view; ``simulation.refine_strength``).
+4. **Fit again**: the fitted Gaussians train ``refine.iterations`` more iterations on the training views plus
+   the refined views (loss weight ``refine.weight``, no depth term on them), with the fit's learning rates
+   except the position rate, which decays from 10 x to 1 x ``fit.lr_means_final``; density control off;
+   DropGaussian as in the fit.
+5. **Evaluate** on the fit's held-out frames: ``psnr`` / ``ssim`` (/ ``lpips``) after, ``psnr_before`` /
+   ``ssim_before`` from the fit.
+
+Outputs (group ``renders``): the novel cameras, renders, refined views, the refined Gaussians (which the
+export step uses when refine is enabled), held-out renders and the loss history.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.gaussians.train import GaussianTrainer, TrainView, render_model
+from navcrafter.models.imagemetrics import psnr, ssim
+from navcrafter.models.novelviews import nearest_views, novel_cameras
+from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import FIT, REFINE
+from navcrafter.tasks.common import StepRef, load_backend, open_store, run_step
+from navcrafter.tasks.fit import load_fit_views, load_gaussians, load_lpips, train_config
+from navcrafter.tasks.progress import TrainingProgress
+
+
+class RefinerMissing(RuntimeError):
+    """The backend has no Refiner role (no exported refiner model)."""
+
+
+def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
+    rc, fc = config.refine, config.fit
+    if not fc.enabled:
+        raise ValueError("refine.enabled needs fit.enabled: the refine step starts from the fitted Gaussians")
+
+    def body(writer, seed: int, _) -> dict:
+        scene = open_store(store_uri).scene(scene_id)
+        backend = load_backend(scene, config)
+        if backend.refiner is None:
+            raise RefinerMissing(
+                f"the {backend.name} backend has no refiner model: export one with `navcrafter models "
+                f"export-refiner <model_dir>/refiner ...` (see README), or turn refine.enabled off")
+        fit_attrs = scene.status(FIT).attrs
+        g = scene.read_all(FIT)
+        model = load_gaussians(scene)
+        train_views, test_views = load_fit_views(scene)
+        w, h = fit_attrs["resolution"]
+        train_idx = np.nonzero(g["train"])[0]
+        rng = np.random.default_rng(seed)
+        pick = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(rc.views, len(train_idx))).round()
+                                   .astype(int))]
+        offset = rc.offset * float(fit_attrs["scene_scale"])
+        c2w, source = novel_cameras(g["c2w"], pick, model.means.numpy(), offset=offset, angle_deg=rc.angle_deg,
+                                    rng=rng)
+        if len(c2w) == 0:
+            raise ValueError("no novel camera found a free position next to the training cameras; lower "
+                             "refine.offset")
+        K = np.asarray(g["K"][int(source[0])], dtype=np.float64)
+        renders = render_model(model, c2w, np.repeat(K[None], len(c2w), 0), w, h, device=fc.device,
+                               renderer=fc.renderer)
+        ref_frames = train_idx[nearest_views(c2w, g["c2w"][train_idx])]
+        frame_pos = {int(f): j for j, f in enumerate(train_idx)}
+        intr = Intrinsics.from_matrix(K, w, h)
+        refined = np.empty_like(renders)
+        for i in range(len(c2w)):
+            ref_img = np.round(train_views[frame_pos[int(ref_frames[i])]].image.numpy() * 255).astype(np.uint8)
+            refined[i] = backend.refiner.refine(renders[i], ref_img, seed=seed + i, hint_c2w=c2w[i],
+                                                hint_intrinsics=intr)
+        extra = [TrainView(torch.from_numpy(refined[i].astype(np.float32) / 255.0),
+                           torch.as_tensor(c2w[i], dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32),
+                           None, rc.weight) for i in range(len(c2w))]
+
+        lpips_model, _ = load_lpips(config)
+        lam_lpips = fc.lambda_lpips if lpips_model is not None else 0.0
+        tcfg = train_config(fc.model_copy(update={
+            "iterations": rc.iterations, "densify": False, "lr_means": 10 * fc.lr_means_final,
+            "sh_degree_interval": 1}), seed, lambda_lpips=lam_lpips)
+        trainer = GaussianTrainer(model, train_views + extra, tcfg, scene_scale=float(fit_attrs["scene_scale"]),
+                                  perceptual=lpips_model if lam_lpips > 0 else None)
+        t0 = time.perf_counter()
+        result = trainer.train(TrainingProgress(scene_id, "refine", tcfg.iterations))
+        seconds = time.perf_counter() - t0
+        gt = np.stack([v.image.numpy() for v in test_views]).astype(np.float64)
+        rgb, _ = trainer.evaluate(test_views)
+        metrics = {"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": None}
+        if lpips_model is not None:
+            from navcrafter.models.evalnets.lpips import lpips_distance
+
+            metrics["lpips"] = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
+        out = result.model
+        writer.write("c2w", c2w)
+        writer.write("K", K)
+        writer.write("source_frame", source.astype(np.int32))
+        writer.write("reference_frame", ref_frames.astype(np.int32))
+        writer.write("renders", renders)
+        writer.write("refined", refined)
+        for name, t in out.tensors().items():
+            writer.write(name, t.numpy())
+        writer.write("holdout_renders", np.round(rgb * 255).astype(np.uint8))
+        hist = result.history
+        writer.write("history", np.stack([np.asarray(hist[c], dtype=np.float32) for c in
+                                          ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")], axis=1))
+        return {**metrics, "psnr_before": fit_attrs["psnr"], "ssim_before": fit_attrs["ssim"],
+                "lpips_before": fit_attrs.get("lpips"), "n_views": len(c2w), "n_gaussians": len(out),
+                "refiner": backend.refiner.backend, "train_seconds": seconds}
+
+    return run_step(store_uri, scene_id, REFINE, None, config, run_id, body)
+
+
+def load_refined_gaussians(scene):
+    """The refined model of a scene (its ``renders`` group must be complete)."""
+    from navcrafter.models.gaussians.model import GaussianModel
+
+    scene.require_complete(REFINE)
+    arrays = scene.read_all(REFINE)
+    return GaussianModel(**{k: torch.from_numpy(np.ascontiguousarray(arrays[k])) for k in
+                            ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")})
