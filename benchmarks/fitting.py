@@ -6,9 +6,11 @@ Variants, all from the same explored scene (same frames, cameras, cloud and seed
 * **none**: L1 only (``lambda_depth = 0``, ``drop_gamma = 0``);
 * **+depth**: plus the calibrated monocular depth term (``lambda_depth`` of the config);
 * **+depth+DropGaussian**: plus DropGaussian (``drop_gamma`` of the config);
+* **+depth+DropGaussian+longer**: the control for the next one: that fit trained ``refine.iterations`` more
+  iterations on the real views only, with the refine step's settings;
 * **+depth+DropGaussian+refine**: that fit, then the refine step (``refine.iterations`` more iterations with
-  refined novel views; the refiner is the simulation stand-in, ``simulation.refine_strength``). Note that this
-  variant also trains for more iterations than the others.
+  refined novel views added; the refiner is the simulation stand-in, ``simulation.refine_strength``). Its
+  paired gain is measured against the control, so it is the refined views' contribution.
 
 Scores: held-out frames (every ``fit.holdout_every``-th frame of the explored trajectory: between training
 frames, so they mostly test interpolation) and **off-trajectory views** (the held-out cameras displaced
@@ -53,7 +55,9 @@ VARIANTS = {
     "none": {"fit.lambda_depth": 0.0, "fit.drop_gamma": 0.0},
     "+depth": {"fit.drop_gamma": 0.0},
     "+depth+DropGaussian": {},
-    "+depth+DropGaussian+refine": {"refine.enabled": True},  # the previous variant's fit, then the refine step
+    # control: that fit trained refine.iterations more on the real views only (as long as the refine variant)
+    "+depth+DropGaussian+longer": {"refine.enabled": True, "control": True},
+    "+depth+DropGaussian+refine": {"refine.enabled": True},  # that fit, then the refine step
 }
 OFF_TRAJECTORY = {"offset": 0.15, "angle_deg": 10.0, "seed": 12345}
 
@@ -101,6 +105,28 @@ def off_trajectory_psnr(scene, model, cams) -> tuple[float, float]:
     return float(np.mean(psnr(rgb, gt))), float(np.mean(ssim(rgb, gt)))
 
 
+def longer_fit(scene, cfg: RunConfig) -> tuple[dict, object]:
+    """The control of the refine variant: the fitted model trained as many more iterations as the refine step
+    does, with the same settings, on the real training views only. (attrs with psnr/ssim/lpips, model)."""
+    from navcrafter.models.imagemetrics import psnr, ssim
+    from navcrafter.tasks.fit import load_fit_views, load_lpips
+    from navcrafter.tasks.refine import continue_training
+
+    train, test = load_fit_views(scene)
+    fa = scene.status(FIT).attrs
+    lpips_model, _ = load_lpips(cfg)
+    trainer, result = continue_training(load_gaussians(scene), train, cfg, 0, float(fa["scene_scale"]), lpips_model)
+    rgb, _ = trainer.evaluate(test)
+    gt = np.stack([v.image.numpy() for v in test]).astype(np.float64)
+    lp = None
+    if lpips_model is not None:
+        from navcrafter.models.evalnets.lpips import lpips_distance
+
+        lp = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
+    return ({"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": lp,
+             "n_gaussians": len(result.model)}, result.model)
+
+
 def run(out: Path, quick: bool, seeds: int, kinds: tuple[str, ...], weights: str | None,
         on_scene=None) -> list[dict]:
     base = base_overrides(quick, weights)
@@ -119,11 +145,15 @@ def run(out: Path, quick: bool, seeds: int, kinds: tuple[str, ...], weights: str
             scene = Store(store).scene(res.scene_id)
             cams = None
             for name, over in VARIANTS.items():
+                over = dict(over)
+                control = over.pop("control", False)
                 cfg = RunConfig.load(preset="tiny" if quick else "paper",
                                      overrides={**base, "fit.enabled": True, **over})
                 t0 = time.perf_counter()
                 fit(store, res.scene_id, cfg, "bench")  # skipped when the previous variant fitted the same
-                if cfg.refine.enabled:
+                if control:
+                    a, model = longer_fit(scene, cfg)
+                elif cfg.refine.enabled:
                     refine(store, res.scene_id, cfg, "bench")
                     a, model = scene.status(REFINE).attrs, load_refined_gaussians(scene)
                 else:
@@ -176,7 +206,7 @@ def paired_gains(rows: list[dict]) -> list[dict]:
             continue
         d = np.array([b["psnr"] - a["psnr"] for a, b in pairs])
         do = np.array([b["off_psnr"] - a["off_psnr"] for a, b in pairs])
-        out.append({"component": cur.replace(prev, "").lstrip("+") or cur, "from": prev, "to": cur,
+        out.append({"component": cur.rsplit("+", 1)[1], "from": prev, "to": cur,
                     "n": len(pairs), "psnr_gain": float(d.mean()), "psnr_gain_std": float(d.std()),
                     "psnr_wins": int((d > 0).sum()), "off_psnr_gain": float(do.mean()),
                     "off_psnr_gain_std": float(do.std()), "off_psnr_wins": int((do > 0).sum())})
@@ -194,7 +224,8 @@ def markdown(summary: list[dict], gains: list[dict], rows: list[dict], quick: bo
         lines.append(f"| {s['kind']} | {s['variant']} | {s['n']} | {s['psnr']:.2f} ± {s['psnr_std']:.2f} | "
                      f"{s['ssim']:.3f} ± {s['ssim_std']:.3f} | {lp} | {s['off_psnr']:.2f} ± {s['off_psnr_std']:.2f} | "
                      f"{s['seconds']:.1f} |")
-    lines += ["", "Paired by scene (each component added to the variant before it):", "",
+    lines += ["", "Paired by scene (each component added to the variant before it; refine against the equally long "
+              "control):", "",
               "| component | scenes | held-out PSNR gain (dB) | scenes gaining | off-trajectory PSNR gain (dB) | "
               "scenes gaining |", "|---|---:|---:|---:|---:|---:|"]
     for g in gains:

@@ -125,8 +125,78 @@ def write_manifest(directory: Path, *, kind: str, architecture: str, config: dic
     return directory / MANIFEST
 
 
+def checksum_cache_path() -> Path:
+    """Where verified checksums are remembered across processes: ``$NAVCRAFTER_CHECKSUM_CACHE`` or
+    ``~/.cache/navcrafter/model-checksums.json``."""
+    env = os.environ.get("NAVCRAFTER_CHECKSUM_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "navcrafter" / "model-checksums.json"
+
+
+def _read_checksum_cache() -> dict:
+    try:
+        data = json.loads(checksum_cache_path().read_text())
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _write_checksum_cache(entries: dict) -> None:
+    """Best effort (a read-only home only costs re-hashing next time); temp file + rename."""
+    path = checksum_cache_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        merged = {**_read_checksum_cache(), **entries}
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(merged))
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
+def cached_sha256(path: Path, cache: dict, fresh: dict) -> str:
+    """sha256 of ``path``, taken from ``cache`` when the file's resolved path, size and mtime (ns) are the
+    ones it was hashed at (as git's index trusts them); new digests are added to ``fresh``."""
+    st = path.stat()
+    key = str(path.resolve())
+    hit = cache.get(key)
+    if isinstance(hit, list) and len(hit) == 3 and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+        return hit[2]
+    digest = sha256_file(path)
+    fresh[key] = [st.st_size, st.st_mtime_ns, digest]
+    return digest
+
+
+def external_data_files(graph_path: Path) -> set[str]:
+    """The external-data locations an ONNX graph refers to (read without loading the weights)."""
+    import onnx
+
+    model = onnx.load(str(graph_path), load_external_data=False)
+    out: set[str] = set()
+
+    def visit(graph) -> None:
+        for t in graph.initializer:
+            if t.data_location == onnx.TensorProto.EXTERNAL:
+                out.update(e.value for e in t.external_data if e.key == "location")
+        for node in graph.node:
+            for a in node.attribute:
+                if a.type == onnx.AttributeProto.GRAPH:
+                    visit(a.g)
+                elif a.type == onnx.AttributeProto.GRAPHS:
+                    for g in a.graphs:
+                        visit(g)
+
+    visit(model.graph)
+    return out
+
+
 def load_manifest(directory: Path, kind: str, *, verify: bool = True) -> dict:
-    """Read and check a model directory's manifest (kind, format, every file present and its sha256)."""
+    """Read and check a model directory's manifest (kind, format, every file present and its sha256, and
+    every graph's external data inside the directory and named in the manifest).
+
+    Checksums already verified for a file at the same path, size and modification time (in this or an earlier
+    process; ``checksum_cache_path()``) are not recomputed, so a multi-GB model is hashed once, not at every
+    worker start. A file rewritten in place with the same size and mtime would escape that check, as it
+    escapes git's."""
     directory = Path(directory)
     path = directory / MANIFEST
     if not path.is_file():
@@ -137,13 +207,34 @@ def load_manifest(directory: Path, kind: str, *, verify: bool = True) -> dict:
         raise ModelDirError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} manifest; re-export the model")
     if manifest.get("kind") != kind:
         raise ModelDirError(f"{path}: holds a {manifest.get('kind')!r} model, expected {kind!r}")
-    for name, digest in manifest["files"].items():
+    root = directory.resolve()
+    for name in manifest["files"]:
         f = directory / name
+        if not f.resolve().is_relative_to(root):
+            raise ModelDirError(f"{path}: file {name!r} lies outside {directory}; refusing to load it")
         if not f.is_file():
             raise ModelDirError(f"{directory}: file {name} named in the manifest is missing; re-export the model")
-        if verify and sha256_file(f) != digest:
-            raise ModelDirError(f"{directory}: checksum of {name} does not match the manifest (corrupt or "
-                                f"partial copy); re-export or copy the directory again")
+    if not verify:
+        return manifest
+    for info in manifest.get("graphs", {}).values():
+        for loc in external_data_files(directory / info["file"]):
+            target = (directory / info["file"]).parent / loc
+            if not target.resolve().is_relative_to(root) or Path(loc).is_absolute():
+                raise ModelDirError(f"{directory / info['file']}: external data {loc!r} lies outside {directory}; "
+                                    "refusing to load it (re-export the model)")
+            if loc not in manifest["files"]:
+                raise ModelDirError(f"{directory / info['file']}: external data {loc!r} is not covered by the "
+                                    "manifest's checksums; re-export the model")
+    cache, fresh = _read_checksum_cache(), {}
+    try:
+        for name, digest in manifest["files"].items():
+            if cached_sha256(directory / name, cache, fresh) != digest:
+                fresh.pop(str((directory / name).resolve()), None)  # never remember a mismatch
+                raise ModelDirError(f"{directory}: checksum of {name} does not match the manifest (corrupt or "
+                                    f"partial copy); re-export or copy the directory again")
+    finally:
+        if fresh:
+            _write_checksum_cache(fresh)
     return manifest
 
 

@@ -42,6 +42,20 @@ class RefinerMissing(RuntimeError):
     """The backend has no Refiner role (no exported refiner model)."""
 
 
+def continue_training(model, views: list[TrainView], config: RunConfig, seed: int, scene_scale: float,
+                      lpips_model=None, callback=None):
+    """Train a fitted ``model`` ``refine.iterations`` more on ``views``: the fit's settings, density control off,
+    the position rate decaying from 10 x to 1 x ``fit.lr_means_final``. Returns (trainer, result)."""
+    fc = config.fit
+    lam_lpips = fc.lambda_lpips if lpips_model is not None else 0.0
+    tcfg = train_config(fc.model_copy(update={
+        "iterations": config.refine.iterations, "densify": False, "lr_means": 10 * fc.lr_means_final,
+        "sh_degree_interval": 1}), seed, lambda_lpips=lam_lpips)
+    trainer = GaussianTrainer(model, views, tcfg, scene_scale=scene_scale,
+                              perceptual=lpips_model if lam_lpips > 0 else None)
+    return trainer, trainer.train(callback)
+
+
 def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
     rc, fc = config.refine, config.fit
     if not fc.enabled:
@@ -85,14 +99,9 @@ def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
                            None, rc.weight) for i in range(len(c2w))]
 
         lpips_model, _ = load_lpips(config)
-        lam_lpips = fc.lambda_lpips if lpips_model is not None else 0.0
-        tcfg = train_config(fc.model_copy(update={
-            "iterations": rc.iterations, "densify": False, "lr_means": 10 * fc.lr_means_final,
-            "sh_degree_interval": 1}), seed, lambda_lpips=lam_lpips)
-        trainer = GaussianTrainer(model, train_views + extra, tcfg, scene_scale=float(fit_attrs["scene_scale"]),
-                                  perceptual=lpips_model if lam_lpips > 0 else None)
         t0 = time.perf_counter()
-        result = trainer.train(TrainingProgress(scene_id, "refine", tcfg.iterations))
+        trainer, result = continue_training(model, train_views + extra, config, seed, float(fit_attrs["scene_scale"]),
+                                            lpips_model, TrainingProgress(scene_id, "refine", rc.iterations))
         seconds = time.perf_counter() - t0
         gt = np.stack([v.image.numpy() for v in test_views]).astype(np.float64)
         rgb, _ = trainer.evaluate(test_views)

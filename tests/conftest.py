@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import os
+import tempfile
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+# verified model checksums go to a per-session file, not the user's cache (models/onnxio.checksum_cache_path)
+os.environ.setdefault("NAVCRAFTER_CHECKSUM_CACHE",
+                      os.path.join(tempfile.mkdtemp(prefix="navcrafter-tests-"), "checksums.json"))
 
 import io  # noqa: E402
 import shutil  # noqa: E402
