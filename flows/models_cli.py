@@ -8,8 +8,8 @@ from typing import Annotated, Optional
 
 import typer
 
-models_app = typer.Typer(help="Export the learned models (Wan2.1 camera control, VGGT, MoGe-2) to ONNX and inspect "
-                              "model directories.", no_args_is_help=True)
+models_app = typer.Typer(help="Export the learned models (Wan2.1 camera control, VGGT, MoGe-2, Difix) to ONNX and "
+                              "inspect model directories.", no_args_is_help=True)
 
 _RANDOM = typer.Option(help="Random weights instead of a checkpoint: 'tiny' (test sizes) or 'full' (published "
                             "sizes, for timing). Outputs of runs using them are labelled RANDOM WEIGHTS.")
@@ -62,6 +62,33 @@ def export_monodepth_cmd(
 
     try:
         _done(export_monodepth(out, checkpoint=checkpoint, random=random, seed=seed))
+    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
+        _fail(exc)
+
+
+@models_app.command("export-refiner")
+def export_refiner_cmd(
+    out: Annotated[Path, typer.Argument(help="Directory to write (MODEL_DIR/refiner for `explore --models`).")],
+    checkpoint: Annotated[Optional[Path], typer.Option(help="Difix weights: the nvidia/difix_ref diffusers directory "
+                                                             "(unet/, vae/, text_encoder/, tokenizer/), or an official "
+                                                             "training checkpoint model_*.pkl (read with "
+                                                             "weights_only; needs --base).")] = None,
+    base: Annotated[Optional[Path], typer.Option(help="stabilityai/sd-turbo diffusers directory: the weights a "
+                                                       "training checkpoint lacks, and the text encoder for the "
+                                                       "prompt.")] = None,
+    prompt_embeds: Annotated[Optional[Path], typer.Option(help="Precomputed prompt embedding (.npy, [1, 77, 1024]) "
+                                                                "instead of running the text encoder.")] = None,
+    reference: Annotated[bool, typer.Option(help="Reference-view mixing (nvidia/difix_ref); --no-reference for "
+                                                 "nvidia/difix.")] = True,
+    random: Annotated[Optional[str], _RANDOM] = None,
+    seed: int = 0,
+) -> None:
+    """Difix-architecture single-step diffusion refiner (render + reference view -> refined view) as ONNX."""
+    from navcrafter.models.exports import export_refiner
+
+    try:
+        _done(export_refiner(out, checkpoint=checkpoint, random=random, seed=seed, base=base,
+                             prompt_embeds=prompt_embeds, reference=reference))
     except (ValueError, FileNotFoundError, NotImplementedError) as exc:
         _fail(exc)
 

@@ -43,6 +43,22 @@ def export_monodepth(out: Path, *, checkpoint: Path | None = None, random: Rando
     return _export(Path(out), config, weights=checkpoint, seed=seed)
 
 
+def export_refiner(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None, seed: int = 0,
+                   base: Path | None = None, prompt_embeds: Path | None = None, reference: bool = True) -> Path:
+    """Difix refiner (``models/refiner/difix.py``). ``checkpoint``: the ``nvidia/difix_ref`` diffusers directory
+    (or ``nvidia/difix`` with ``reference=False``), or an official training checkpoint ``model_*.pkl`` with
+    ``base`` = the ``stabilityai/sd-turbo`` directory; the prompt embedding comes from the text encoder found
+    there unless ``prompt_embeds`` (.npy) is given."""
+    from navcrafter.models.refiner.difix import DifixConfig
+    from navcrafter.models.refiner.difix import export_refiner as _export
+
+    _need_source("refiner", random, checkpoint)
+    if random is not None and (base is not None or prompt_embeds is not None):
+        raise ValueError("export-refiner: --base and --prompt-embeds go with --checkpoint, not --random")
+    config = DifixConfig.tiny(reference) if random == "tiny" else DifixConfig.sd_turbo(reference)
+    return _export(Path(out), config, weights=checkpoint, seed=seed, base=base, prompt_embeds=prompt_embeds)
+
+
 def export_synthesizer(out: Path, *, num_frames: int, height: int, width: int, base_dir: Path | None = None,
                        control_dir: Path | None = None, random: RandomPreset | None = None, prompt: str = "",
                        seed: int = 0) -> Path:
