@@ -240,8 +240,20 @@ def markdown(summary: list[dict], gains: list[dict], rows: list[dict], quick: bo
                   f"views: {r['n_off']} per scene, the held-out cameras displaced sideways/up by "
                   f"{OFF_TRAJECTORY['offset']} x the scene scale and turned up to {OFF_TRAJECTORY['angle_deg']}°, "
                   "scored against the simulation's true views (the same cameras for every variant). "
-                  "Mean ± std over scenes.", "", f"LPIPS: {r['lpips_note']}"]
+                  "Mean ± std over scenes. Time: the variant's own work, including the off-trajectory scoring "
+                  "(the +longer and +refine variants start from the +depth+DropGaussian fit and add only their "
+                  "extra iterations).", "", f"LPIPS: {r['lpips_note']}"]
     return "\n".join(lines) + "\n"
+
+
+def rerender(out: Path) -> str:
+    """Write ``results.md`` again from ``results.json`` (after a change to the report's wording)."""
+    data = json.loads((out / "results.json").read_text())
+    md = markdown(data["summary"], data["paired_gains"], data["rows"], data["quick"])
+    if not data.get("complete", True):
+        md = "**Partial results (the run is still going or was stopped).**\n\n" + md
+    (out / "results.md").write_text(md)
+    return md
 
 
 def main(argv: list[str] | None = None) -> int:
