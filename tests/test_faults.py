@@ -433,11 +433,12 @@ def _run_state(server: RestartableServer, run_id: str) -> str:
 
 @pytest.mark.slow
 def test_prefect_server_restart_under_a_running_flow(restartable_server, one_photo, full_run, tmp_path):
-    """The server SIGKILLed once the first step is complete, down 8 s plus its restart (same port, same
-    SQLite database). Measured: the flow-run process keeps going until its next API call (the plan
-    artifact), which Prefect's client retries (ConnectError after a first connection: 5 retries, 2-32 s
-    back-off, about a minute in all); when the server is back the run goes on and completes by itself,
-    with the worker still alive. Task-run events emitted while it was down are lost (Prefect warns)."""
+    """The server SIGKILLed once the first step is complete, down until the flow run has tried to reach
+    it (8-45 s) plus its restart (same port, same SQLite database). Measured: the flow-run process keeps
+    going until its next API call (the plan artifact), which Prefect's client retries (ConnectError after
+    a first connection: 5 retries, 2-32 s back-off, about a minute in all); when the server is back the
+    run goes on and completes by itself, with the worker still alive. Task-run events emitted while it
+    was down are lost (Prefect warns)."""
     server, store = restartable_server, tmp_path / "store"
     worker = test_worker.Worker(server.as_fixture(), tmp_path / "worker.log")
     try:
@@ -448,7 +449,12 @@ def test_prefect_server_restart_under_a_running_flow(restartable_server, one_pho
             time.sleep(0.2)
         server.kill()
         at_kill = _step_state(Store(str(store)))
-        time.sleep(8)
+        # down at least 8 s, and until the flow run has tried the API (its next call can come late on a quiet
+        # machine), at most 45 s: well inside the client's ~1 min of retries
+        down = time.time()
+        while time.time() < down + 8 or (time.time() < down + 45 and "Unable to connect" not in
+                                         worker.log.read_text(errors="replace")):
+            time.sleep(0.5)
         server.start()
         states = []
         deadline = time.time() + 180
