@@ -292,7 +292,9 @@ class RunConfig(BaseModel):
         if self.backend == "onnx" and self.model_dir is not None:
             common["models"] = _model_versions(Path(self.model_dir))
             common["model_dir"] = None  # the models' identity is their manifests, not where they lie
-        sim = self.simulation.model_dump(mode="json") if self.backend == "simulation" else None
+        # the refiner stand-in's settings only matter to the refine step: changing them keeps the other caches
+        sim_all = self.simulation.model_dump(mode="json") if self.backend == "simulation" else None
+        sim = ({k: v for k, v in sim_all.items() if not k.startswith("refine_")} if sim_all is not None else None)
         parts: dict[str, dict[str, Any]] = {
             "ingest": {"ingest": self.ingest.model_dump(mode="json"),
                        "resolution": [self.synthesis.height, self.synthesis.width]},
@@ -309,7 +311,7 @@ class RunConfig(BaseModel):
                     "lpips": self.evaluation.model_dump(mode="json", include={"lpips_net", "weights_dir"})},
             "refine": {**common, **({"models": _model_versions(Path(self.model_dir), (
                            "synthesizer", "geometry", "monodepth", "refiner"))} if "models" in common else {}),
-                       "refine": self.refine.model_dump(mode="json"), "simulation": sim,
+                       "refine": self.refine.model_dump(mode="json"), "simulation": sim_all,
                        "fit": self.fit.model_dump(mode="json", include={"device", "renderer", "lr_means_final",
                                                                          "lr_quats", "lr_scales", "lr_opacities",
                                                                          "lr_sh0", "lr_shN", "lambda_depth",

@@ -42,3 +42,15 @@ def test_step_config_isolates_sections():
     assert RunConfig().config_hash() == a.config_hash()
     with pytest.raises(KeyError):
         a.step_config("nope")
+
+
+def test_refiner_settings_only_key_the_refine_step():
+    from navcrafter.schemas.config import RunConfig
+
+    a = RunConfig.load(preset="tiny")
+    b = RunConfig.load(preset="tiny", overrides={"simulation.refine_strength": 0.3, "refine.views": 3})
+    for step in ("geometry", "plan", "synthesize", "lift", "fit"):
+        assert a.step_config(step) == b.step_config(step), step
+    assert a.step_config("refine") != b.step_config("refine")
+    c = RunConfig.load(preset="tiny", overrides={"simulation.depth_noise": 0.01})
+    assert a.step_config("lift") != c.step_config("lift")
