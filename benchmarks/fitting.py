@@ -108,8 +108,7 @@ def off_trajectory_psnr(scene, model, cams) -> tuple[float, float]:
 def longer_fit(scene, cfg: RunConfig) -> tuple[dict, object]:
     """The control of the refine variant: the fitted model trained as many more iterations as the refine step
     does, with the same settings, on the real training views only. (attrs with psnr/ssim/lpips, model)."""
-    from navcrafter.models.imagemetrics import psnr, ssim
-    from navcrafter.tasks.fit import load_fit_views, load_lpips
+    from navcrafter.tasks.fit import heldout_metrics, load_fit_views, load_lpips
     from navcrafter.tasks.refine import continue_training
 
     train, test = load_fit_views(scene)
@@ -118,13 +117,7 @@ def longer_fit(scene, cfg: RunConfig) -> tuple[dict, object]:
     trainer, result = continue_training(load_gaussians(scene), train, cfg, 0, float(fa["scene_scale"]), lpips_model)
     rgb, _ = trainer.evaluate(test)
     gt = np.stack([v.image.numpy() for v in test]).astype(np.float64)
-    lp = None
-    if lpips_model is not None:
-        from navcrafter.models.evalnets.lpips import lpips_distance
-
-        lp = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
-    return ({"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": lp,
-             "n_gaussians": len(result.model)}, result.model)
+    return {**heldout_metrics(rgb, gt, lpips_model), "n_gaussians": len(result.model)}, result.model
 
 
 def run(out: Path, quick: bool, seeds: int, kinds: tuple[str, ...], weights: str | None,

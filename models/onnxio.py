@@ -38,6 +38,24 @@ class ModelDirError(ValueError):
     """A model directory is missing, incomplete, corrupt or of the wrong kind."""
 
 
+def config_to_dict(config) -> dict[str, Any]:
+    """A model-config dataclass as the JSON a manifest stores (tuples become lists)."""
+    import dataclasses
+
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(config).items()}
+
+
+def config_from_dict(cls, data: dict[str, Any]):
+    """The inverse of ``config_to_dict`` (lists become tuples); unknown fields are an error."""
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} fields {unknown}")
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+
 def sha256_file(path: Path, chunk: int = 1 << 22) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

@@ -46,7 +46,7 @@ from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, Trai
 from navcrafter.models.imagemetrics import psnr, ssim
 from navcrafter.models.pointrender import render_points
 from navcrafter.schemas.config import FitConfig, RunConfig
-from navcrafter.schemas.layout import FIT, LIFT, PLAN, SYNTHESIZE
+from navcrafter.schemas.layout import FIT, LIFT, PLAN, SYNTHESIZE, StepSpec
 from navcrafter.tasks.common import StepRef, load_backend, load_cloud, logger, open_store, run_step
 from navcrafter.tasks.progress import TrainingProgress
 
@@ -198,18 +198,9 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
         train_seconds = time.perf_counter() - t0
         rgb, _ = trainer.evaluate(test_views)
         model = result.model
-        metrics = {"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": None}
-        if lpips_model is not None:
-            from navcrafter.models.evalnets.lpips import lpips_distance
-
-            metrics["lpips"] = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
-
-        writer.write("means", model.means.numpy())
-        writer.write("quats", model.quats.numpy())
-        writer.write("log_scales", model.log_scales.numpy())
-        writer.write("opacity_logits", model.opacity_logits.numpy())
-        writer.write("sh_dc", model.sh_dc.numpy())
-        writer.write("sh_rest", model.sh_rest.numpy())
+        metrics = heldout_metrics(rgb, gt, lpips_model)
+        for name, t in model.tensors().items():
+            writer.write(name, t.numpy())
         writer.write("frame_ref", np.asarray(refs, dtype=np.int32).reshape(-1, 2))
         writer.write("c2w", c2w)
         writer.write("K", K.astype(np.float64))
@@ -224,8 +215,7 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
         writer.write("depth_targets", depth_targets)
         writer.write("depth_calibration", np.asarray(calib_rows, dtype=np.float64).reshape(-1, 6))
         hist = result.history
-        writer.write("history", np.stack([np.asarray(hist[c], dtype=np.float32) for c in
-                                          ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")], axis=1))
+        writer.write("history", history_array(hist))
         return {**metrics, "lpips_note": lpips_note, "n_gaussians": len(model), "sh_degree": model.sh_degree,
                 "resolution": [w, h], "holdout_every": cfg.holdout_every, "n_train": len(train_views),
                 "n_holdout": len(test_views), "init_psnr": float(np.mean(psnr(init_rgb, gt))),
@@ -238,10 +228,29 @@ def fit(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRe
     return run_step(store_uri, scene_id, FIT, None, config, run_id, body)
 
 
-def load_gaussians(scene) -> GaussianModel:
-    """The fitted model of a scene (its ``gaussians`` group must be complete)."""
-    scene.require_complete(FIT)
-    arrays = scene.read_all(FIT)
+def heldout_metrics(rgb: np.ndarray, gt: np.ndarray, lpips_model=None) -> dict:
+    """Mean PSNR / SSIM (and LPIPS with its official model, else None) of renders against held-out frames."""
+    metrics = {"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": None}
+    if lpips_model is not None:
+        from navcrafter.models.evalnets.lpips import lpips_distance
+
+        metrics["lpips"] = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
+    return metrics
+
+
+HISTORY_COLUMNS = ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")
+
+
+def history_array(history: dict[str, list[float]]) -> np.ndarray:
+    """A training history as the stored ``history`` array [I, 6] (``HISTORY_COLUMNS``)."""
+    return np.stack([np.asarray(history[c], dtype=np.float32) for c in HISTORY_COLUMNS], axis=1)
+
+
+def load_gaussians(scene, step: StepSpec = FIT) -> GaussianModel:
+    """The Gaussians a step stored (the fit's ``gaussians`` group by default; the refine step's ``renders``);
+    the group must be complete."""
+    scene.require_complete(step)
+    arrays = scene.read_all(step)
     return GaussianModel(**{k: torch.from_numpy(np.ascontiguousarray(arrays[k])) for k in
                             ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")})
 

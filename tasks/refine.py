@@ -29,12 +29,18 @@ import torch
 
 from navcrafter.models.cameras import Intrinsics
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainView, render_model
-from navcrafter.models.imagemetrics import psnr, ssim
 from navcrafter.models.novelviews import nearest_views, novel_cameras
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import FIT, REFINE
 from navcrafter.tasks.common import StepRef, load_backend, open_store, run_step
-from navcrafter.tasks.fit import load_fit_views, load_gaussians, load_lpips, train_config
+from navcrafter.tasks.fit import (
+    heldout_metrics,
+    history_array,
+    load_fit_views,
+    load_gaussians,
+    load_lpips,
+    train_config,
+)
 from navcrafter.tasks.progress import TrainingProgress
 
 
@@ -105,11 +111,7 @@ def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
         seconds = time.perf_counter() - t0
         gt = np.stack([v.image.numpy() for v in test_views]).astype(np.float64)
         rgb, _ = trainer.evaluate(test_views)
-        metrics = {"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": None}
-        if lpips_model is not None:
-            from navcrafter.models.evalnets.lpips import lpips_distance
-
-            metrics["lpips"] = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
+        metrics = heldout_metrics(rgb, gt, lpips_model)
         out = result.model
         writer.write("c2w", c2w)
         writer.write("K", K)
@@ -121,8 +123,7 @@ def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
             writer.write(name, t.numpy())
         writer.write("holdout_renders", np.round(rgb * 255).astype(np.uint8))
         hist = result.history
-        writer.write("history", np.stack([np.asarray(hist[c], dtype=np.float32) for c in
-                                          ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")], axis=1))
+        writer.write("history", history_array(hist))
         return {**metrics, "psnr_before": fit_attrs["psnr"], "ssim_before": fit_attrs["ssim"],
                 "lpips_before": fit_attrs.get("lpips"), "n_views": len(c2w), "n_gaussians": len(out),
                 "refiner": backend.refiner.backend, "train_seconds": seconds}
@@ -132,9 +133,4 @@ def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> Ste
 
 def load_refined_gaussians(scene):
     """The refined model of a scene (its ``renders`` group must be complete)."""
-    from navcrafter.models.gaussians.model import GaussianModel
-
-    scene.require_complete(REFINE)
-    arrays = scene.read_all(REFINE)
-    return GaussianModel(**{k: torch.from_numpy(np.ascontiguousarray(arrays[k])) for k in
-                            ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")})
+    return load_gaussians(scene, REFINE)

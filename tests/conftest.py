@@ -27,6 +27,18 @@ BAD = {"notes.txt": ("not an image", "remove it"), "empty.png": ("empty", "remov
        "no-groundtruth.png": ("no simulation ground truth", "navcrafter demo-data")}
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny tensors gain nothing from torch's threads (and lose a lot when the cores are busy): a test module
+    takes it with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def prefect_api_url() -> str:
     """A real Prefect API (temporary SQLite server) for the whole session; its URL is also handed to

@@ -12,13 +12,7 @@ from navcrafter.models.depthcalib import CalibrationError, calibrate_depth
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView, train_gaussians
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -39,12 +39,7 @@ S = 24  # image side of the CPU tests
 GSPLAT_ONLY = ("absgrad", "sparse_grad", "channel_chunk", "camera_model", "segmented", "distributed")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _two_threads():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: threads only add overhead (and contention on busy machines)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def scene(n=120, seed=0, sh_degree=1, opacity=(0.1, 0.9), device="cpu"):

@@ -43,13 +43,7 @@ def _outputs(model: MoGe2, image: torch.Tensor) -> dict[str, np.ndarray]:
         return {k: v.numpy() for k, v in zip(model.output_names, model(image))}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    """The tiny convolutions gain nothing from threads (and lose a lot when the cores are busy)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -39,13 +39,7 @@ TINY = DifixConfig.tiny()
 M = TINY.size_multiple  # 4: VAE factor 2 x one UNet downsampling
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    """The tiny convolutions gain nothing from threads (and lose a lot when the cores are busy)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -46,6 +46,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from navcrafter.models.onnxio import config_from_dict, config_to_dict
+
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 KEYS_DIR = Path(__file__).with_name("keys")
@@ -137,15 +139,11 @@ class MoGe2Config:
                    scale_head_dims=(32, 16, 1), num_tokens_range=(12, 36))
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MoGe2Config:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ValueError(f"unknown MoGe2Config fields {unknown}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        return config_from_dict(cls, data)
 
     def to_official(self) -> dict[str, Any]:
         """The official ``model_config`` dict (``MoGeModel(**model_config)``) of this network."""

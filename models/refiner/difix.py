@@ -74,7 +74,6 @@ official ``inference_difix.py`` default, 576x1024, is one). The exported graph t
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,6 +81,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+
+from navcrafter.models.onnxio import config_from_dict, config_to_dict
 
 ARCHITECTURE = "difix"
 KIND = "refiner"
@@ -215,15 +216,11 @@ class DifixConfig:
         return float(torch.cumprod(1.0 - betas, dim=0)[self.timestep])
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DifixConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ValueError(f"unknown DifixConfig fields {unknown}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        return config_from_dict(cls, data)
 
 
 # ----------------------------------------------------------------------------------------------------
