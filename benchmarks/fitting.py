@@ -78,7 +78,7 @@ def base_overrides(quick: bool, weights: str | None) -> dict:
 def off_trajectory_cameras(scene) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Cameras displaced from the fit's held-out cameras (seeded, the same for every variant), their K and
     the fit size (w, h)."""
-    from navcrafter.models.novelviews import novel_cameras
+    from navcrafter.models.gaussians.novelviews import novel_cameras
 
     g = scene.read_all(FIT)
     a = scene.status(FIT).attrs
@@ -92,9 +92,9 @@ def off_trajectory_cameras(scene) -> tuple[np.ndarray, np.ndarray, int, int]:
 
 def off_trajectory_psnr(scene, model, cams) -> tuple[float, float]:
     """PSNR / SSIM of ``model`` at the off-trajectory cameras against the simulation's true views."""
-    from navcrafter.models.cameras import Intrinsics
+    from navcrafter.models.camera.cameras import Intrinsics
     from navcrafter.models.gaussians.train import render_model
-    from navcrafter.models.imagemetrics import psnr, ssim
+    from navcrafter.models.metrics.image import psnr, ssim
     from navcrafter.models.simulation.render import render
 
     c2w, K, w, h = cams

@@ -1,4 +1,4 @@
-"""3DGS fit throughput on CUDA with gsplat (``models/gaussians/backend.py``), and renderer parity.
+"""3DGS fit throughput on CUDA with gsplat (``models/gaussians/renderer.py``), and renderer parity.
 
 Needs a CUDA GPU and gsplat (``pip install navcrafter[cuda]``; gsplat compiles its kernels on the first call,
 which can take minutes: reported separately as ``first_call_seconds``). Refuses to run otherwise.
@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navcrafter.models.gaussians.backend import INSTALL_HINT, gsplat_available, rasterize
 from navcrafter.models.gaussians.model import GaussianModel
+from navcrafter.models.gaussians.renderer import INSTALL_HINT, gsplat_available, rasterize
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView
 
 DEVICE = "cuda"  # module-level so that the script's logic can be dry-run elsewhere (never changed by main)
@@ -224,7 +224,7 @@ def markdown(r: dict) -> str:
                  for c in ("colour", "alpha", "depth_rel")]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "Both rows render ours with alpha_clamp=0.999 (gsplat's). Opacities reach 0.95, so gsplat may list "
-              "a Gaussian's faint tail (alpha < 0.011) in tiles that ours does not (models/gaussians/backend.py); "
+              "a Gaussian's faint tail (alpha < 0.011) in tiles that ours does not (models/gaussians/renderer.py); "
               "the rest is float32 rounding."]
     return "\n".join(lines) + "\n"
 

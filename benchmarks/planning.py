@@ -5,7 +5,7 @@ iteration on a 1M-point cloud.
 Identical conditions per scene: the same demo photo, configuration (quarter-sphere search space,
 N = 3 iterations, K = 3 candidates) and seeds, so ingest and initial geometry (the initial cloud) are
 bit-identical for both planners (checked). Each run then explores the scene with the simulation
-backend, and is scored against the scene's ground truth (``navcrafter.tasks.evaluate``): Coverage,
+backend, and is scored against the scene's ground truth (``navcrafter.tasks.scene_metrics``): Coverage,
 Noise ratio and F-score at 2 cm (metres in the ground-truth frame), collisions (trajectory samples
 within r_safe of a true surface or inside an object) and planner runtime.
 
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from navcrafter.models.cameras import Intrinsics, look_at, unproject_depth
-from navcrafter.models.planning import (
+from navcrafter.models.camera.cameras import Intrinsics, look_at, unproject_depth
+from navcrafter.models.planning.planners import (
     CollisionDetector,
     PlannerConfig,
     PlanningState,
@@ -41,7 +41,7 @@ from navcrafter.models.planning import (
     planning_cloud,
     sample_candidates,
 )
-from navcrafter.models.pointrender import render_points
+from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.models.simulation import LABEL
 from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.models.simulation.demo import write_demo_collection
@@ -50,9 +50,9 @@ from navcrafter.models.simulation.scenes import KINDS, generate_scene
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.evaluate import evaluate_scene
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.pipeline import run_scene
+from navcrafter.tasks.scene_metrics import evaluate_scene
 
 PLANNERS = ("viewcrafter", "collision_aware")
 LABELS = {"viewcrafter": "ViewCrafter-style (baseline)", "collision_aware": "Collision-aware (ours)"}

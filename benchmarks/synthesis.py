@@ -307,7 +307,7 @@ def export_graphs(config: str, inputs: dict[str, np.ndarray], work: Path, dynami
     import torch
     from torch.export import Dim
 
-    from navcrafter.models.onnxio import export_graph
+    from navcrafter.models.runtime.onnxio import export_graph
     from navcrafter.models.synthesis.camcontrol import DIT_OUTPUTS, export_dit
 
     info = {}

@@ -27,7 +27,8 @@ from navcrafter.flows import dashboard, dispatch
 from navcrafter.models.backends import onnx_problems
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
-from navcrafter.tasks import evaluate, export, fit, geometry, ingest, lift, plan, refine, synthesize
+from navcrafter.tasks import export, fit, geometry, ingest, lift, plan, refine, synthesize
+from navcrafter.tasks import scene_metrics as evaluate
 from navcrafter.tasks.common import StepError, logger, open_store
 from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import (

@@ -23,7 +23,7 @@ def _fail(exc: Exception) -> None:
 
 
 def _done(path: Path) -> None:
-    from navcrafter.models.onnxio import load_manifest
+    from navcrafter.models.runtime.onnxio import load_manifest
 
     manifest = json.loads((Path(path) / "manifest.json").read_text())
     load_manifest(path, manifest["kind"])  # verifies what was written
@@ -41,7 +41,7 @@ def export_geometry_cmd(
     seed: int = 0,
 ) -> None:
     """VGGT-architecture multi-view geometry (frames -> cameras, depth, points) as ONNX."""
-    from navcrafter.models.exports import export_geometry
+    from navcrafter.models.runtime.exporters import export_geometry
 
     try:
         _done(export_geometry(out, checkpoint=checkpoint, random=random, seed=seed))
@@ -58,7 +58,7 @@ def export_monodepth_cmd(
     seed: int = 0,
 ) -> None:
     """MoGe-2-architecture monocular geometry (image -> points, mask, metric scale) as ONNX."""
-    from navcrafter.models.exports import export_monodepth
+    from navcrafter.models.runtime.exporters import export_monodepth
 
     try:
         _done(export_monodepth(out, checkpoint=checkpoint, random=random, seed=seed))
@@ -84,7 +84,7 @@ def export_refiner_cmd(
     seed: int = 0,
 ) -> None:
     """Difix-architecture single-step diffusion refiner (render + reference view -> refined view) as ONNX."""
-    from navcrafter.models.exports import export_refiner
+    from navcrafter.models.runtime.exporters import export_refiner
 
     try:
         _done(export_refiner(out, checkpoint=checkpoint, random=random, seed=seed, base=base,
@@ -108,7 +108,7 @@ def export_synthesizer_cmd(
     seed: int = 0,
 ) -> None:
     """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
-    from navcrafter.models.exports import export_synthesizer
+    from navcrafter.models.runtime.exporters import export_synthesizer
 
     try:
         _done(export_synthesizer(out, num_frames=frames, height=height, width=width, base_dir=base,
@@ -126,7 +126,7 @@ def export_all_cmd(
     seed: int = 0,
 ) -> None:
     """All three models with random weights (tests, demos of the onnx path, timing)."""
-    from navcrafter.models.exports import export_all
+    from navcrafter.models.runtime.exporters import export_all
     from navcrafter.schemas.config import RunConfig
 
     s = RunConfig.load(preset=preset).synthesis
@@ -145,7 +145,7 @@ def show_cmd(
 ) -> None:
     """What a model directory holds, with checksum verification."""
     from navcrafter.models.backends import ROLE_DIRS
-    from navcrafter.models.onnxio import ModelDirError, load_manifest
+    from navcrafter.models.runtime.onnxio import ModelDirError, load_manifest
 
     dirs = [model_dir] if (model_dir / "manifest.json").is_file() else [model_dir / d for d in ROLE_DIRS.values()]
     for d in dirs:

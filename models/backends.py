@@ -59,7 +59,7 @@ def role_dir(model_dir: Path, role: str) -> Path:
 
 def model_manifests(model_dir: Path) -> dict[str, dict]:
     """The manifests present under ``model_dir`` (role → manifest), without checksum verification."""
-    from navcrafter.models.onnxio import load_manifest
+    from navcrafter.models.runtime.onnxio import load_manifest
 
     out = {}
     for role in ROLE_DIRS:
@@ -71,7 +71,7 @@ def model_manifests(model_dir: Path) -> dict[str, dict]:
 
 def onnx_problems(config: RunConfig) -> list[str]:
     """What is missing or inconsistent in ``config.model_dir`` for this run (checked before any work)."""
-    from navcrafter.models.onnxio import ModelDirError, load_manifest
+    from navcrafter.models.runtime.onnxio import ModelDirError, load_manifest
 
     root = Path(config.model_dir)
     if not root.is_dir():
@@ -105,7 +105,7 @@ def run_label(config: RunConfig) -> str | None:
 
         return LABEL
     if config.backend == "onnx" and config.model_dir is not None:
-        from navcrafter.models.onnxio import is_random_weights
+        from navcrafter.models.runtime.onnxio import is_random_weights
 
         if any(is_random_weights(m) for m in model_manifests(config.model_dir).values()):
             return RANDOM_WEIGHTS_LABEL

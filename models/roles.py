@@ -15,7 +15,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 
 
 @dataclass

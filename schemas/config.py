@@ -52,7 +52,7 @@ class SynthesisConfig(_Section):
 
 
 class PlanConfig(_Section):
-    """Camera trajectory planning (see ``navcrafter.models.planning``).
+    """Camera trajectory planning (see ``navcrafter.models.planning.planners``).
 
     * ``collision_aware``: the paper's Algorithm 1 (candidates in the search space, collision
       detector, visibility score, spherical interpolation, collision optimisation).

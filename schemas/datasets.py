@@ -1,6 +1,6 @@
 """Readers for the public evaluation datasets: RealEstate10K, DL3DV (nerfstudio format), Tanks and Temples.
 
-Every reader yields ``Sample`` clips in navcrafter's camera convention (see ``models/cameras.py``):
+Every reader yields ``Sample`` clips in navcrafter's camera convention (see ``models/camera/cameras.py``):
 **OpenCV camera-to-world** 4x4 poses (x right, y down, z forward) and **pixel** intrinsics of the frames
 as returned (after resizing/cropping). One entry point: ``open_dataset(kind, root, **options)``.
 
@@ -102,7 +102,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from PIL import Image
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 
 __all__ = [
     "DatasetError", "Sample", "SequenceInfo", "DatasetReader", "RealEstate10KReader", "DL3DVReader",

@@ -240,7 +240,7 @@ EXPORT = StepSpec(
 
 EVALUATE = StepSpec(
     "evaluate", "evaluation",
-    "Scene metrics (tasks/evaluate.py), kept so that a rerun does not recompute them; also appended "
+    "Scene metrics (tasks/scene_metrics.py), kept so that a rerun does not recompute them; also appended "
     "to the metrics table.",
     attrs=("metrics", "iterations"),
 )

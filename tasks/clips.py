@@ -100,7 +100,7 @@ def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig)
         return [row("III", "PSNR", status="failed", note=str(exc), scene_id=key)]
     rows = image_quality_rows(fake, clip["reference"], config, scene_id=key)
     if config.camera_guidance:
-        from navcrafter.models.posemetrics import camera_guidance_precision
+        from navcrafter.models.metrics.pose import camera_guidance_precision
 
         frames = np.concatenate([clip["condition"][None], fake])
         with tempfile.TemporaryDirectory(prefix="navcrafter-colmap-") as work:

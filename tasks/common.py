@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from navcrafter.models.backends import create_backend
-from navcrafter.models.pointcloud import Cloud
+from navcrafter.models.reconstruction.pointcloud import Cloud
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig, stable_hash
 from navcrafter.schemas.layout import GEOMETRY, INGEST, SCHEMA_VERSION, StepSpec, cloud_step, dependencies

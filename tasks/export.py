@@ -22,8 +22,8 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from navcrafter.models.backends import run_label
-from navcrafter.models.cameras import Intrinsics
-from navcrafter.models.pointcloud import ply_bytes
+from navcrafter.models.camera.cameras import Intrinsics
+from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EXPORT, FIT, PLAN, SYNTHESIZE
 from navcrafter.schemas.tables import to_table

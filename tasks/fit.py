@@ -39,12 +39,12 @@ import numpy as np
 import torch
 from PIL import Image
 
-from navcrafter.models.cameras import Intrinsics
-from navcrafter.models.depthcalib import CalibrationError, calibrate_depth
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView
-from navcrafter.models.imagemetrics import psnr, ssim
-from navcrafter.models.pointrender import render_points
+from navcrafter.models.metrics.image import psnr, ssim
+from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
+from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.config import FitConfig, RunConfig
 from navcrafter.schemas.layout import FIT, LIFT, PLAN, SYNTHESIZE, StepSpec
 from navcrafter.tasks.common import StepRef, load_backend, load_cloud, logger, open_store, run_step
@@ -105,8 +105,8 @@ def scene_scale(c2w: np.ndarray, points: np.ndarray) -> float:
 
 def load_lpips(config: RunConfig):
     """(LPIPS model or None, note)."""
-    from navcrafter.models.evalnets.lpips import LPIPS
-    from navcrafter.models.evalnets.weights import MetricUnavailable
+    from navcrafter.models.metrics.evalnets.lpips import LPIPS
+    from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
 
     try:
         model = LPIPS.from_pretrained(config.evaluation.lpips_net, config.evaluation.weights_dir)
@@ -232,7 +232,7 @@ def heldout_metrics(rgb: np.ndarray, gt: np.ndarray, lpips_model=None) -> dict:
     """Mean PSNR / SSIM (and LPIPS with its official model, else None) of renders against held-out frames."""
     metrics = {"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": None}
     if lpips_model is not None:
-        from navcrafter.models.evalnets.lpips import lpips_distance
+        from navcrafter.models.metrics.evalnets.lpips import lpips_distance
 
         metrics["lpips"] = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
     return metrics

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.pointcloud import views_to_cloud, voxel_fuse
+from navcrafter.models.reconstruction.pointcloud import views_to_cloud, voxel_fuse
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, INGEST
 from navcrafter.tasks.common import StepRef, load_backend, open_store, run_step

@@ -24,7 +24,7 @@ import fsspec
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.simulation import GROUNDTRUTH_DIR
 from navcrafter.schemas.config import IngestConfig, RunConfig
 from navcrafter.schemas.layout import INGEST

@@ -2,7 +2,7 @@
 
 The geometry model sees the input (reference) view first and then up to ``lift.max_views`` frames of
 the clip, so its output frame is the world frame (the input camera is the world origin) up to scale.
-``navcrafter.models.lifting.lift_prediction`` recovers the scale from the reference view, refines each
+``navcrafter.models.reconstruction.lifting.lift_prediction`` recovers the scale from the reference view, refines each
 view's pose by ICP against the existing cloud where they overlap, and fuses the new points.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.lifting import lift_prediction, pose_deviation, select_views
+from navcrafter.models.reconstruction.lifting import lift_prediction, pose_deviation, select_views
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, INGEST, LIFT, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import StepRef, load_backend, load_cloud, open_store, run_step

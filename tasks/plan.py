@@ -1,7 +1,7 @@
 """Plan: the camera trajectory of iteration k (strategies in ``plan.strategy``).
 
 * ``collision_aware`` (default) and ``viewcrafter`` (baseline) run the planners of
-  ``navcrafter.models.planning`` on the state read from the store: the current pose (the last pose of
+  ``navcrafter.models.planning.planners`` on the state read from the store: the current pose (the last pose of
   the previous iteration), the scene centre ``o``, the cloud after iteration k-1, and every earlier
   camera with its depth (the input view and the lifted views), which bounds the seen free space.
   The step stores the candidates, their scores, collision flags and visibility masks, the trajectory
@@ -19,13 +19,13 @@ import math
 
 import numpy as np
 
-from navcrafter.models.cameras import axis_angle_to_matrix, interpolate_poses, look_at
-from navcrafter.models.planning import PLANNERS, PlannerConfig, PlanningState, SearchSpace, SeenView
+from navcrafter.models.camera.cameras import axis_angle_to_matrix, interpolate_poses, look_at
+from navcrafter.models.planning.planners import PLANNERS, PlannerConfig, PlanningState, SearchSpace, SeenView
+from navcrafter.models.planning.plots import topdown_png
 from navcrafter.schemas.config import PlanConfig, RunConfig
 from navcrafter.schemas.layout import GEOMETRY, LIFT, PLAN
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks.common import StepRef, load_cloud, open_store, run_step
-from navcrafter.tasks.plots import topdown_png
 
 WORLD_UP = np.array([0.0, -1.0, 0.0])  # the input camera's "up" (OpenCV: y points down)
 

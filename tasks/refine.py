@@ -27,9 +27,9 @@ import time
 import numpy as np
 import torch
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
+from navcrafter.models.gaussians.novelviews import nearest_views, novel_cameras
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainView, render_model
-from navcrafter.models.novelviews import nearest_views, novel_cameras
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import FIT, REFINE
 from navcrafter.tasks.common import StepRef, load_backend, open_store, run_step

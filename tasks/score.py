@@ -7,7 +7,7 @@ Tables (the ``table`` column of the ``evaluations`` Arrow table, ``schemas/table
   frames: only simulation scenes have them (the true renders at the requested cameras; the simulated
   synthesizer *is* that renderer, so these rows only check that stored frames match their cameras).
 * **IV, camera-guidance precision**: COLMAP poses of ``evaluation.pose_frames`` frames of every clip
-  against the requested trajectory (``models/posemetrics.py``): R_err, T_err, registered frames.
+  against the requested trajectory (``models/metrics/pose.py``): R_err, T_err, registered frames.
 * **V, runtime**: seconds per stage, from the steps' recorded execution times.
 * **VI, exploration geometry**: Coverage, Noise ratio, F-score at 2 cm and collisions (``tasks/evaluate``).
 * **VII, 3DGS rendering**: held-out PSNR / SSIM / LPIPS of the fit step (``unavailable`` when it did not run).
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from navcrafter.models.evalnets.weights import MetricUnavailable
+from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
 from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SCORE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
@@ -97,7 +97,7 @@ def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> lis
 def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationConfig, note: str | None = None,
                        scene_id: str | None = None) -> list[dict[str, Any]]:
     """PSNR, SSIM and LPIPS (mean over frames) of uint8 frames ``fake`` against ``real`` (``N x H x W x 3``)."""
-    from navcrafter.models.imagemetrics import psnr, ssim
+    from navcrafter.models.metrics.image import psnr, ssim
 
     a, b = fake.astype(np.float64) / 255.0, real.astype(np.float64) / 255.0
     p = np.asarray(psnr(a, b), dtype=np.float64)
@@ -106,7 +106,7 @@ def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationCon
                 note="; ".join(x for x in (note, capped) if x) or None, scene_id=scene_id),
             row("III", "SSIM", float(np.mean(ssim(a, b))), None, note=note, scene_id=scene_id)]
     try:
-        from navcrafter.models.evalnets.lpips import lpips_distance
+        from navcrafter.models.metrics.evalnets.lpips import lpips_distance
 
         d = lpips_distance(a.astype(np.float32), b.astype(np.float32), net=config.lpips_net,
                            weights_dir=config.weights_dir)
@@ -124,7 +124,7 @@ def camera_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[d
         return [row("IV", m, status="unavailable", note="evaluation.camera_guidance is off") for m in metrics]
     if iterations == 0:
         return [row("IV", m, status="unavailable", note="no iterations") for m in metrics]
-    from navcrafter.models.posemetrics import camera_guidance_precision
+    from navcrafter.models.metrics.pose import camera_guidance_precision
 
     r_err, t_err, registered, total, notes = [], [], 0, 0, []
     for k in range(1, iterations + 1):
@@ -260,7 +260,7 @@ def frechet_rows(clips: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]],
                  note: str | None = None) -> list[dict[str, Any]]:
     """FID over all frames and FVD over all clips; ``clips()`` gives (real, fake) lists of uint8
     ``T x H x W x 3`` clips and is only called when a metric's weights are there."""
-    from navcrafter.models.evalnets import fidfvd
+    from navcrafter.models.metrics.evalnets import fidfvd
 
     rows: list[dict[str, Any]] = []
     loaded: tuple[list[np.ndarray], list[np.ndarray]] | None = None

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.roles import SynthesisRequest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import INGEST, PLAN, SYNTHESIZE

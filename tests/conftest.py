@@ -68,7 +68,7 @@ TINY_MODELS_SIZE = (5, 32, 32)
 def tiny_models(tmp_path_factory) -> Path:
     """All three learned roles exported once per session with random weights (seed 0, tiny configs):
     MODEL_DIR/{synthesizer,geometry,monodepth}. Tests must not modify it (copy it first)."""
-    from navcrafter.models.exports import export_all
+    from navcrafter.models.runtime.exporters import export_all
 
     root = tmp_path_factory.mktemp("models")
     T, H, W = TINY_MODELS_SIZE

@@ -1,7 +1,7 @@
 """3D Gaussian Splatting: a gsplat-compatible differentiable rasterizer (pure PyTorch on CPU), the Gaussian
 model container and its initialisation from a point cloud, the standard 3DGS PLY format, and DropGaussian.
 
-Conventions are navcrafter's (``models/cameras.py``): OpenCV cameras, pixel centres at ``j + 0.5``, z-depth,
+Conventions are navcrafter's (``models/camera/cameras.py``): OpenCV cameras, pixel centres at ``j + 0.5``, z-depth,
 quaternions ``(w, x, y, z)``. Renderer inputs are world-to-camera ``viewmats`` (the inverse of navcrafter's
 camera-to-world poses), as gsplat expects.
 """

@@ -15,7 +15,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from navcrafter.models.gaussians.backend import rasterize
+from navcrafter.models.gaussians.renderer import rasterize
 from navcrafter.models.gaussians.sh import num_sh_bases, rgb_to_sh_dc, sh_degree_from_bases
 
 INIT_OPACITY = 0.1
@@ -161,7 +161,7 @@ class GaussianModel:
         backend: str = "auto",
         **kwargs,
     ) -> tuple[Tensor, Tensor, dict]:
-        """:func:`~navcrafter.models.gaussians.backend.rasterize` of this model (``sh_degree`` defaults to the
+        """:func:`~navcrafter.models.gaussians.renderer.rasterize` of this model (``sh_degree`` defaults to the
         model's; ``opacities`` replaces the activated opacities, e.g. with DropGaussian's; ``backend``: "auto" is
         our PyTorch renderer for CPU tensors, gsplat for CUDA tensors when it is installed)."""
         return rasterize(

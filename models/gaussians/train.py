@@ -37,10 +37,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from navcrafter.models.gaussians.backend import rasterize, resolve_backend, resolve_device
 from navcrafter.models.gaussians.densify import DefaultStrategy, NoStrategy, Strategy
+from navcrafter.models.gaussians.dropgaussian import DropGaussian
 from navcrafter.models.gaussians.model import GaussianModel
-from navcrafter.models.gaussians.strategy import DropGaussian
+from navcrafter.models.gaussians.renderer import rasterize, resolve_backend, resolve_device
 
 PerceptualLoss = Callable[[Tensor, Tensor], Tensor]  # (rendered, target) [1, 3, H, W] in [-1, 1] -> scalar
 

@@ -46,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from navcrafter.models.onnxio import config_from_dict, config_to_dict
+from navcrafter.models.runtime.onnxio import config_from_dict, config_to_dict
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -831,7 +831,7 @@ def export_monodepth(out_dir: Path, config: MoGe2Config, weights: Path | None = 
     H, W = 14 x token rows/cols; outputs ``points``, ``normal``, ``mask``, ``metric_scale`` as ``MoGe2``)
     plus the manifest (kind ``monodepth``, architecture ``moge-2``). Random weights from ``seed`` unless a
     checkpoint is given. Returns ``out_dir``."""
-    from navcrafter.models import onnxio
+    from navcrafter.models.runtime import onnxio
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from navcrafter.models import onnxio
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.geometry import processing as proc
 from navcrafter.models.roles import GeometryPrediction
+from navcrafter.models.runtime import onnxio
 
 
 class OnnxGeometry:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.geometry.moge import (
     MoGe2Config,
     MoGe2Result,
@@ -30,8 +30,8 @@ from navcrafter.models.geometry.moge import (
     postprocess,
     preprocess_image,
 )
-from navcrafter.models.onnxio import GraphRunner, ModelDirError, load_manifest
 from navcrafter.models.roles import MonoDepthPrediction
+from navcrafter.models.runtime.onnxio import GraphRunner, ModelDirError, load_manifest
 
 ARCHITECTURE = "moge-2"
 GRAPH = "monodepth"

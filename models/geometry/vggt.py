@@ -55,7 +55,7 @@ from transformers.models.dinov2_with_registers.modeling_dinov2_with_registers im
     Dinov2WithRegistersLayer,
 )
 
-from navcrafter.models.onnxio import sha256_file
+from navcrafter.models.runtime.onnxio import sha256_file
 
 _RESNET_MEAN = (0.485, 0.456, 0.406)
 _RESNET_STD = (0.229, 0.224, 0.225)
@@ -867,7 +867,7 @@ def export_geometry(out_dir: Path, config: VGGTConfig, weights: Path | None = No
     """
     from torch.export import Dim
 
-    from navcrafter.models import onnxio
+    from navcrafter.models.runtime import onnxio
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -82,7 +82,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from navcrafter.models.onnxio import config_from_dict, config_to_dict
+from navcrafter.models.runtime.onnxio import config_from_dict, config_to_dict
 
 ARCHITECTURE = "difix"
 KIND = "refiner"
@@ -493,7 +493,7 @@ def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
 def _read_checkpoint(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], dict[str, Any]]:
     """(unet, vae, info) from a diffusers directory or a training ``.pkl``; info has "files" (name -> sha256)
     and, for ``.pkl``, "rank_vae" and "vae_lora_target_modules"."""
-    from navcrafter.models.onnxio import sha256_file
+    from navcrafter.models.runtime.onnxio import sha256_file
 
     if path.is_dir():
         unet_file, vae_file = path / UNET_FILE, path / VAE_FILE
@@ -524,7 +524,7 @@ def _read_checkpoint(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, tor
 def _base_weights(base: Path, model: DifixRefinerModel) -> tuple[dict, dict, dict[str, str]]:
     """SD-Turbo's UNet and VAE (plain diffusers names) with the VAE renamed to the LoRA layout
     (``X.weight`` -> ``X.base_layer.weight`` for adapted modules)."""
-    from navcrafter.models.onnxio import sha256_file
+    from navcrafter.models.runtime.onnxio import sha256_file
 
     base = Path(base)
     unet_file, vae_file = base / UNET_FILE, base / VAE_FILE
@@ -667,7 +667,7 @@ def export_refiner(out_dir: Path, config: DifixConfig, weights: Path | None = No
     the checkpoint directory or of ``base``; random weights get a seeded random embedding."""
     from torch.export import Dim
 
-    from navcrafter.models import onnxio
+    from navcrafter.models.runtime import onnxio
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

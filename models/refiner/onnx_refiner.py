@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from navcrafter.models.cameras import Intrinsics
-from navcrafter.models.onnxio import GraphRunner, ModelDirError, load_manifest
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.refiner.difix import ARCHITECTURE, GRAPH, KIND, OUTPUT, DifixConfig
+from navcrafter.models.runtime.onnxio import GraphRunner, ModelDirError, load_manifest
 
 
 def _resize(image: np.ndarray, height: int, width: int) -> np.ndarray:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from navcrafter.models.cameras import Intrinsics, axis_angle_to_matrix, invert_pose
+from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, invert_pose
 from navcrafter.models.roles import (
     Backend,
     GeometryPrediction,

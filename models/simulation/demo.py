@@ -21,7 +21,7 @@ import numpy as np
 import open3d as o3d
 from PIL import Image
 
-from navcrafter.models.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.simulation import GROUNDTRUTH_DIR, LABEL
 from navcrafter.models.simulation.render import photo_finish, render
 from navcrafter.models.simulation.scenes import KINDS, generate_scene

@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from navcrafter.models.cameras import Intrinsics, look_at, unproject_depth
-from navcrafter.models.planning import WORLD_UP, SearchSpace, space_positions
-from navcrafter.models.pointcloud import thin_points
+from navcrafter.models.camera.cameras import Intrinsics, look_at, unproject_depth
+from navcrafter.models.planning.planners import WORLD_UP, SearchSpace, space_positions
+from navcrafter.models.reconstruction.pointcloud import thin_points
 from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.models.simulation.render import render
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from navcrafter.models.cameras import Intrinsics, world_rays
+from navcrafter.models.camera.cameras import Intrinsics, world_rays
 from navcrafter.models.simulation.scenes import SimScene
 from navcrafter.models.simulation.textures import albedo
 

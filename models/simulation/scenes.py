@@ -8,7 +8,7 @@ Three kinds, each fully determined by ``(kind, seed)``:
 * ``tabletop`` an object-centric scene: a table with small objects in a closed room.
 
 The ground-truth frame is z-up, in metres. Cameras are OpenCV camera-to-world poses
-(see ``navcrafter.models.cameras``). Every scene also chooses the pose and field of view of its
+(see ``navcrafter.models.camera.cameras``). Every scene also chooses the pose and field of view of its
 "input photo" camera, placed in free space (at least ``MIN_CAMERA_CLEARANCE`` from any surface).
 """
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from navcrafter.models.cameras import look_at
+from navcrafter.models.camera.cameras import look_at
 from navcrafter.models.simulation.textures import Material
 
 GENERATOR_VERSION = 1

@@ -933,7 +933,7 @@ def export_dit(model: CameraControlledWan, out_path: str | os.PathLike, example_
     """
     from torch.export import Dim
 
-    from navcrafter.models.onnxio import export_graph
+    from navcrafter.models.runtime.onnxio import export_graph
 
     b, f, h, w = (int(v) for v in example_shape)
     p_t, p_h, p_w = model.base.config.patch_size

@@ -107,8 +107,8 @@ class OnnxSynthesizer:
 
     def conditions(self, request: SynthesisRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(Plücker rays ``[T, H, W, 6]``, renders uint8 ``[T, H, W, 3]``, visibility bool ``[T, H, W]``)."""
-        from navcrafter.models.cameras import plucker_rays
-        from navcrafter.models.pointrender import render_points
+        from navcrafter.models.camera.cameras import plucker_rays
+        from navcrafter.models.reconstruction.pointrender import render_points
 
         T, H, W = self._check(request)
         K = request.intrinsics.K

@@ -31,7 +31,7 @@ Sampling (``sample_video``), following diffusers' ``WanImageToVideoPipeline`` wh
 
 Precision: fp32 everywhere. onnxruntime's CPU EP has no bf16 kernels (fp16 is emulated and slower), and the CUDA
 EP runs the same fp32 graphs (TF32 matmuls where the GPU allows; bf16 has kernel gaps in the CUDA EP, see
-``models/onnxio.py``). The scheduler arithmetic always runs in fp32 torch on the CPU.
+``models/runtime/onnxio.py``). The scheduler arithmetic always runs in fp32 torch on the CPU.
 """
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ class TorchRunner:
                  width: int | None = None, device: str = "cpu") -> None:
         import torch
 
-        from navcrafter.models.synthesis.export import ClipImageFeatures, VaeDecoder, VaeEncoder
+        from navcrafter.models.synthesis.onnx_export import ClipImageFeatures, VaeDecoder, VaeEncoder
 
         self.torch = torch
         self.device = torch.device(device)
@@ -139,8 +139,8 @@ class OrtRunner:
     """
 
     def __init__(self, model_dir: str | Path, providers: list[str] | None = None, verify: bool = True) -> None:
-        from navcrafter.models.onnxio import GraphRunner, load_manifest
-        from navcrafter.models.synthesis.export import KIND
+        from navcrafter.models.runtime.onnxio import GraphRunner, load_manifest
+        from navcrafter.models.synthesis.onnx_export import KIND
 
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir, KIND, verify=verify)

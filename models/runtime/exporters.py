@@ -1,0 +1,85 @@
+"""Export commands' implementation: one function per role plus ``export_all`` (used by the CLI and tests).
+
+``random`` presets build the architecture with random weights: ``"tiny"`` (test configs, seconds) or
+``"full"`` (the published sizes, for timing). Their manifests say ``weights.source = "random"`` and every
+output of a run that uses them is labelled ``RANDOM_WEIGHTS_LABEL``. Real weights come from files the user
+has (``checkpoint`` / ``base_dir``): safetensors (or torch state dicts read with ``weights_only=True``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from navcrafter.models.backends import role_dir
+
+RandomPreset = Literal["tiny", "full"]
+
+
+def _need_source(role: str, random: str | None, source) -> None:
+    if (random is None) == (source is None):
+        flag = "--base" if role == "synthesizer" else "--checkpoint"
+        raise ValueError(f"export-{role}: give either the weights ({flag}) or --random tiny|full "
+                         f"(random weights, for tests and timing)")
+
+
+def export_geometry(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None,
+                    seed: int = 0) -> Path:
+    from navcrafter.models.geometry.vggt import VGGTConfig
+    from navcrafter.models.geometry.vggt import export_geometry as _export
+
+    _need_source("geometry", random, checkpoint)
+    config = VGGTConfig.tiny() if random == "tiny" else VGGTConfig.vggt_1b()
+    return _export(Path(out), config, weights=checkpoint, seed=seed)
+
+
+def export_monodepth(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None,
+                     seed: int = 0) -> Path:
+    from navcrafter.models.geometry.moge import MoGe2Config
+    from navcrafter.models.geometry.moge import export_monodepth as _export
+
+    _need_source("monodepth", random, checkpoint)
+    config = MoGe2Config.tiny() if random == "tiny" else MoGe2Config.vitl_normal()
+    return _export(Path(out), config, weights=checkpoint, seed=seed)
+
+
+def export_refiner(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None, seed: int = 0,
+                   base: Path | None = None, prompt_embeds: Path | None = None, reference: bool = True) -> Path:
+    """Difix refiner (``models/refiner/difix.py``). ``checkpoint``: the ``nvidia/difix_ref`` diffusers directory
+    (or ``nvidia/difix`` with ``reference=False``), or an official training checkpoint ``model_*.pkl`` with
+    ``base`` = the ``stabilityai/sd-turbo`` directory; the prompt embedding comes from the text encoder found
+    there unless ``prompt_embeds`` (.npy) is given."""
+    from navcrafter.models.refiner.difix import DifixConfig
+    from navcrafter.models.refiner.difix import export_refiner as _export
+
+    _need_source("refiner", random, checkpoint)
+    if random is not None and (base is not None or prompt_embeds is not None):
+        raise ValueError("export-refiner: --base and --prompt-embeds go with --checkpoint, not --random")
+    config = DifixConfig.tiny(reference) if random == "tiny" else DifixConfig.sd_turbo(reference)
+    return _export(Path(out), config, weights=checkpoint, seed=seed, base=base, prompt_embeds=prompt_embeds)
+
+
+def export_synthesizer(out: Path, *, num_frames: int, height: int, width: int, base_dir: Path | None = None,
+                       control_dir: Path | None = None, random: RandomPreset | None = None, prompt: str = "",
+                       seed: int = 0) -> Path:
+    from navcrafter.models.synthesis.onnx_export import export_synthesizer as _export
+
+    _need_source("synthesizer", random, base_dir)
+    if random == "full":
+        raise NotImplementedError("export-synthesizer --random full is not provided: a random 1.3B-width DiT "
+                                  "is timed by benchmarks/synthesis.py --config wan-1.3b instead")
+    return _export(Path(out), base_dir=base_dir, control_dir=control_dir, tiny=random == "tiny",
+                   num_frames=num_frames, height=height, width=width, prompt=prompt, seed=seed)
+
+
+def export_all(model_dir: Path, *, num_frames: int, height: int, width: int, random: RandomPreset = "tiny",
+               seed: int = 0, prompt: str = "") -> dict[str, Path]:
+    """All three roles with random weights into ``model_dir/{synthesizer,geometry,monodepth}``."""
+    model_dir = Path(model_dir)
+    return {
+        "synthesizer": export_synthesizer(role_dir(model_dir, "synthesizer"), num_frames=num_frames,
+                                          height=height, width=width, random=random, seed=seed,
+                                          prompt=prompt),
+        "geometry": export_geometry(role_dir(model_dir, "geometry"), random=random, seed=seed),
+        "monodepth": export_monodepth(role_dir(model_dir, "monodepth"), random=random, seed=seed),
+    }

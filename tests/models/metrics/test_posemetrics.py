@@ -1,0 +1,178 @@
+"""Camera-guidance precision: CameraCtrl-style pose errors and COLMAP pose recovery on simulated video."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, look_at, make_pose
+from navcrafter.models.metrics.pose import camera_guidance_precision, pose_errors, recover_poses
+from navcrafter.models.simulation.render import render
+from navcrafter.models.simulation.scenes import UP, generate_scene
+
+N_FRAMES, SIZE, HALF_SWEEP = 14, 256, 0.4  # 14 frames, 256x256, an 0.8 m sideways move
+THREADS = 2
+
+
+def random_trajectory(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        R = axis_angle_to_matrix(rng.normal(size=3), rng.uniform(0, np.pi))
+        out.append(make_pose(R, rng.normal(size=3) * (1 + i)))
+    return np.array(out)
+
+
+def similarity(c2w: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
+    """The same cameras in a world moved by ``X -> s R X + t`` (rotations change by R, centres fully)."""
+    out = c2w.copy()
+    out[:, :3, :3] = R @ c2w[:, :3, :3]
+    out[:, :3, 3] = s * c2w[:, :3, 3] @ R.T + t
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# pose_errors
+# --------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("scale", ["lstsq", "farthest"])
+def test_identical_trajectories_have_zero_error(scale):
+    gt = random_trajectory(10)
+    e = pose_errors(gt, gt.copy(), scale=scale)
+    assert e["n_registered"] == e["n_frames"] == 10 and e["ref_index"] == 0
+    for key in ("R_err_deg_sum", "R_err_deg_mean", "R_err_rad_sum", "T_err_sum", "T_err_mean"):
+        assert e[key] == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("scale", ["lstsq", "farthest"])
+def test_errors_are_invariant_to_a_similarity_of_the_estimate(scale):
+    gt = random_trajectory(12, seed=1)
+    R = axis_angle_to_matrix(np.array([0.3, -1.0, 0.5]), 2.1)
+    est = similarity(gt, R, np.array([5.0, -3.0, 10.0]), 0.037)  # COLMAP's arbitrary frame and scale
+    e = pose_errors(est, gt, scale=scale)
+    assert e["R_err_deg_sum"] == pytest.approx(0.0, abs=1e-5)
+    assert e["T_err_sum"] == pytest.approx(0.0, abs=1e-6)
+    if scale == "lstsq":
+        assert e["scale"] == pytest.approx(1 / 0.037)
+    # unregistered frames (including the first) are excluded; the first registered frame is the reference
+    registered = np.ones(12, dtype=bool)
+    registered[[0, 5]] = False
+    est[5] = np.nan
+    e = pose_errors(est, gt, registered, scale=scale)
+    assert e["n_registered"] == 10 and e["n_frames"] == 12 and e["ref_index"] == 1
+    assert np.isnan(e["R_err_deg"][0]) and np.isnan(e["T_err"][5])
+    assert e["R_err_deg_sum"] == pytest.approx(0.0, abs=1e-5) and e["T_err_sum"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_known_rotation_offset_on_one_frame():
+    gt = random_trajectory(8, seed=2)
+    est = gt.copy()
+    est[3] = est[3] @ make_pose(axis_angle_to_matrix(np.array([1.0, 2.0, -0.5]), np.deg2rad(10.0)), np.zeros(3))
+    e = pose_errors(est, gt)
+    assert e["R_err_deg"][3] == pytest.approx(10.0, abs=1e-6)
+    assert e["R_err_deg_sum"] == pytest.approx(10.0, abs=1e-6)
+    assert e["R_err_deg_mean"] == pytest.approx(10.0 / 7, abs=1e-6)  # over the 7 non-reference frames
+    assert e["R_err_rad_sum"] == pytest.approx(np.deg2rad(10.0), abs=1e-8)
+    assert e["T_err_sum"] == pytest.approx(0.0, abs=1e-6)  # rotating a camera about its centre moves nothing
+
+
+def test_too_few_registered_frames_give_nan_and_a_reason():
+    gt = random_trajectory(4)
+    e = pose_errors(gt, gt, np.array([False, True, False, False]))
+    assert e["n_registered"] == 1 and np.isnan(e["R_err_deg_sum"]) and np.isnan(e["T_err_mean"])
+    assert "at least 2" in e["reason"]
+
+
+def test_recovery_failure_is_a_result(tmp_path):
+    rng = np.random.default_rng(0)
+    noise = [rng.integers(0, 255, (96, 96, 3), dtype=np.uint8) for _ in range(5)]
+    out = camera_guidance_precision(noise, random_trajectory(5), Intrinsics.from_fov(60, 96, 96).K, tmp_path,
+                                    num_threads=THREADS)
+    assert out["n_registered"] == 0 and out["recovery"]["n_registered"] == 0
+    assert "no reconstruction" in out["reason"] and np.isnan(out["R_err_deg_sum"])
+
+
+# --------------------------------------------------------------------------------------------------
+# the whole pipeline on a simulated camera move
+# --------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sim_clip():
+    """Frames of a sideways move past the tabletop scene, always looking at what the photo centres on."""
+    t0 = time.perf_counter()
+    scene = generate_scene("tabletop", 0)
+    K = Intrinsics.from_fov(scene.camera_fov_x_deg, SIZE, SIZE)
+    c0 = scene.camera_c2w  # the scene's input-photo camera (as in the demo collection)
+    d0 = render(scene, c0, K, colour=False)
+    target = c0[:3, 3] + c0[:3, 2] * float(np.median(d0.depth[d0.hit]))
+    eyes = c0[:3, 3] + np.linspace(-HALF_SWEEP, HALF_SWEEP, N_FRAMES)[:, None] * c0[:3, 0]
+    poses = np.array([look_at(e, target, up=UP) for e in eyes])
+    frames = [render(scene, p, K).rgb for p in poses]
+    print(f"\nrendered {N_FRAMES} frames {SIZE}x{SIZE} in {time.perf_counter() - t0:.1f} s")
+    return frames, poses, K
+
+
+@pytest.fixture(scope="module")
+def sim_recovery(sim_clip, tmp_path_factory):
+    frames, _, K = sim_clip
+    t0 = time.perf_counter()
+    rec = recover_poses(frames, K.K, tmp_path_factory.mktemp("colmap"), num_threads=THREADS)
+    print(f"COLMAP (known K): {rec.n_registered}/{rec.n_frames} registered, {rec.n_points3d} points, "
+          f"reprojection {rec.mean_reprojection_error:.2f} px, {time.perf_counter() - t0:.1f} s")
+    return rec
+
+
+def test_recovered_poses_match_the_rendered_path(sim_clip, sim_recovery):
+    _, poses, K = sim_clip
+    rec = sim_recovery
+    assert rec.n_registered >= 0.8 * N_FRAMES, rec.reason
+    assert rec.camera_model == "PINHOLE"
+    np.testing.assert_allclose(rec.camera_params, [K.fx, K.fy, K.cx, K.cy])  # known intrinsics stay fixed
+    extent = 2 * HALF_SWEEP
+    for scale in ("lstsq", "farthest"):
+        e = pose_errors(rec.c2w, poses, rec.registered, scale=scale)
+        print(f"clean ({scale}): R_err {e['R_err_deg_sum']:.3f} deg sum, {e['R_err_deg_mean']:.3f} deg/frame; "
+              f"T_err {e['T_err_sum']:.4f} sum, {e['T_err_mean']:.4f}/frame")
+        assert e["R_err_deg_mean"] < 1.0
+        assert e["T_err_mean"] < 0.05 * (extent if scale == "lstsq" else 1.0)
+
+
+def test_errors_grow_with_the_deviation_from_the_requested_path(sim_recovery, sim_clip):
+    """The video (hence the estimate) stays; the requested path drifts away from it, growing along the clip."""
+    _, poses, _ = sim_clip
+    rec = sim_recovery
+    clean = pose_errors(rec.c2w, poses, rec.registered)
+    ramp = np.linspace(0.0, 1.0, N_FRAMES)
+    axis = np.array([0.2, 1.0, 0.3])
+    measured = {}
+    for level in (1, 2):
+        theta, delta = np.deg2rad(3.0) * level, 0.08 * level  # at the last frame: 3 deg / 8 cm per level
+        requested = poses.copy()
+        for i, f in enumerate(ramp):
+            requested[i] = requested[i] @ make_pose(axis_angle_to_matrix(axis, theta * f), np.zeros(3))
+            requested[i, :3, 3] += delta * f * UP  # perpendicular to the sideways move
+        e = pose_errors(rec.c2w, requested, rec.registered)
+        measured[level] = e
+        reg = rec.registered[1:]
+        expect_r = np.rad2deg(theta) * ramp[1:][reg].sum() / max(reg.sum(), 1)
+        expect_t = delta * ramp[1:][reg].sum() / max(reg.sum(), 1)
+        print(f"perturbed x{level}: R_err {e['R_err_deg_mean']:.3f} deg/frame (expect ~{expect_r:.3f}), "
+              f"T_err {e['T_err_mean']:.4f}/frame (expect ~{expect_t:.4f})")
+        assert e["R_err_deg_mean"] == pytest.approx(expect_r, abs=0.25 * expect_r + clean["R_err_deg_mean"])
+        assert e["T_err_mean"] == pytest.approx(expect_t, abs=0.25 * expect_t + clean["T_err_mean"])
+    for key in ("R_err_deg_mean", "T_err_mean"):
+        c, one, two = clean[key], measured[1][key], measured[2][key]
+        assert c < one < two
+        assert 1.6 < two / one < 2.4, (key, one, two)
+
+
+def test_unknown_intrinsics_are_estimated(sim_clip, tmp_path):
+    frames, poses, K = sim_clip
+    out = camera_guidance_precision(frames, poses, None, tmp_path, num_threads=THREADS)
+    rec = out["recovery"]
+    print(f"COLMAP (SIMPLE_RADIAL): {out['n_registered']}/{N_FRAMES} registered, f = {rec['camera_params'][0]:.1f} "
+          f"(true {K.fx:.1f}); R_err {out['R_err_deg_mean']:.3f} deg/frame, T_err {out['T_err_mean']:.4f}/frame")
+    assert rec["camera_model"] == "SIMPLE_RADIAL"
+    assert out["n_registered"] >= 0.8 * N_FRAMES
+    assert rec["camera_params"][0] == pytest.approx(K.fx, rel=0.15)
+    assert out["R_err_deg_mean"] < 1.5 and out["T_err_mean"] < 0.05 * 2 * HALF_SWEEP

@@ -1,0 +1,266 @@
+"""Collision-aware planning: point renderer, candidates, collision detector, optimisation, planners."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from navcrafter.models.camera.cameras import Intrinsics, interpolate_poses, look_at, unproject_depth
+from navcrafter.models.planning.planners import (
+    WORLD_UP,
+    CollisionAwarePlanner,
+    CollisionDetector,
+    PlannerConfig,
+    PlanningState,
+    SearchSpace,
+    SeenView,
+    ViewCrafterPlanner,
+    optimise_trajectory,
+    sample_candidates,
+    search_frame,
+    visibility_score,
+)
+from navcrafter.models.reconstruction.pointrender import render_points
+from navcrafter.models.simulation.render import render
+from navcrafter.models.simulation.scenes import Light, SceneObject, SimScene
+from navcrafter.models.simulation.textures import Material
+
+K64 = Intrinsics.from_fov(70, 64, 64)
+
+
+def box(x0, y0, z0, sx, sy, sz):
+    m = o3d.geometry.TriangleMesh.create_box(sx, sy, sz)
+    m.translate((x0, y0, z0))
+    m.compute_triangle_normals()
+    return m
+
+
+def scene_of(*boxes) -> SimScene:
+    """Boxes in a world that is its own ground-truth frame, with a far back wall at z = 12."""
+    objs = [SceneObject(f"b{i}", b, 0) for i, b in enumerate((*boxes, box(-30, -30, 12, 60, 60, 1)))]
+    return SimScene("test", 0, objs, [Material("plain", (0.5, 0.5, 0.5), (0.4, 0.4, 0.4), 1.0)],
+                    Light("sun", (0.0, -1.0, 0.0)), True, np.eye(4), 70.0)
+
+
+def observe(scene: SimScene, poses: list[np.ndarray], K: Intrinsics = K64) -> tuple[np.ndarray, list[SeenView]]:
+    """What cameras at ``poses`` saw: the cloud of their depth maps and the seen views."""
+    pts, views = [], []
+    for c2w in poses:
+        r = render(scene, c2w, K, colour=False)
+        p, _ = unproject_depth(r.depth.astype(np.float64), c2w, K.K, mask=r.hit)
+        pts.append(p)
+        views.append(SeenView(c2w, K.K, r.depth))
+    return np.concatenate(pts), views
+
+
+# --------------------------------------------------------------------------------------------------
+# Point renderer
+# --------------------------------------------------------------------------------------------------
+def test_point_renderer_zbuffer_colours_and_brute_force_reference():
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform([-1, -1, 2], [1, 1, 6], (3000, 3)), [[0.0, 0.0, 3.0], [0.0, 0.0, 5.0]]])
+    cols = rng.integers(0, 255, (len(pts), 3)).astype(np.uint8)
+    K = Intrinsics.from_fov(60, 40, 30).K
+    out = render_points(pts, np.eye(4), K, 30, 40, point_size=1e-6, colors=cols)  # radius 0: one pixel each
+    # brute force: nearest point per pixel
+    ref = np.zeros((30, 40))
+    ref_col = np.zeros((30, 40, 3), np.uint8)
+    uv = (pts @ K.T)[:, :2] / pts[:, 2:]
+    for i in np.argsort(-pts[:, 2], kind="stable"):  # far to near, nearest written last
+        u, v = int(np.floor(uv[i, 0])), int(np.floor(uv[i, 1]))
+        if 0 <= u < 40 and 0 <= v < 30 and (ref[v, u] == 0 or pts[i, 2] <= ref[v, u]):
+            ref[v, u] = pts[i, 2]
+            ref_col[v, u] = cols[i]
+    np.testing.assert_allclose(out.depth, ref, rtol=1e-5)
+    np.testing.assert_array_equal(out.mask, ref > 0)
+    same = (ref > 0)
+    assert (out.color[same] == ref_col[same]).all(1).mean() > 0.99  # exact ties may pick either point
+    empty = render_points(np.zeros((0, 3)), np.eye(4), K, 30, 40, 0.1)
+    assert not empty.mask.any()
+
+
+def test_point_renderer_square_splats_match_brute_force():
+    rng = np.random.default_rng(2)
+    pts = rng.uniform([-1.5, -1, 0.5], [1.5, 1, 5], (400, 3))
+    K = Intrinsics.from_fov(70, 48, 32).K
+    size, R = 0.08, 3
+    out = render_points(pts, np.eye(4), K, 32, 48, point_size=size, max_radius=R)
+    ref = np.full((32, 48), np.inf)
+    uv = (pts @ K.T)[:, :2] / pts[:, 2:]
+    for (u, v), z in zip(uv, pts[:, 2]):
+        r = int(np.clip(np.ceil(K[0, 0] * size / (2 * z) - 0.5), 0, R))
+        j, i = int(np.floor(u)), int(np.floor(v))
+        for y in range(max(0, i - r), min(32, i + r + 1)):
+            for x in range(max(0, j - r), min(48, j + r + 1)):
+                ref[y, x] = min(ref[y, x], z)
+    np.testing.assert_array_equal(out.mask, np.isfinite(ref))
+    np.testing.assert_allclose(out.depth[out.mask], ref[np.isfinite(ref)], rtol=1e-5)
+
+
+def test_point_renderer_splats_grow_with_proximity():
+    K = Intrinsics.from_fov(60, 64, 64).K
+    near = render_points(np.array([[0.0, 0.0, 1.0]]), np.eye(4), K, 64, 64, point_size=0.1)
+    far = render_points(np.array([[0.0, 0.0, 10.0]]), np.eye(4), K, 64, 64, point_size=0.1)
+    assert near.mask.sum() > far.mask.sum() >= 1
+    behind = render_points(np.array([[0.0, 0.0, -1.0]]), np.eye(4), K, 64, 64, point_size=0.1)
+    assert not behind.mask.any()
+
+
+# --------------------------------------------------------------------------------------------------
+# Candidates and score
+# --------------------------------------------------------------------------------------------------
+def test_candidates_lie_in_the_search_space_and_look_at_the_centre():
+    centre = np.array([0.0, 0.0, 5.0])
+    space = SearchSpace((0.2, 0.4), (-60.0, 60.0), (-20.0, 20.0))
+    c = sample_candidates(np.eye(4), centre, 5.0, space, 20, np.random.default_rng(1))
+    f, right, up = search_frame(np.eye(4), centre)
+    np.testing.assert_allclose(f, [0, 0, 1])
+    np.testing.assert_allclose(up, -np.array([0, 1, 0]))
+    off = c[:, :3, 3]
+    r = np.linalg.norm(off, axis=1)
+    assert ((r >= 1.0 - 1e-9) & (r <= 2.0 + 1e-9)).all()
+    el = np.rad2deg(np.arcsin(off @ up / r))
+    az = np.rad2deg(np.arctan2(off @ right, off @ f))
+    assert (np.abs(el) <= 20 + 1e-6).all() and (np.abs(az) <= 60 + 1e-6).all()
+    for T in c:  # every candidate looks at o, upright
+        to_o = (centre - T[:3, 3]) / np.linalg.norm(centre - T[:3, 3])
+        assert T[:3, 2] @ to_o > 1 - 1e-9 and T[:3, 1] @ WORLD_UP < 0
+    again = sample_candidates(np.eye(4), centre, 5.0, space, 20, np.random.default_rng(1))
+    np.testing.assert_array_equal(c, again)
+
+
+def test_visibility_score_formula():
+    def mask(m):
+        a = np.zeros(100, bool)
+        a[: int(m * 100)] = True
+        return a
+
+    assert visibility_score(mask(0.0), 0.5) == 0.0  # nothing anchors the view
+    assert visibility_score(mask(1.0), 0.5) == 0.0  # nothing new
+    assert visibility_score(mask(0.5), 0.5) == pytest.approx(0.5)
+    assert visibility_score(mask(0.25), 0.5) == pytest.approx(0.75 * 0.5)
+    assert visibility_score(mask(0.8), 0.5) == pytest.approx(0.2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Collision detector
+# --------------------------------------------------------------------------------------------------
+def test_candidate_inside_an_obstacle_is_rejected():
+    scene = scene_of(box(-0.75, -0.75, 4.0, 1.5, 1.5, 1.5))  # a cabinet 4 m in front of the camera
+    cloud, views = observe(scene, [np.eye(4)])
+    det = CollisionDetector(cloud, 0.25, views)
+    inside = np.array([[0.0, 0.0, 4.75]])
+    assert det.clearance(inside)[0] > 0.25  # far from every observed point...
+    assert det.collides(inside)[0]  # ...but behind the surface the camera saw
+    assert not det.collides(np.array([[0.5, 0.2, 2.0]]))[0]  # open space in front of it
+    assert det.collides(np.array([[0.0, 0.0, 3.9]]))[0]  # within r_safe of the front face
+    assert det.collides(np.array([[0.0, 0.0, -2.0]]))[0]  # never seen (behind the camera)
+    assert not det.collides(np.array([[0.0, 0.1, -0.1]]))[0]  # next to a camera that stood there
+    lenient = CollisionDetector(cloud, 0.25, views, unknown_is_free=True)
+    assert not lenient.collides(np.array([[0.0, 0.0, -2.0]]))[0]  # unseen space allowed...
+    assert lenient.collides(inside)[0]  # ...but not space behind an observed surface
+
+
+def panel_world():
+    """A thin panel (the plane x = 0 around z = 4) between two points, seen from both sides."""
+    scene = scene_of(box(-0.02, -0.6, 3.4, 0.04, 1.2, 1.2))
+    cams = [look_at(np.array([-3.0, 0.0, 4.0]), np.array([0.0, 0.0, 4.0])),
+            look_at(np.array([3.0, 0.0, 4.0]), np.array([0.0, 0.0, 4.0])),
+            look_at(np.zeros(3), np.array([0.0, 0.0, 4.0]))]
+    cloud, views = observe(scene, cams, Intrinsics.from_fov(90, 96, 96))
+    return scene, cloud, views
+
+
+def test_straight_path_through_a_wall_is_bent_around_it_keeping_r_safe():
+    scene, cloud, views = panel_world()
+    r_safe = 0.25
+    det = CollisionDetector(cloud, r_safe, views)
+    centre = np.array([0.0, 0.0, 8.0])
+    a = look_at(np.array([-1.5, 0.0, 4.0]), centre)
+    b = look_at(np.array([1.5, 0.0, 4.0]), centre)
+    straight = interpolate_poses(a, b, 41)
+    assert det.trajectory_collides(straight)
+    assert scene.distance(straight[:, :3, 3]).min() < 0.05  # it really goes through the panel
+    res = optimise_trajectory(straight, det, centre, smoothness=1.0)
+    assert res.collision_free and res.optimised
+    assert np.array_equal(res.trajectory[0], a) and np.array_equal(res.trajectory[-1], b)
+    pos = res.trajectory[:, :3, 3]
+    assert det.clearance(pos).min() >= r_safe * 0.999
+    # against the true panel (the detector works on the cloud thinned to r_safe / 8)
+    assert scene.distance(pos).min() >= r_safe * 0.85
+    assert not det.trajectory_collides(res.trajectory)
+    steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+    assert steps.max() < 4 * steps.mean()  # smooth: no jumps
+    for T in res.trajectory[1:-1]:  # interior cameras look at o
+        to_o = (centre - T[:3, 3]) / np.linalg.norm(centre - T[:3, 3])
+        assert T[:3, 2] @ to_o > 1 - 1e-9
+
+
+def test_optimiser_leaves_a_collision_free_path_unchanged():
+    scene, cloud, views = panel_world()
+    det = CollisionDetector(cloud, 0.25, views)
+    centre = np.array([0.0, 0.0, 8.0])
+    path = interpolate_poses(look_at(np.array([-1.5, 0.0, 2.0]), centre),
+                             look_at(np.array([1.5, 0.0, 2.0]), centre), 21, centre=centre)
+    assert not det.trajectory_collides(path)
+    res = optimise_trajectory(path, det, centre)
+    assert res.collision_free and not res.optimised
+    assert np.array_equal(res.trajectory, path)
+
+
+def test_unreachable_target_is_reported():
+    scene, cloud, views = panel_world()
+    det = CollisionDetector(cloud, 0.25, views)
+    centre = np.array([0.0, 0.0, 8.0])
+    inside = look_at(np.array([0.0, 0.0, 4.0]), centre)  # the end point is in the panel
+    res = optimise_trajectory(interpolate_poses(look_at(np.array([-1.5, 0.0, 4.0]), centre), inside, 21),
+                              det, centre)
+    assert not res.collision_free and res.starts == 0  # an end point in the panel: reported at once
+    behind = look_at(np.array([0.0, 0.0, 5.5]), centre)  # free, but only reachable around the panel...
+    res = optimise_trajectory(interpolate_poses(inside, behind, 21), det, centre)
+    assert not res.collision_free
+
+
+# --------------------------------------------------------------------------------------------------
+# Planners
+# --------------------------------------------------------------------------------------------------
+def room_state(num_frames: int = 21) -> tuple[SimScene, PlanningState]:
+    """A closed 6 x 3 x 8 m room with a pillar in front of the camera."""
+    walls = [box(-3.1, -1.6, -1, 0.1, 3.2, 9), box(3.0, -1.6, -1, 0.1, 3.2, 9), box(-3.1, -1.7, -1, 6.2, 0.1, 9),
+             box(-3.1, 1.5, -1, 6.2, 0.1, 9), box(-3.1, -1.6, 7.0, 6.2, 3.2, 0.1)]
+    scene = scene_of(*walls, box(-0.3, -1.5, 3.0, 0.6, 3.0, 0.6))
+    K = Intrinsics.from_fov(80, 64, 64)
+    cloud, views = observe(scene, [np.eye(4)], K)
+    state = PlanningState(current=np.eye(4), centre=np.array([0.0, 0.0, 5.0]), d0=5.0, K=K.K, height=64, width=64,
+                          cloud_points=cloud, views=views, num_frames=num_frames, point_size=0.05)
+    return scene, state
+
+
+def test_collision_aware_planner_returns_a_safe_trajectory_to_its_choice():
+    scene, state = room_state()
+    res = CollisionAwarePlanner(PlannerConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
+    assert res.chosen >= 0 and res.fallback in ("", "next-candidate")
+    assert not res.collides[res.chosen] and res.scores[res.chosen] > 0
+    assert np.array_equal(res.trajectory[0], state.current)
+    assert np.array_equal(res.trajectory[-1], res.candidates[res.chosen])
+    assert res.trajectory.shape == (21, 4, 4) and res.collision_free
+    det = CollisionDetector(state.cloud_points, 0.25, state.views)
+    assert not det.trajectory_collides(res.trajectory)
+    assert (scene.distance(res.trajectory[:, :3, 3]) > 0.2).all()  # clear of the true walls and pillar
+    assert (~res.collides).sum() >= 6 or res.rounds == PlannerConfig().max_resample + 1  # K valid ones
+    if res.fallback == "":  # the next-best view: the best score among collision-free candidates
+        assert res.chosen == int(np.argmax(np.where(res.collides, -1, res.scores)))
+    assert (res.scores[res.collides] == 0).all() and not res.masks[res.collides].any()  # empty masks
+
+
+def test_baseline_ignores_collisions_and_moves_straight():
+    _, state = room_state()
+    res = ViewCrafterPlanner(PlannerConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
+    assert not res.collides.any() and res.collision_free is None and not res.optimised
+    assert res.chosen == int(np.argmax(res.scores))
+    p = res.trajectory[:, :3, 3]
+    direction = (p[-1] - p[0]) / np.linalg.norm(p[-1] - p[0])
+    off_line = (p - p[0]) - np.outer((p - p[0]) @ direction, direction)
+    assert np.abs(off_line).max() < 1e-9  # a straight line
+    assert np.array_equal(res.trajectory[-1], res.candidates[res.chosen])

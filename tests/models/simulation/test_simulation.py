@@ -1,0 +1,171 @@
+"""Simulated scenes, their ground-truth renderer, and the simulation backend's roles."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from navcrafter.models.camera.cameras import Intrinsics, invert_pose, look_at, make_pose
+from navcrafter.models.simulation.backend import SimulationError, SimulationTruth, simulation_backend
+from navcrafter.models.simulation.render import render
+from navcrafter.models.simulation.scenes import (
+    KINDS,
+    MIN_CAMERA_CLEARANCE,
+    Light,
+    SceneObject,
+    SimScene,
+    generate_scene,
+)
+from navcrafter.models.simulation.textures import Material
+from navcrafter.schemas.config import SimulationConfig
+
+
+def box_wall_scene(distance: float) -> SimScene:
+    """A single large box whose face z = distance faces a camera at the origin looking along +z."""
+    wall = o3d.geometry.TriangleMesh.create_box(20.0, 20.0, 1.0)
+    wall.translate((-10.0, -10.0, distance))
+    wall.compute_triangle_normals()
+    return SimScene("test", 0, [SceneObject("wall", wall, 0)], [Material("checker", (1, 1, 1), (0, 0, 0), 0.5)],
+                    Light("sun", (0.0, 0.0, -1.0)), True, np.eye(4), 60.0)
+
+
+def test_depth_of_known_wall_is_exact():
+    scene = box_wall_scene(3.25)
+    K = Intrinsics.from_fov(70, 48, 32)
+    r = render(scene, np.eye(4), K)
+    assert r.hit.all()
+    np.testing.assert_allclose(r.depth, 3.25, rtol=1e-6)  # z-depth, not distance along the ray
+    np.testing.assert_allclose(r.normal, np.broadcast_to([0, 0, -1], r.normal.shape), atol=1e-6)
+    # a camera 1 m back and rotated 30 degrees about the wall normal still sees z-depth 4.25
+    rot = make_pose(look_at(np.zeros(3), np.array([0, 0, 1.0]), up=np.array([0.5, -1, 0]))[:3, :3],
+                    np.array([0.3, -0.2, -1.0]))
+    r2 = render(scene, rot, K)
+    np.testing.assert_allclose(r2.depth, 4.25, rtol=1e-6)
+    # the black-and-white checker texture is visible
+    grey = r.rgb.mean(-1)
+    assert (grey < 60).mean() > 0.2 and (grey > 200).mean() > 0.2
+
+
+def test_sky_and_miss_pixels():
+    scene = box_wall_scene(2.0)
+    K = Intrinsics.from_fov(60, 32, 32)
+    r = render(scene, look_at(np.zeros(3), np.array([0.0, 0.0, -1.0]), up=np.array([0.0, -1.0, 0.0])), K)
+    assert not r.hit.any() and (r.depth == 0).all()
+    assert r.rgb.mean() > 100  # sky colour, not black
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_scenes_are_deterministic_and_photo_like(kind):
+    a, b = generate_scene(kind, 3), generate_scene(kind, 3)
+    va = np.asarray(a.merged_mesh().vertices)
+    np.testing.assert_array_equal(va, np.asarray(b.merged_mesh().vertices))
+    np.testing.assert_array_equal(a.camera_c2w, b.camera_c2w)
+    assert len(a.objects) >= 10
+    assert a.distance(a.camera_c2w[None, :3, 3])[0] >= MIN_CAMERA_CLEARANCE
+    r = render(a, a.camera_c2w, Intrinsics.from_fov(a.camera_fov_x_deg, 96, 72))
+    assert r.hit.mean() > 0.5
+    assert r.rgb.std() > 20  # textured, lit, not flat
+    c = generate_scene(kind, 4)
+    assert not np.array_equal(np.asarray(c.merged_mesh().vertices)[:50], va[:50]) or \
+        not np.array_equal(c.camera_c2w, a.camera_c2w)
+
+
+def _truth(kind="room", seed=0, scale=None) -> SimulationTruth:
+    scene = generate_scene(kind, seed)
+    K = Intrinsics.from_fov(scene.camera_fov_x_deg, 64, 48)
+    record = {"scene": scene.spec, "photo_c2w": scene.camera_c2w.tolist(), "work_intrinsics": K.to_dict()}
+    return SimulationTruth.from_record(record, world_scale=scale)
+
+
+def test_truth_maps_world_and_ground_truth_frames():
+    truth = _truth(scale=1.7)
+    np.testing.assert_allclose(truth.gt_pose(np.eye(4)), truth.photo_c2w, atol=1e-12)
+    pts = np.random.default_rng(0).normal(size=(10, 3))
+    np.testing.assert_allclose(truth.world_points(truth.gt_points(pts)), pts, atol=1e-9)
+    # a world translation of 1.7 units is 1 metre in the ground-truth frame
+    T = np.eye(4)
+    T[:3, 3] = [1.7, 0, 0]
+    assert np.linalg.norm(truth.gt_pose(T)[:3, 3] - truth.photo_c2w[:3, 3]) == pytest.approx(1.0)
+    with pytest.raises(SimulationError, match="world scale"):
+        _truth().gt_pose(T)
+
+
+def test_geometry_first_call_defines_world_and_later_calls_are_relative():
+    cfg = SimulationConfig(scale_sigma=0.3, depth_noise=0.0, pose_rot_deg=0.0, pose_trans=0.0)
+    truth = _truth()
+    backend = simulation_backend(truth, cfg)
+    img = np.zeros((1, 48, 64, 3), np.uint8)
+    first = backend.geometry.predict(img, seed=1, hint_c2w=np.eye(4)[None])
+    s0 = first.extras["simulation_scale"]
+    np.testing.assert_allclose(first.c2w[0], np.eye(4))
+    true_depth = render(truth.scene, truth.photo_c2w, truth.work_intrinsics, colour=False).depth
+    np.testing.assert_allclose(first.depth[0], true_depth * s0, rtol=1e-5)
+    with pytest.raises(SimulationError):  # world not defined yet: only the input view can be served
+        backend.geometry.predict(np.zeros((2, 48, 64, 3), np.uint8), seed=1, hint_c2w=np.stack([np.eye(4)] * 2))
+    truth.world_scale = s0
+    T = np.eye(4)
+    T[:3, 3] = [0.5 * s0, 0.0, 0.0]  # half a metre to the right, in world units
+    pred = backend.geometry.predict(np.zeros((2, 48, 64, 3), np.uint8), seed=2, hint_c2w=np.stack([np.eye(4), T]))
+    s1 = pred.extras["simulation_scale"]
+    assert s1 != s0  # every call has its own arbitrary scale, like VGGT
+    np.testing.assert_allclose(pred.c2w[0], np.eye(4))
+    np.testing.assert_allclose(pred.c2w[1][:3, 3], [0.5 * s1, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(pred.depth[0], true_depth * s1, rtol=1e-5)
+
+
+def test_geometry_noise_and_confidence():
+    truth = _truth(scale=1.0)
+    backend = simulation_backend(truth, SimulationConfig(scale_sigma=0.0, depth_noise=0.01))
+    pred = backend.geometry.predict(np.zeros((1, 48, 64, 3), np.uint8), seed=3, hint_c2w=np.eye(4)[None])
+    true_depth = render(truth.scene, truth.photo_c2w, truth.work_intrinsics, colour=False).depth
+    rel = pred.depth[0] / true_depth - 1
+    assert 0.005 < rel.std() < 0.02
+    assert (pred.confidence[0] < 1).any() and (pred.confidence[0] == 1).mean() > 0.7  # edges are less trusted
+    again = backend.geometry.predict(np.zeros((1, 48, 64, 3), np.uint8), seed=3, hint_c2w=np.eye(4)[None])
+    np.testing.assert_array_equal(again.depth, pred.depth)  # seeded
+
+
+def test_mono_depth_is_affine_in_inverse_depth():
+    truth = _truth("street", 0, scale=1.0)
+    backend = simulation_backend(truth, SimulationConfig(depth_noise=0.0))
+    pred = backend.mono_depth.predict(np.zeros((48, 64, 3), np.uint8), seed=5, hint_c2w=np.eye(4)[None])
+    r = render(truth.scene, truth.photo_c2w, truth.work_intrinsics, colour=False)
+    assert (pred.sky == ~r.hit).all() and pred.sky.any()
+    inv = 1 / r.depth[r.hit]
+    A = np.stack([inv, np.ones_like(inv)], 1)
+    coef, res, *_ = np.linalg.lstsq(A, pred.inv_depth[r.hit], rcond=None)
+    np.testing.assert_allclose(A @ coef, pred.inv_depth[r.hit], rtol=1e-4, atol=1e-6)
+    assert coef[0] > 0
+
+
+def test_synthesizer_renders_the_requested_poses():
+    truth = _truth(scale=2.0)
+    backend = simulation_backend(truth, SimulationConfig())
+    T = np.eye(4)
+    T[:3, 3] = [0.2, 0.0, 0.4]
+    from navcrafter.models.roles import SynthesisRequest
+
+    frames = backend.synthesizer.synthesize(SynthesisRequest(
+        np.zeros((48, 64, 3), np.uint8), np.stack([np.eye(4), T]), truth.work_intrinsics,
+        np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), 0))
+    assert frames.shape == (2, 48, 64, 3)
+    np.testing.assert_array_equal(frames[0], render(truth.scene, truth.photo_c2w, truth.work_intrinsics).rgb)
+    np.testing.assert_array_equal(frames[1], render(truth.scene, truth.gt_pose(T), truth.work_intrinsics).rgb)
+
+
+def test_demo_collection_writes_photos_and_ground_truth(demo_photos):
+    pngs = sorted(demo_photos.glob("*.png"))
+    assert [p.stem for p in pngs] == ["room-0", "street-0", "tabletop-0"]
+    for p in pngs:
+        record = json.loads((demo_photos / ".groundtruth" / p.stem / "scene.json").read_text())
+        assert record["photo"]["sha256"] == hashlib.sha256(p.read_bytes()).hexdigest()
+        assert "SIMULATION" in record["note"]
+        mesh = o3d.io.read_triangle_mesh(str(demo_photos / ".groundtruth" / p.stem / "mesh.ply"))
+        assert len(mesh.triangles) > 100
+        scene = generate_scene(record["scene"]["kind"], record["scene"]["seed"])
+        np.testing.assert_allclose(np.asarray(record["photo"]["c2w"]), scene.camera_c2w)
+        assert np.allclose(invert_pose(scene.camera_c2w) @ scene.camera_c2w, np.eye(4))

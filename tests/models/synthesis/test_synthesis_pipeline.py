@@ -1,0 +1,170 @@
+"""Synthesizer export + sampler: tiny random Wan2.1-I2V camera model, ONNX vs torch, OnnxSynthesizer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("diffusers")
+pytest.importorskip("onnxruntime")
+
+from conftest import TINY_MODELS_SIZE  # noqa: E402
+
+from navcrafter.models.camera.cameras import Intrinsics, look_at  # noqa: E402
+from navcrafter.models.roles import SynthesisRequest, Synthesizer  # noqa: E402
+from navcrafter.schemas.config import SynthesisConfig  # noqa: E402
+
+T, H, W = TINY_MODELS_SIZE
+CPU = ["CPUExecutionProvider"]
+
+
+@pytest.fixture(scope="module")
+def tiny_export(tiny_models):
+    """One tiny export shared by the module's tests (static shapes: several times faster to export), and the
+    same tiny modules rebuilt from the seed (for the torch engine)."""
+    from navcrafter.models.synthesis.onnx_export import tiny_components
+
+    # the session's shared export: export_synthesizer(..., tiny=True, num_frames=T, height=H, width=W,
+    # prompt="a room", seed=0)
+    return tiny_models / "synthesizer", tiny_components(seed=0, prompt="a room")
+
+
+@pytest.fixture(scope="module")
+def inputs():
+    rng = np.random.RandomState(0)
+    return {"image": rng.randint(0, 256, (H, W, 3), dtype=np.uint8),
+            "plucker": rng.standard_normal((T, H, W, 6)).astype(np.float32),
+            "renders": rng.randint(0, 256, (T, H, W, 3), dtype=np.uint8),
+            "masks": rng.rand(T, H, W) > 0.3}
+
+
+@pytest.fixture(scope="module")
+def ort_runner(tiny_export):
+    from navcrafter.models.synthesis.pipeline import OrtRunner
+
+    return OrtRunner(tiny_export[0], CPU)
+
+
+def test_manifest(tiny_export):
+    from navcrafter.models.runtime.onnxio import load_manifest
+
+    out, components = tiny_export
+    m = load_manifest(out, "synthesizer")  # verifies every sha256
+    assert m["architecture"] == "wan2.1-i2v-camera"
+    assert set(m["graphs"]) == {"dit", "vae_encoder", "vae_decoder", "image_encoder"}
+    assert m["weights"] == {"source": "random", "seed": 0}
+    c = m["config"]
+    assert (c["num_frames"], c["height"], c["width"], c["vae_num_frames"]) == (T, H, W, T)
+    assert c["dynamic_shapes"] is False  # tiny exports default to static graphs
+    assert (c["latent_channels"], c["vae_scale_factor_temporal"], c["vae_scale_factor_spatial"]) == (16, 4, 8)
+    assert c["patch_size"] == [1, 2, 2] and c["control"]["cond_channels"] == 20
+    assert c["plucker_convention"] in ("ray", "paper")
+    assert c["scheduler"]["prediction_type"] == "flow_prediction" and c["scheduler"]["flow_shift"] > 0
+    assert "text_embeddings.npy" in m["files"]
+    emb = np.load(out / "text_embeddings.npy")
+    assert emb.shape == (2, 512, c["text_dim"]) and np.array_equal(emb, components.text_embeddings)
+    assert m["graphs"]["dit"]["inputs"][:3] == ["hidden_states", "timestep", "encoder_hidden_states"]
+
+
+def test_onnx_matches_torch_and_seeds(tiny_export, ort_runner, inputs):
+    from navcrafter.models.synthesis import pipeline as pl
+
+    torch_runner = pl.TorchRunner(tiny_export[1])  # rebuilt from the export's seed
+    pos, neg = ort_runner.text_embeddings()
+    cfg = pl.SamplerConfig(steps=2, seed=3)
+    lat_ort = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg)
+    lat_torch = pl.sample_latents(torch_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg)
+    assert lat_ort.shape == (1, 16, 2, H // 8, W // 8)
+    assert np.abs(lat_ort - lat_torch).max() <= 1e-3
+    v_ort, v_torch = pl.decode_video(ort_runner, lat_ort), pl.decode_video(torch_runner, lat_torch)
+    assert v_ort.shape == (T, H, W, 3) and v_ort.dtype == np.uint8
+    assert np.abs(v_ort.astype(int) - v_torch.astype(int)).max() <= 2
+
+    # Deterministic given the seed; other seeds, and another camera, give other videos.
+    conds = pl.prepare_conditions(ort_runner, **inputs)
+    again = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg, conditions=conds)
+    assert np.array_equal(again, lat_ort)
+    other = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg,
+                              cfg=pl.SamplerConfig(steps=2, seed=4), conditions=conds)
+    assert np.abs(other - lat_ort).max() > 1e-2
+    moved = dict(inputs, plucker=inputs["plucker"][::-1].copy())
+    camera = pl.sample_latents(ort_runner, **moved, text_emb=pos, neg_text_emb=neg, cfg=cfg)
+    assert np.abs(camera - lat_ort).max() > 1e-4
+
+
+def _request(seed: int = 7, frames: int = T) -> SynthesisRequest:
+    rng = np.random.RandomState(seed)
+    K = Intrinsics.from_fov(60.0, W, H)
+    pts = (rng.rand(400, 3) * [2.0, 2.0, 1.0] + [-1.0, -1.0, 2.0]).astype(np.float32)
+    cols = rng.randint(0, 256, (400, 3), dtype=np.uint8)
+    traj = np.stack([look_at([0.1 * i, 0.0, 0.0], [0.0, 0.0, 2.5]) for i in range(frames)])
+    return SynthesisRequest(image=rng.randint(0, 256, (H, W, 3), dtype=np.uint8), trajectory=traj, intrinsics=K,
+                            cloud_points=pts, cloud_colors=cols, seed=seed)
+
+
+def test_onnx_synthesizer(tiny_export):
+    from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer
+
+    config = SynthesisConfig(num_frames=T, height=H, width=W, steps=2)
+    synth = OnnxSynthesizer(tiny_export[0], config, providers=CPU)
+    assert isinstance(synth, Synthesizer) and synth.backend == "onnx"
+    request = _request()
+    plucker, renders, masks = synth.conditions(request)
+    assert plucker.shape == (T, H, W, 6) and renders.shape == (T, H, W, 3) and masks.any()
+    frames = synth.synthesize(request)
+    assert frames.shape == (T, H, W, 3) and frames.dtype == np.uint8
+    assert np.array_equal(frames, synth.synthesize(request))
+
+
+def test_wrong_frame_count(tiny_export, ort_runner, inputs):
+    from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer
+    from navcrafter.models.synthesis.pipeline import SamplerConfig, SynthesisShapeError, sample_video
+
+    with pytest.raises(SynthesisShapeError, match="synthesis.num_frames"):
+        OnnxSynthesizer(tiny_export[0], SynthesisConfig(num_frames=9, height=H, width=W, steps=2), providers=CPU)
+    synth = OnnxSynthesizer(tiny_export[0], SynthesisConfig(num_frames=T, height=H, width=W, steps=2),
+                            providers=CPU)
+    with pytest.raises(SynthesisShapeError, match="synthesis.num_frames=5"):
+        synth.synthesize(_request(frames=9))
+    nine = {k: np.concatenate([v, v[1:]]) if k != "image" else v for k, v in inputs.items()}
+    pos, neg = ort_runner.text_embeddings()
+    with pytest.raises(SynthesisShapeError, match="exported for num_frames=5"):
+        sample_video(ort_runner, **nine, text_emb=pos, neg_text_emb=neg, cfg=SamplerConfig(steps=2))
+
+
+def test_load_components_from_diffusers_dir(tiny_export, tmp_path):
+    """The checkpoint path: a diffusers-format directory (+ camera-control weights) loads with safetensors,
+    prompts are encoded with UMT5 (zero past the prompt's tokens) and every source file is hashed."""
+    import torch
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast, UMT5Config, UMT5EncoderModel
+
+    from navcrafter.models.synthesis.camcontrol import save_camera_control
+    from navcrafter.models.synthesis.onnx_export import load_components
+
+    tiny = tiny_export[1]
+    base = tmp_path / "wan"
+    tiny.dit.base.save_pretrained(base / "transformer")
+    tiny.vae.save_pretrained(base / "vae")
+    tiny.image_encoder.save_pretrained(base / "image_encoder")
+    torch.manual_seed(0)
+    UMT5EncoderModel(UMT5Config(vocab_size=8, d_model=tiny.dit.base.config.text_dim, d_kv=8, d_ff=16, num_layers=1,
+                                num_heads=2, relative_attention_num_buckets=8)).save_pretrained(base / "text_encoder")
+    tok = Tokenizer(models.WordLevel({"<pad>": 0, "</s>": 1, "<unk>": 2, "a": 3, "room": 4}, unk_token="<unk>"))
+    tok.pre_tokenizer = pre_tokenizers.Whitespace()
+    PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="</s>",
+                            unk_token="<unk>").save_pretrained(base / "tokenizer")
+    save_camera_control(tiny.dit, tmp_path / "control")
+
+    loaded = load_components(base, tmp_path / "control", prompt="a room", negative_prompt="room")
+    for a, b in [(tiny.dit, loaded.dit), (tiny.vae, loaded.vae), (tiny.image_encoder, loaded.image_encoder)]:
+        sa, sb = a.state_dict(), b.state_dict()
+        assert set(sa) == set(sb) and all(torch.equal(sa[k], sb[k]) for k in sa), type(a).__name__
+    emb = loaded.text_embeddings
+    assert emb.shape == (2, 512, tiny.dit.base.config.text_dim)
+    assert np.abs(emb[0, :2]).sum() > 0 and not emb[0, 2:].any() and not emb[1, 1:].any()
+    w = loaded.weights
+    assert w["source"] == "checkpoint" and "transformer/diffusion_pytorch_model.safetensors" in w["files"]
+    assert set(w["control"]["files"]) == {"camera_control.safetensors", "camera_control.json"}
+    with pytest.raises(FileNotFoundError, match="text_encoder"):
+        load_components(tmp_path / "control")

@@ -1,0 +1,141 @@
+"""Cache keys are the contract with every existing store: a key that changes recomputes that step (and
+everything after it) for every scene ever explored. These tests pin every step's key for fixed configs, and
+check that every config field keys some step unless the config declares that it keys nothing.
+
+To change a key on purpose (a step's outputs changed meaning): bump that step's ``version`` in its spec,
+regenerate ``cache_keys.json``
+(``python tests/schemas/test_cache_keys.py > tests/schemas/cache_keys.json``) and say why in the commit."""
+
+from __future__ import annotations
+
+import json
+import typing
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from pydantic import BaseModel, ValidationError
+
+from navcrafter.schemas import layout
+from navcrafter.schemas.config import RunConfig
+from navcrafter.tasks.common import step_key
+
+SCENE = "ab" * 32
+PINNED = Path(__file__).with_name("cache_keys.json")
+BOTH = {"fit.enabled": True, "refine.enabled": True}
+# fields whose change need not change any key (scheduling only: they never change a stored output)
+NOT_KEYING = {"max_parallel_scenes", "gpu_limit"}
+
+
+class _KeyOnlyScene:
+    """Stands in for a store in which every upstream step completed with the key it would get."""
+
+    def __init__(self, config: RunConfig) -> None:
+        self.scene_id, self.config, self.cache = SCENE, config, {}
+
+    def require_complete(self, spec, k=None):
+        return SimpleNamespace(key=self.key(spec.name, k))
+
+    def key(self, name: str, k: int | None) -> str:
+        if (name, k) not in self.cache:
+            self.cache[(name, k)] = step_key(self, layout.STEPS[name], k, self.config)
+        return self.cache[(name, k)]
+
+
+def all_keys(config: RunConfig) -> dict[str, str]:
+    scene = _KeyOnlyScene(config)
+    return {spec.group_path(k): scene.key(name, k) for name, spec in layout.STEPS.items()
+            for k in (range(1, config.iterations + 1) if spec.iterative else [None])}
+
+
+def _model_dir(root: Path) -> Path:
+    for role in ("synthesizer", "geometry", "monodepth", "refiner"):
+        (root / role).mkdir(parents=True, exist_ok=True)
+        (root / role / "manifest.json").write_text(json.dumps({"role": role, "files": {}}))
+    return root
+
+
+def configs(model_dir: Path) -> dict[str, RunConfig]:
+    return {
+        "paper": RunConfig.load(),
+        "paper+fit+refine": RunConfig.load(overrides=BOTH),
+        "tiny": RunConfig.load(preset="tiny"),
+        "tiny+fit": RunConfig.load(preset="tiny", overrides={"fit.enabled": True}),
+        "tiny-orbit-seed7": RunConfig.load(preset="tiny", overrides={"plan.strategy": "orbit", "seed": 7}),
+        "onnx+fit+refine": RunConfig.load(overrides={**BOTH, "backend": "onnx", "model_dir": str(model_dir)}),
+    }
+
+
+def test_every_step_key_is_pinned(tmp_path):
+    pinned = json.loads(PINNED.read_text())
+    got = {name: all_keys(c) for name, c in configs(_model_dir(tmp_path)).items()}
+    assert sorted(got) == sorted(pinned)
+    for name in pinned:
+        changed = {s: (pinned[name].get(s), k) for s, k in got[name].items() if pinned[name].get(s) != k}
+        assert not changed, f"config {name!r}: cache keys changed (existing stores would recompute): {changed}"
+
+
+def _leaves(model: type[BaseModel], prefix: str = ""):
+    for name, f in model.model_fields.items():
+        if isinstance(f.annotation, type) and issubclass(f.annotation, BaseModel):
+            yield from _leaves(f.annotation, f"{prefix}{name}.")
+        else:
+            yield f"{prefix}{name}", f
+
+
+def _other_values(value, field) -> list:
+    if typing.get_origin(field.annotation) is typing.Literal:
+        return [a for a in typing.get_args(field.annotation) if a != value]
+    if isinstance(value, bool):
+        return [not value]
+    if isinstance(value, int):
+        return [value + 1, value - 1]
+    if isinstance(value, float):
+        return [value * 1.5, value * 0.5, value + 0.1] if value else [0.1, 0.5]
+    if isinstance(value, tuple):
+        return [(value[0] + (1 if isinstance(value[0], int) else 0.05), *value[1:]),
+                (value[0] - (1 if isinstance(value[0], int) else 0.05), *value[1:])]
+    if value is None:
+        return [16, "/tmp/navcrafter-elsewhere"]
+    if isinstance(value, str):
+        return ["cpu", value + "-other"]
+    return []
+
+
+def test_every_config_field_keys_some_step(tmp_path):
+    base = RunConfig.load(overrides=BOTH)
+    ref = all_keys(base)
+    unkeyed, untested = [], []
+    for path, field in _leaves(RunConfig):
+        value = base
+        for part in path.split("."):
+            value = getattr(value, part)
+        for other in _other_values(value, field):
+            overrides = {**BOTH, path: other}
+            if path == "backend":
+                overrides["model_dir"] = str(_model_dir(tmp_path / "models"))
+            try:
+                changed = RunConfig.load(overrides=overrides)
+            except (ValidationError, ValueError):
+                continue
+            if all_keys(changed) == ref and path not in NOT_KEYING:
+                unkeyed.append(path)
+            break
+        else:
+            untested.append(path)
+    assert not untested, f"no valid other value found for {untested}: extend _other_values"
+    assert not unkeyed, f"changing {unkeyed} changes no step's cache key: key a step with them or declare them"
+
+
+@pytest.mark.parametrize("path", sorted(NOT_KEYING))
+def test_declared_not_keying_fields_really_key_nothing(path):
+    base = RunConfig.load(overrides=BOTH)
+    other = {"max_parallel_scenes": 5, "gpu_limit": "navcrafter-gpu"}[path]
+    assert all_keys(RunConfig.load(overrides={**BOTH, path: other})) == all_keys(base)
+
+
+if __name__ == "__main__":  # regenerate the pinned keys (only when a change of keys is intended)
+    import tempfile
+
+    print(json.dumps({n: all_keys(c) for n, c in configs(_model_dir(Path(tempfile.mkdtemp()))).items()},
+                     indent=1, sort_keys=True))
