@@ -39,17 +39,18 @@ from pathlib import Path
 
 import numpy as np
 
+from navcrafter.models.gaussians.recipe import continue_training, heldout_metrics, load_lpips
 from navcrafter.models.simulation import LABEL
 from navcrafter.models.simulation.demo import write_demo_collection
 from navcrafter.models.simulation.scenes import KINDS
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import FIT, REFINE
 from navcrafter.schemas.store import Store
+from navcrafter.tasks import steps
 from navcrafter.tasks.common import load_cloud, simulation_truth
-from navcrafter.tasks.fit import fit, load_gaussians
 from navcrafter.tasks.ingest import ingest
-from navcrafter.tasks.pipeline import run_scene
-from navcrafter.tasks.refine import load_refined_gaussians, refine
+from navcrafter.tasks.readers import load_fit_views, load_gaussians, load_refined_gaussians
+from navcrafter.tasks.steps import run_scene
 
 VARIANTS = {
     "none": {"fit.lambda_depth": 0.0, "fit.drop_gamma": 0.0},
@@ -65,7 +66,7 @@ OFF_TRAJECTORY = {"offset": 0.15, "angle_deg": 10.0, "seed": 12345}
 def base_overrides(quick: bool, weights: str | None) -> dict:
     over = {"iterations": 2, "synthesis.num_frames": 17, "synthesis.height": 96, "synthesis.width": 96,
             "fit.resolution": 64, "fit.iterations": 300, "fit.max_init_points": 10_000, "fit.sh_degree": 1,
-            "fit.sh_degree_interval": 100, "fit.refine_start": 50, "fit.refine_every": 25, "fit.refine_stop": 225,
+            "fit.sh_degree_interval": 100, "fit.densify_start": 50, "fit.densify_every": 25, "fit.densify_stop": 225,
             "fit.reset_every": 0, "fit.max_gaussians": 15_000, "fit.lr_means": 1.6e-3, "fit.lr_means_final": 1.6e-5,
             "refine.iterations": 150}
     if quick:
@@ -108,13 +109,11 @@ def off_trajectory_psnr(scene, model, cams) -> tuple[float, float]:
 def longer_fit(scene, cfg: RunConfig) -> tuple[dict, object]:
     """The control of the refine variant: the fitted model trained as many more iterations as the refine step
     does, with the same settings, on the real training views only. (attrs with psnr/ssim/lpips, model)."""
-    from navcrafter.tasks.fit import heldout_metrics, load_fit_views, load_lpips
-    from navcrafter.tasks.refine import continue_training
-
     train, test = load_fit_views(scene)
     fa = scene.status(FIT).attrs
-    lpips_model, _ = load_lpips(cfg)
-    trainer, result = continue_training(load_gaussians(scene), train, cfg, 0, float(fa["scene_scale"]), lpips_model)
+    lpips_model, _ = load_lpips(cfg.evaluation)
+    trainer, result = continue_training(load_gaussians(scene), train, cfg.fit, cfg.refine, 0, float(fa["scene_scale"]),
+                                        lpips_model)
     rgb, _ = trainer.evaluate(test)
     gt = np.stack([v.image.numpy() for v in test]).astype(np.float64)
     return {**heldout_metrics(rgb, gt, lpips_model), "n_gaussians": len(result.model)}, result.model
@@ -143,11 +142,11 @@ def run(out: Path, quick: bool, seeds: int, kinds: tuple[str, ...], weights: str
                 cfg = RunConfig.load(preset="tiny" if quick else "paper",
                                      overrides={**base, "fit.enabled": True, **over})
                 t0 = time.perf_counter()
-                fit(store, res.scene_id, cfg, "bench")  # skipped when the previous variant fitted the same
+                steps.run(store, res.scene_id, "fit", cfg, "bench")  # skipped when the previous variant fitted the same
                 if control:
                     a, model = longer_fit(scene, cfg)
                 elif cfg.refine.enabled:
-                    refine(store, res.scene_id, cfg, "bench")
+                    steps.run(store, res.scene_id, "refine", cfg, "bench")
                     a, model = scene.status(REFINE).attrs, load_refined_gaussians(scene)
                 else:
                     a, model = scene.status(FIT).attrs, load_gaussians(scene)

@@ -20,7 +20,6 @@ renderer on CUDA vs gsplat on one view of the fit scene. Writes ``results.json``
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import platform
@@ -33,7 +32,8 @@ import torch
 
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.renderer import INSTALL_HINT, gsplat_available, rasterize
-from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView
+from navcrafter.models.gaussians.train import GaussianTrainer, TrainView
+from navcrafter.schemas.config import FitConfig
 
 DEVICE = "cuda"  # module-level so that the script's logic can be dry-run elsewhere (never changed by main)
 
@@ -168,11 +168,11 @@ def run(args) -> dict:
     first_call = time.perf_counter() - t0  # includes gsplat's JIT build when its cache is cold
 
     truth, init, views = synthetic_scene(args.gaussians, args.size, args.views)
-    cfg = TrainConfig(iterations=args.iterations, sh_degree=1, sh_degree_interval=max(args.iterations // 4, 1),
-                      lambda_lpips=0.0, lambda_depth=0.1, drop_gamma=0.1, densify=args.densify,
-                      refine_start=args.iterations // 5, refine_every=max(args.iterations // 10, 1),
-                      refine_stop=int(args.iterations * 0.8), reset_every=0, max_gaussians=2 * args.gaussians,
-                      lr_means=1.6e-4, lr_means_final=1.6e-6, device=DEVICE, renderer="gsplat")
+    cfg = FitConfig(iterations=args.iterations, sh_degree=1, sh_degree_interval=max(args.iterations // 4, 1),
+                    lambda_lpips=0.0, lambda_depth=0.1, drop_gamma=0.1, densify=args.densify,
+                    densify_start=args.iterations // 5, densify_every=max(args.iterations // 10, 1),
+                    densify_stop=int(args.iterations * 0.8), reset_every=0, max_gaussians=2 * args.gaussians,
+                    lr_means=1.6e-4, lr_means_final=1.6e-6, device=DEVICE, renderer="gsplat")
     trainer = GaussianTrainer(init, views, cfg, scene_scale=4.5)
     psnr0 = psnr(trainer, views)
     warmup = min(10, args.iterations)
@@ -186,7 +186,8 @@ def run(args) -> dict:
     torch_row = None
     if args.torch_iterations > 0:
         _peak_gib(reset=True)
-        tt = GaussianTrainer(init, views, dataclasses.replace(cfg, renderer="torch", densify=False), scene_scale=4.5)
+        torch_cfg = cfg.model_copy(update={"renderer": "torch", "densify": False})
+        tt = GaussianTrainer(init, views, torch_cfg, scene_scale=4.5)
         time_steps(tt, 0, 2)
         s = time_steps(tt, 2, args.torch_iterations)
         torch_row = {"iterations": args.torch_iterations, "seconds": s, "its_per_s": args.torch_iterations / s,

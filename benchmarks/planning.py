@@ -32,7 +32,6 @@ import numpy as np
 from navcrafter.models.camera.cameras import Intrinsics, look_at, unproject_depth
 from navcrafter.models.planning.planners import (
     CollisionDetector,
-    PlannerConfig,
     PlanningState,
     SeenView,
     ViewCrafterPlanner,
@@ -40,6 +39,7 @@ from navcrafter.models.planning.planners import (
     optimise_trajectory,
     planning_cloud,
     sample_candidates,
+    search_space,
 )
 from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.models.simulation import LABEL
@@ -47,12 +47,12 @@ from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.models.simulation.demo import write_demo_collection
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import KINDS, generate_scene
-from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.config import PlanConfig, RunConfig
 from navcrafter.schemas.layout import GEOMETRY
 from navcrafter.schemas.store import Store
 from navcrafter.tasks.ingest import ingest
-from navcrafter.tasks.pipeline import run_scene
 from navcrafter.tasks.scene_metrics import evaluate_scene
+from navcrafter.tasks.steps import run_scene
 
 PLANNERS = ("viewcrafter", "collision_aware")
 LABELS = {"viewcrafter": "ViewCrafter-style (baseline)", "collision_aware": "Collision-aware (ours)"}
@@ -139,7 +139,7 @@ def colliding_path(det: CollisionDetector, centre: np.ndarray, extent: float, nu
 def timing(repeats: int = 3) -> dict:
     """K=9 candidates, 256^2 masks, and a forced trajectory optimisation (T=81) per iteration."""
     out = {}
-    cfg = PlannerConfig(num_candidates=9)
+    cfg = PlanConfig(num_candidates=9)
     # room: a dense indoor cloud; street: 1M points over tens of metres (few points share a voxel)
     for name, kind, spread, depth in (("room_1M", "room", 25.0, 4.0), ("street_1M", "street", 40.0, 15.0)):
         cloud, views, fov = scene_cloud(kind, views_n=9, spread_deg=spread)
@@ -153,7 +153,7 @@ def timing(repeats: int = 3) -> dict:
             det = CollisionDetector(pts, cfg.safe_radius, views, thin=False)
             t1 = time.perf_counter()
             t2 = time.perf_counter()
-            cands = sample_candidates(state.current, state.centre, state.d0, cfg.space, 9,
+            cands = sample_candidates(state.current, state.centre, state.d0, search_space(cfg), 9,
                                       np.random.default_rng(rep))
             det.collides(cands[:, :3, 3])
             for c2w in cands:  # all nine masks, colliding or not: the upper bound

@@ -11,8 +11,6 @@
 
 from __future__ import annotations
 
-import functools
-import inspect
 import uuid
 from dataclasses import dataclass, field
 from pathlib import PurePath
@@ -26,11 +24,10 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from navcrafter.flows import dashboard, dispatch
 from navcrafter.models.backends import onnx_problems
 from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import STEPS, StepSpec
 from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
-from navcrafter.tasks import export, fit, geometry, ingest, lift, plan, refine, synthesize
-from navcrafter.tasks import scene_metrics as evaluate
+from navcrafter.tasks import ingest, steps
 from navcrafter.tasks.common import StepError, logger, open_store
-from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import (
     SceneResult,
     manifest_rows_for,
@@ -40,6 +37,7 @@ from navcrafter.tasks.report import (
     write_manifest,
     write_summary,
 )
+from navcrafter.tasks.steps import scene_steps
 
 TRANSIENT = (OSError, TimeoutError, ConnectionError, StoreUnavailable)
 
@@ -99,34 +97,34 @@ _SOURCE = {"retries": 2, "retry_delay_seconds": [2, 10], "retry_condition_fn": _
 _STEP = {**_SOURCE, "task_run_name": _step_run_name}
 identify_task = task(ingest.identify, name="identify", task_run_name=_source_run_name("identify"), **_SOURCE)
 ingest_task = task(ingest.ingest, name="ingest", task_run_name=_source_run_name("ingest"), **_SOURCE)
-# Steps that run learned models occupy one slot of the Prefect global concurrency limit named by
+# Steps whose spec says ``gpu`` occupy one slot of the Prefect global concurrency limit named by
 # `config.gpu_limit` (e.g. `prefect gcl create navcrafter-gpu --limit <number of GPUs>`), which bounds
 # how many run at once across all flows and workers. Planning, export and evaluation are CPU work and
 # stay unbounded. No limit configured: no API call at all (a Prefect *tag* would cost one per task run,
 # whether or not a limit exists: ~0.5 s per step on a busy server, measured).
-def _gpu_bound(fn):
-    signature = inspect.signature(fn)
-
-    @functools.wraps(fn)
-    def run(*args, **kwargs):
-        limit = signature.bind(*args, **kwargs).arguments["config"].gpu_limit
-        if limit is None:
-            return fn(*args, **kwargs)
-        with concurrency(limit, occupy=1, strict=True):
-            return fn(*args, **kwargs)
-    return run
+def in_gpu_slot(spec: StepSpec, config: RunConfig, call):
+    """``call()``, inside a slot of ``config.gpu_limit`` when the step holds one (``spec.gpu``)."""
+    if spec.gpu and config.gpu_limit is not None:
+        with concurrency(config.gpu_limit, occupy=1, strict=True):
+            return call()
+    return call()
 
 
-STEP_TASKS = {  # Prefect tasks by step name (the order of steps is tasks.pipeline.scene_steps)
-    "geometry": task(_gpu_bound(geometry.initial_geometry), name="geometry", **_STEP),
-    "plan": task(plan.plan, name="plan", **_STEP),
-    "synthesize": task(_gpu_bound(synthesize.synthesize), name="synthesize", **_STEP),
-    "lift": task(_gpu_bound(lift.lift), name="lift", **_STEP),
-    "fit": task(_gpu_bound(fit.fit), name="fit", **_STEP),
-    "refine": task(_gpu_bound(refine.refine), name="refine", **_STEP),
-    "export": task(export.export, name="export", **_STEP),
-}
-evaluate_task = task(evaluate.evaluate_scene, name="evaluate", **_STEP)
+def _step_task(spec: StepSpec):
+    """The Prefect task of a step, derived from its spec: runs ``tasks.steps.run`` (or ``run_attrs`` for a step
+    whose result is its attributes), inside a GPU slot when the spec says so."""
+
+    def run(store_uri: str, scene_id: str, config: RunConfig, run_id: str, k: int | None = None):
+        if spec.stage == "scene":
+            return in_gpu_slot(spec, config, lambda: steps.run(store_uri, scene_id, spec.name, config, run_id, k))
+        return in_gpu_slot(spec, config, lambda: steps.run_attrs(store_uri, scene_id, spec.name, config, run_id))
+
+    run.__name__ = run.__qualname__ = spec.name
+    run.__doc__ = spec.doc
+    return task(run, name=spec.name, **_STEP)
+
+
+STEP_TASKS = {name: _step_task(spec) for name, spec in STEPS.items() if spec.stage in ("scene", "report")}
 
 
 def publish_plan_artifact(store: str, scene_id: str, k: int) -> None:
@@ -143,21 +141,22 @@ def publish_plan_artifact(store: str, scene_id: str, k: int) -> None:
 
 
 def preflight(config: RunConfig) -> list[str]:
-    """What the configuration asks for that is not built yet or cannot work (checked before any work starts)."""
+    """What the configuration asks for that cannot work here, checked before any work starts (rules between
+    config fields are the config's own validator, ``RunConfig._check``): the onnx model directory, and that a
+    named ``gpu_limit`` exists on the Prefect server."""
     problems = []
     if config.backend == "onnx":
         problems.extend(onnx_problems(config))
-    if config.fit.enabled and config.iterations < 1:
-        problems.append("fit.enabled needs iterations >= 1: the Gaussians are fitted to the synthesized frames")
-    if config.refine.enabled and not config.fit.enabled:
-        problems.append("refine.enabled needs fit.enabled: the refine step starts from the fitted Gaussians")
+    problem = gpu_limit_problem(config)
+    if problem:
+        problems.append(problem)
     return problems
 
 
-def check_gpu_limit(config: RunConfig) -> None:
+def gpu_limit_problem(config: RunConfig) -> str | None:
     """A named GPU limit must exist on the server (a typo would otherwise fail every model step)."""
     if config.gpu_limit is None:
-        return
+        return None
     from prefect.client.orchestration import get_client
     from prefect.exceptions import ObjectNotFound
 
@@ -165,10 +164,17 @@ def check_gpu_limit(config: RunConfig) -> None:
         try:
             client.read_global_concurrency_limit_by_name(config.gpu_limit)
         except ObjectNotFound:
-            raise ValueError(
-                f"gpu_limit {config.gpu_limit!r} names no global concurrency limit on the Prefect server; "
-                f"create it with `prefect gcl create {config.gpu_limit} --limit <number of GPUs>` "
-                "or unset gpu_limit") from None
+            return (f"gpu_limit {config.gpu_limit!r} names no global concurrency limit on the Prefect server; "
+                    f"create it with `prefect gcl create {config.gpu_limit} --limit <number of GPUs>` "
+                    "or unset gpu_limit")
+    return None
+
+
+def check_gpu_limit(config: RunConfig) -> None:
+    """``gpu_limit_problem`` as an error (for callers that check one config before submitting)."""
+    problem = gpu_limit_problem(config)
+    if problem:
+        raise ValueError(problem)
 
 
 @dataclass
@@ -201,12 +207,11 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     failure: Exception | None = None
     try:
         for step in steps:
-            STEP_TASKS[step.spec.name](store_uri=store, scene_id=scene_id, config=config, run_id=run_id,
-                                       **step.kwargs())
+            STEP_TASKS[step.spec.name](store, scene_id, config, run_id, **step.kwargs())
             progress.advance()
             if step.spec.name == "plan":
                 publish_plan_artifact(store, scene_id, step.k)
-        metrics = evaluate_task(store, scene_id, config, run_id)
+        metrics = {k: float(v) for k, v in STEP_TASKS["evaluate"](store, scene_id, config, run_id)["metrics"].items()}
         progress.advance()
     except Exception as exc:  # recorded, then raised so that the flow run shows as failed
         failure = exc
@@ -255,7 +260,7 @@ def explore_collection(photos: str, store: str, config: RunConfig,
     """
     problems = preflight(config)
     if problems:
-        raise NotImplementedError(" ".join(problems))
+        raise ValueError(" ".join(problems))
     if scene_deployment:
         dispatch.check_scene_deployment(scene_deployment)
     run_id = str(flow_run.id or uuid.uuid4().hex)

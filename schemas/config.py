@@ -8,10 +8,8 @@ the part of the config it reads (``RunConfig.step_config``). Defaults follow the
 
 from __future__ import annotations
 
-import hashlib
-import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -48,7 +46,13 @@ class SynthesisConfig(_Section):
     steps: int = Field(40, ge=1, description="DPM-solver steps (onnx backend).")
     guidance_scale: float = Field(6.5, description="Classifier-free guidance scale (onnx backend).")
     lora_scale: float = Field(0.7, description="Camera LoRA weight alpha at inference (onnx backend).")
+    flow_shift: float | None = Field(
+        None, gt=0, description="Shift of the flow-matching sigmas (onnx backend); None: the exported model's own "
+        "scheduler setting (its manifest), else 3.0 (Wan2.1's).")
     fps: int = Field(16, ge=1, description="Frame rate of exported videos (Wan2.1 native rate).")
+
+    # added after stores existed: keys the synthesize step only when set (schemas.keys)
+    keyed_when_set: ClassVar[dict[str, Any]] = {"flow_shift": None}
 
 
 class PlanConfig(_Section):
@@ -169,9 +173,9 @@ class FitConfig(_Section):
     grow_scale3d: float = Field(0.01, gt=0, description="Clone below, split above this size x scene scale.")
     prune_opa: float = Field(0.005, gt=0, lt=0.5, description="Prune Gaussians less opaque than this.")
     prune_scale3d: float = Field(0.1, gt=0, description="Prune Gaussians larger than this x scene scale.")
-    refine_start: int = Field(500, ge=0)
-    refine_stop: int = Field(15_000, ge=0)
-    refine_every: int = Field(100, ge=1)
+    densify_start: int = Field(500, ge=0, description="First iteration of density control (gsplat: refine_start_iter).")
+    densify_stop: int = Field(15_000, ge=0, description="Density control stops at this iteration (refine_stop_iter).")
+    densify_every: int = Field(100, ge=1, description="Iterations between density-control steps (refine_every).")
     reset_every: int = Field(3000, ge=0, description="Opacity reset period (0: never).")
     max_gaussians: int = Field(1_000_000, ge=1, description="Densification never grows the model beyond this.")
     device: str = Field(
@@ -181,6 +185,21 @@ class FitConfig(_Section):
         "auto", description="Rasterizer: 'auto' (gsplat on CUDA when it is installed, else navcrafter's PyTorch "
         "renderer), 'torch', or 'gsplat' (CUDA only; `pip install navcrafter[cuda]`). gsplat clamps alpha at 0.999 "
         "(ours 0.99) and is not bit-reproducible.")
+
+    # the density-control fields were called refine_* (gsplat's names) when the first stores were written;
+    # cache keys keep those names (schemas.keys), so that renaming them recomputes nothing
+    key_names: ClassVar[dict[str, str]] = {"densify_start": "refine_start", "densify_stop": "refine_stop",
+                                           "densify_every": "refine_every"}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for new, old in cls.key_names.items():
+                if old in data:
+                    raise ValueError(f"fit.{old} was renamed fit.{new} (density control; 'refine' is the refine "
+                                     f"step): write fit.{new}")
+        return data
 
 
 class RefineConfig(_Section):
@@ -278,57 +297,41 @@ class RunConfig(BaseModel):
     def _expand(cls, v: Path | None) -> Path | None:
         return None if v is None else Path(v).expanduser()
 
+    # fields that change no stored output (scheduling only): the only ones that key no step
+    # (tests/schemas/test_cache_keys.py checks every other field keys some step)
+    NOT_KEYING: ClassVar[dict[str, str]] = {
+        "max_parallel_scenes": "how many scenes run at once", "gpu_limit": "which concurrency limit steps wait on"}
+
     @model_validator(mode="after")
-    def _check_backend(self) -> RunConfig:
+    def _check(self) -> RunConfig:
+        """Every rule between sections, in one place (checked whenever a config is made or loaded)."""
+        problems = []
         if self.backend == "onnx" and self.model_dir is None:
-            raise ValueError("backend 'onnx' needs model_dir (a directory of exported ONNX models)")
+            problems.append("backend 'onnx' needs model_dir, a directory of exported ONNX models: pass "
+                            "`--models DIR` (or model_dir in the config file); `navcrafter models export-all DIR` "
+                            "writes one (random weights), `navcrafter models export-synthesizer/-geometry/"
+                            "-monodepth/-refiner` export each model")
+        if self.fit.enabled and self.iterations < 1:
+            problems.append("fit.enabled needs iterations >= 1: the Gaussians are fitted to the synthesized frames")
+        if self.refine.enabled and not self.fit.enabled:
+            problems.append("refine.enabled needs fit.enabled: the refine step starts from the fitted Gaussians")
+        if problems:
+            raise ValueError("; ".join(problems))
         return self
 
     # -- hashing ---------------------------------------------------------------------------------
     def step_config(self, step: str) -> dict[str, Any]:
-        """The part of the config that a step's output depends on (feeds its cache key)."""
-        common = {"backend": self.backend, "model_dir": str(self.model_dir) if self.model_dir else None,
-                  "seed": self.seed}
-        if self.backend == "onnx" and self.model_dir is not None:
-            common["models"] = _model_versions(Path(self.model_dir))
-            common["model_dir"] = None  # the models' identity is their manifests, not where they lie
-        # the refiner stand-in's settings only matter to the refine step: changing them keeps the other caches
-        sim_all = self.simulation.model_dump(mode="json") if self.backend == "simulation" else None
-        sim = ({k: v for k, v in sim_all.items() if not k.startswith("refine_")} if sim_all is not None else None)
-        parts: dict[str, dict[str, Any]] = {
-            "ingest": {"ingest": self.ingest.model_dump(mode="json"),
-                       "resolution": [self.synthesis.height, self.synthesis.width]},
-            "geometry": {**common, "simulation": sim,  # the first cloud is filtered and fused like lifts
-                         "lift": self.lift.model_dump(mode="json", include={"pixel_stride", "confidence_threshold",
-                                                                            "voxel_size", "max_depth"})},
-            "plan": {**common, "plan": self.plan.model_dump(mode="json"),
-                     "frames": [self.synthesis.num_frames, self.synthesis.height, self.synthesis.width],
-                     "point_size": self.lift.voxel_size},
-            "synthesize": {**common, "synthesis": self.synthesis.model_dump(mode="json"),
-                           "simulation": sim},
-            "lift": {**common, "lift": self.lift.model_dump(mode="json"), "simulation": sim},
-            "fit": {**common, "fit": self.fit.model_dump(mode="json"), "simulation": sim,
-                    "lpips": self.evaluation.model_dump(mode="json", include={"lpips_net", "weights_dir"})},
-            "refine": {**common, **({"models": _model_versions(Path(self.model_dir), (
-                           "synthesizer", "geometry", "monodepth", "refiner"))} if "models" in common else {}),
-                       "refine": self.refine.model_dump(mode="json"), "simulation": sim_all,
-                       "fit": self.fit.model_dump(mode="json", include={"device", "renderer", "lr_means_final",
-                                                                         "lr_quats", "lr_scales", "lr_opacities",
-                                                                         "lr_sh0", "lr_shN", "lambda_depth",
-                                                                         "drop_gamma", "sh_degree"}),
-                       "lpips": self.evaluation.model_dump(mode="json", include={"lpips_net", "weights_dir"})},
-            "export": {"fps": self.synthesis.fps, "iterations": self.iterations,
-                       **({"fit": True} if self.fit.enabled else {}),
-                       **({"refine": True} if self.fit.enabled and self.refine.enabled else {})},
-            "evaluate": {"backend": self.backend, "plan": self.plan.model_dump(mode="json"),
-                         "iterations": self.iterations, "outputs": 2},  # 2: attrs record the iterations
-            "score": {"backend": self.backend, "evaluation": self.evaluation.model_dump(mode="json")},
-        }
-        if step not in parts:
-            raise KeyError(f"unknown step {step!r}; known: {sorted(parts)}")
-        return parts[step]
+        """The part of the config that a step's output depends on (``schemas.keys.step_config``)."""
+        from navcrafter.schemas.keys import step_config
+        from navcrafter.schemas.layout import STEPS
+
+        if step not in STEPS:
+            raise KeyError(f"unknown step {step!r}; known: {sorted(STEPS)}")
+        return step_config(STEPS[step], self)
 
     def config_hash(self) -> str:
+        from navcrafter.schemas.keys import stable_hash
+
         return stable_hash(self.model_dump(mode="json"))
 
     # -- loading ---------------------------------------------------------------------------------
@@ -350,12 +353,6 @@ class RunConfig(BaseModel):
         return cls.model_validate(data)
 
 
-def stable_hash(obj: Any, length: int = 16) -> str:
-    """sha256 of canonical JSON, truncated: stable across processes and Python versions."""
-    blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:length]
-
-
 def _paper() -> dict[str, Any]:
     return {}
 
@@ -366,8 +363,8 @@ def _tiny() -> dict[str, Any]:
         "synthesis": {"num_frames": 9, "height": 64, "width": 64},
         "lift": {"max_views": 4, "pixel_stride": 1, "voxel_size": 0.03},
         "fit": {"iterations": 40, "resolution": 32, "max_init_points": 3000, "sh_degree": 1,
-                "sh_degree_interval": 20, "lr_means": 1.6e-3, "lr_means_final": 1.6e-4, "refine_start": 10,
-                "refine_every": 10, "refine_stop": 30, "reset_every": 0, "max_gaussians": 4000},
+                "sh_degree_interval": 20, "lr_means": 1.6e-3, "lr_means_final": 1.6e-4, "densify_start": 10,
+                "densify_every": 10, "densify_stop": 30, "reset_every": 0, "max_gaussians": 4000},
     }
 
 
@@ -391,16 +388,3 @@ def _dotted_to_nested(dotted: str, value: Any) -> dict[str, Any]:
     for k in reversed(keys[:-1]):
         nested = {k: nested}
     return nested
-
-
-def _model_versions(model_dir: Path, roles: tuple[str, ...] = ("synthesizer", "geometry", "monodepth")
-                    ) -> dict[str, str]:
-    """sha256 of each exported model's manifest (which holds every file's checksum): a step's cache key
-    changes when its model is re-exported, not when the directory is moved. The refiner counts only for the
-    refine step (exporting one later does not invalidate the steps before it)."""
-    out = {}
-    for role in roles:
-        f = model_dir / role / "manifest.json"
-        if f.is_file():
-            out[role] = hashlib.sha256(f.read_bytes()).hexdigest()[:16]
-    return out

@@ -32,6 +32,13 @@ Scene tree::
 
 The scene cloud after iteration k is the ``cloud_*`` arrays of ``iter_k/lift`` (``iter_0/geometry`` for
 k = 0): each step carries the cumulative cloud it produced, so resuming never needs a separate merge.
+
+Each step is declared once, here, by its ``StepSpec``: what it writes (arrays, attrs), what it reads
+(``reads``: the upstream steps whose keys enter its cache key), which config keys it (``keyed_by``, see
+``schemas.keys``), whether it holds a GPU slot (``gpu``), when it runs (``stage``, ``runs_if``), its output
+version (``version``) and where its body lives (``body``: a plain function over a ``tasks.steps.StepContext``).
+Dependencies, cache keys, the order of a scene's steps and the Prefect tasks are derived from these specs
+(``schemas.keys``, ``tasks.steps``, ``flows.explore``).
 """
 
 from __future__ import annotations
@@ -67,6 +74,39 @@ class ArraySpec:
 
 
 @dataclass(frozen=True)
+class Read:
+    """An upstream output a step reads; its key enters the reader's cache key (in declaration order).
+
+    ``step``: a step name, or ``"cloud"`` (the step holding the scene cloud after an iteration: ``geometry``
+    after 0, ``lift`` after k). ``at``: ``None`` for a non-iterative step; ``"k"`` / ``"k-1"`` for the reader's
+    own / the previous iteration; ``"each"`` for iterations 1..N, the steps of ``also`` interleaved per iteration.
+    ``otherwise``: the step read instead when ``at`` falls on iteration 0. ``if_runs``: read only when that
+    step runs in this config (``StepSpec.runs_if``)."""
+
+    step: str
+    at: str | None = None
+    otherwise: str | None = None
+    also: tuple[str, ...] = ()
+    if_runs: str | None = None
+
+
+@dataclass(frozen=True)
+class Key:
+    """One entry of a step's cache-key config (``schemas.keys.step_config``): ``name`` -> the value at the
+    dotted config ``path`` (a tuple of paths: the list of their values). A whole section is dumped as JSON
+    (``include``: only these fields; ``drop_prefix``: without the fields starting with it). ``simulation_only``:
+    the entry is ``None`` unless the backend is the simulation; ``if_true``: present (as ``True``) only when the
+    value is true."""
+
+    name: str
+    path: str | tuple[str, ...]
+    include: tuple[str, ...] | None = None
+    drop_prefix: str | None = None
+    simulation_only: bool = False
+    if_true: bool = False
+
+
+@dataclass(frozen=True)
 class StepSpec:
     name: str
     path: str  # may contain "{k}"
@@ -75,6 +115,17 @@ class StepSpec:
     attrs: tuple[str, ...] = ()
     iterative: bool = False
     extra: dict[str, str] = field(default_factory=dict)
+    # -- how the step runs (derived from these: dependencies, cache keys, order, Prefect tasks) -------------
+    body: str = ""  # "module:function" under navcrafter.tasks: the step's body, ``fn(ctx: StepContext) -> attrs``
+    reads: tuple[Read, ...] = ()
+    keyed_by: tuple[Key, ...] = ()
+    # model roles whose exported versions key the step (onnx backend), with backend, model_dir and seed;
+    # None: the step is keyed by none of them
+    models: tuple[str, ...] | None = None
+    gpu: bool = False  # holds a slot of the ``gpu_limit`` concurrency limit while it runs
+    stage: str = "scene"  # "ingest" (per file), "scene" (a scene run, in order), "report" (after a scene run)
+    runs_if: str | None = None  # a dotted boolean config field: the step runs only when it is true
+    version: int = 1  # bump when the outputs change meaning; versions > 1 enter the key (as "outputs")
 
     def group_path(self, k: int | None = None) -> str:
         if self.iterative:
@@ -100,6 +151,11 @@ def _cloud() -> tuple[ArraySpec, ...]:
     )
 
 
+MODEL_ROLES = ("synthesizer", "geometry", "monodepth")  # the roles a scene's models come from (onnx backend)
+_SIM = Key("simulation", "simulation", drop_prefix="refine_", simulation_only=True)  # refiner stand-in: refine only
+_LPIPS = Key("lpips", "evaluation", include=("lpips_net", "weights_dir"))
+_EACH_ITERATION = Read("plan", at="each", also=("synthesize", "lift"))
+
 INGEST = StepSpec(
     "ingest", "input",
     "The validated, normalised input photo and the working image the models see.",
@@ -112,6 +168,8 @@ INGEST = StepSpec(
     attrs=("source", "sha256", "original_size", "original_mode", "exif_orientation", "crop_box",
            "normalised_size", "work_size"),
     extra={"simulation_truth": "optional: hidden ground-truth record of demo images (simulation mode)"},
+    body="ingest:ingest_body", stage="ingest",
+    keyed_by=(Key("ingest", "ingest"), Key("resolution", ("synthesis.height", "synthesis.width"))),
 )
 
 GEOMETRY = StepSpec(
@@ -126,6 +184,10 @@ GEOMETRY = StepSpec(
     ),
     attrs=("n_points",),
     extra={"simulation_world_scale": "simulation only: world units per metre (hidden truth)"},
+    body="geometry:initial_geometry", gpu=True, models=MODEL_ROLES,
+    reads=(Read("ingest"),),
+    # the first cloud is filtered and fused like the lifts' clouds
+    keyed_by=(_SIM, Key("lift", "lift", include=("pixel_stride", "confidence_threshold", "voxel_size", "max_depth"))),
 )
 
 PLAN = StepSpec(
@@ -148,6 +210,10 @@ PLAN = StepSpec(
     attrs=("strategy", "chosen"),
     iterative=True,
     extra={"topdown.png": "file: top-down plot of cloud, candidates and trajectories"},
+    body="plan:plan", models=MODEL_ROLES,
+    reads=(Read("cloud", at="k-1"), Read("plan", at="k-1", otherwise="geometry")),
+    keyed_by=(Key("plan", "plan"), Key("frames", ("synthesis.num_frames", "synthesis.height", "synthesis.width")),
+              Key("point_size", "lift.voxel_size")),
 )
 
 SYNTHESIZE = StepSpec(
@@ -155,6 +221,9 @@ SYNTHESIZE = StepSpec(
     "The video clip synthesized along the trajectory of iteration k.",
     arrays=(ArraySpec("frames", "uint8", ("T", "H", "W", 3), (1, "H", "W", 3), "RGB frames"),),
     iterative=True,
+    body="synthesize:synthesize", gpu=True, models=MODEL_ROLES,
+    reads=(Read("ingest"), Read("plan", at="k"), Read("cloud", at="k-1")),
+    keyed_by=(Key("synthesis", "synthesis"), _SIM),
 )
 
 LIFT = StepSpec(
@@ -170,6 +239,9 @@ LIFT = StepSpec(
     ),
     attrs=("scale", "n_new_points", "n_points"),
     iterative=True,
+    body="lift:lift", gpu=True, models=MODEL_ROLES,
+    reads=(Read("ingest"), Read("geometry"), Read("plan", at="k"), Read("synthesize", at="k"), Read("cloud", at="k-1")),
+    keyed_by=(Key("lift", "lift"), _SIM),
 )
 
 FIT = StepSpec(
@@ -203,6 +275,9 @@ FIT = StepSpec(
     ),
     attrs=("n_gaussians", "sh_degree", "resolution", "holdout_every", "n_train", "n_holdout", "psnr", "ssim",
            "lpips", "lpips_note", "init_psnr", "scene_scale", "train_seconds", "final_loss"),
+    body="fit:fit", gpu=True, models=MODEL_ROLES, runs_if="fit.enabled",
+    reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION),
+    keyed_by=(Key("fit", "fit"), _SIM, _LPIPS),
 )
 
 REFINE = StepSpec(
@@ -230,12 +305,24 @@ REFINE = StepSpec(
     ),
     attrs=("psnr", "ssim", "lpips", "psnr_before", "ssim_before", "n_views", "n_gaussians", "refiner",
            "train_seconds"),
+    body="refine:refine", gpu=True, models=(*MODEL_ROLES, "refiner"), runs_if="refine.enabled",
+    reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION, Read("fit")),
+    keyed_by=(Key("refine", "refine"), Key("simulation", "simulation", simulation_only=True),
+              Key("fit", "fit", include=("device", "renderer", "lr_means_final", "lr_quats", "lr_scales",
+                                         "lr_opacities", "lr_sh0", "lr_shN", "lambda_depth", "drop_gamma",
+                                         "sh_degree")),
+              _LPIPS),
 )
 
 EXPORT = StepSpec(
     "export", "exports",
     "User-facing files, stored beside the group's zarr.json; attrs list them with checksums.",
     attrs=("files",),
+    body="export:export",
+    reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION, Read("fit", if_runs="fit"),
+           Read("refine", if_runs="refine")),
+    keyed_by=(Key("fps", "synthesis.fps"), Key("iterations", "iterations"), Key("fit", "fit.enabled", if_true=True),
+              Key("refine", "refine.enabled", if_true=True)),
 )
 
 EVALUATE = StepSpec(
@@ -243,6 +330,9 @@ EVALUATE = StepSpec(
     "Scene metrics (tasks/scene_metrics.py), kept so that a rerun does not recompute them; also appended "
     "to the metrics table.",
     attrs=("metrics", "iterations"),
+    body="scene_metrics:evaluate", stage="report", version=2,  # 2: attrs record the iterations
+    reads=(Read("export"),),  # the export's key covers every step before it
+    keyed_by=(Key("backend", "backend"), Key("plan", "plan"), Key("iterations", "iterations")),
 )
 
 SCORE = StepSpec(
@@ -250,6 +340,9 @@ SCORE = StepSpec(
     "One scene's rows of the evaluation suite (navcrafter evaluate): image metrics, camera guidance "
     "(COLMAP), runtime, geometry; rows in the schema of the evaluations table, kept in attrs.",
     attrs=("rows",),
+    body="score:score", stage="suite",
+    reads=(Read("evaluate"),),
+    keyed_by=(Key("backend", "backend"), Key("evaluation", "evaluation")),
 )
 
 STEPS: dict[str, StepSpec] = {s.name: s for s in (INGEST, GEOMETRY, PLAN, SYNTHESIZE, LIFT, FIT, REFINE, EXPORT,
@@ -265,34 +358,6 @@ def cloud_step(k: int) -> tuple[StepSpec, int | None]:
     return (GEOMETRY, None) if k == 0 else (LIFT, k)
 
 
-def dependencies(step: str, k: int | None, iterations: int, fit: bool = False,
-                 refine: bool = False) -> list[tuple[StepSpec, int | None]]:
-    """Upstream steps whose outputs a step reads (their keys enter its cache key); ``fit`` / ``refine``: whether
-    the fit / refine steps run (the export then reads them)."""
-    if step == "ingest":
-        return []
-    if step == "geometry":
-        return [(INGEST, None)]
-    if step == "plan":
-        deps = [cloud_step(k - 1)]
-        return deps + ([(PLAN, k - 1)] if k and k > 1 else [(GEOMETRY, None)])
-    if step == "synthesize":
-        return [(INGEST, None), (PLAN, k), cloud_step(k - 1)]
-    if step == "lift":
-        return [(INGEST, None), (GEOMETRY, None), (PLAN, k), (SYNTHESIZE, k), cloud_step(k - 1)]
-    if step in ("fit", "refine", "export"):
-        deps: list[tuple[StepSpec, int | None]] = [(INGEST, None), (GEOMETRY, None)]
-        for i in range(1, iterations + 1):
-            deps += [(PLAN, i), (SYNTHESIZE, i), (LIFT, i)]
-        if step == "refine":
-            return deps + [(FIT, None)]
-        if step == "export" and fit:
-            deps.append((FIT, None))
-            if refine:
-                deps.append((REFINE, None))
-        return deps
-    if step == "evaluate":
-        return [(EXPORT, None)]  # the export's key covers every step before it
-    if step == "score":
-        return [(EVALUATE, None)]
-    raise KeyError(f"unknown step {step!r}")
+def scene_steps_in_order() -> tuple[StepSpec, ...]:
+    """The steps of a scene run in declaration order (each iterative run of steps repeats per iteration)."""
+    return tuple(s for s in STEPS.values() if s.stage == "scene")

@@ -2,7 +2,7 @@
 
 The paper scores its video model on RealEstate10K, DL3DV and Tanks and Temples clips (a conditioning
 image and the camera path of the next 14 frames). ``export_clips`` writes such clips, read by
-``schemas/datasets.py``, as plain files any generator can consume; ``score_clips`` scores the frames a
+``schemas/datasets/``, as plain files any generator can consume; ``score_clips`` scores the frames a
 generator wrote for them with the same metrics as ``navcrafter evaluate`` (Table III image quality,
 Table IV camera guidance by COLMAP, FID/FVD over all clips). Layout::
 

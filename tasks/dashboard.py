@@ -20,7 +20,7 @@ from navcrafter.models.backends import run_label
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.pipeline import scene_steps
+from navcrafter.tasks.steps import scene_steps
 
 THUMB = 256  # longer side of a thumbnail (input image, top-down plots), pixels
 GRID_MAX = 512  # longer side of the render grid, pixels

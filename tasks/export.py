@@ -19,37 +19,16 @@ import os
 import tempfile
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
 
 from navcrafter.models.backends import run_label
 from navcrafter.models.camera.cameras import Intrinsics
+from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, FIT, PLAN, SYNTHESIZE
+from navcrafter.schemas.layout import FIT, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
-from navcrafter.tasks.common import StepRef, load_cloud, open_store, run_step
-
-
-def encode_mp4(frames: np.ndarray, fps: int) -> bytes:
-    """H.264 MP4 (yuv420p) of ``[T, H, W, 3]`` uint8 frames, via the ffmpeg of imageio-ffmpeg."""
-    import imageio_ffmpeg
-
-    T, H, W, _ = frames.shape
-    fd, path = tempfile.mkstemp(suffix=".mp4")
-    os.close(fd)
-    try:
-        writer = imageio_ffmpeg.write_frames(path, (W, H), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
-                                             quality=8, macro_block_size=1, ffmpeg_log_level="error",
-                                             output_params=["-threads", "1", "-fflags", "+bitexact",
-                                                            "-map_metadata", "-1"])
-        writer.send(None)
-        for f in frames:
-            writer.send(np.ascontiguousarray(f))
-        writer.close()
-        with open(path, "rb") as fh:
-            return fh.read()
-    finally:
-        os.unlink(path)
+from navcrafter.tasks.readers import CameraPath, camera_path, load_gaussians, load_refined_gaussians
+from navcrafter.tasks.steps import StepContext
 
 
 def _band(config: RunConfig) -> str:
@@ -57,30 +36,14 @@ def _band(config: RunConfig) -> str:
     return "SIMULATION" if config.backend == "simulation" else "RANDOM WEIGHTS"
 
 
-def label_frames(frames: np.ndarray, text: str = "SIMULATION") -> np.ndarray:
-    """Burn a small label into the top-left corner of every frame."""
-    H = frames.shape[1]
-    font = ImageFont.load_default(size=max(8, H // 18))
-    out = np.empty_like(frames)
-    for i, f in enumerate(frames):
-        im = Image.fromarray(f)
-        draw = ImageDraw.Draw(im)
-        box = draw.textbbox((2, 1), text, font=font)
-        draw.rectangle(box, fill=(0, 0, 0))
-        draw.text((2, 1), text, fill=(255, 220, 0), font=font)
-        out[i] = np.asarray(im)
-    return out
-
-
-def trajectory_rows(scene, scene_id: str, iterations: int, backend: str, width: int, height: int) -> list[dict]:
+def trajectory_rows(path: CameraPath, scene_id: str, backend: str) -> list[dict]:
+    """One row per frame of the camera path (``schemas.tables.TRAJECTORIES``)."""
     rows = []
-    for k in range(1, iterations + 1):
-        plan = scene.read_all(PLAN, k)
-        K = Intrinsics.from_matrix(plan["K"], width, height)
-        for i, c2w in enumerate(plan["trajectory"]):
-            rows.append({"scene_id": scene_id, "iteration": k, "frame": i, "c2w": c2w,
-                         "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": width, "height": height,
-                         "backend": backend})
+    for f, (k, i) in enumerate(path.refs):
+        K = path.intrinsics(f)
+        rows.append({"scene_id": scene_id, "iteration": k, "frame": i, "c2w": path.c2w[f],
+                     "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": path.width, "height": path.height,
+                     "backend": backend})
     return rows
 
 
@@ -90,9 +53,6 @@ def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str],
     one (``renders`` group) when ``refined``."""
     from navcrafter.models.gaussians.ply import save_ply
     from navcrafter.models.gaussians.train import render_model
-    from navcrafter.tasks.fit import load_gaussians
-    from navcrafter.tasks.refine import load_refined_gaussians
-
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
     fd, path = tempfile.mkstemp(suffix=".ply")
     os.close(fd)
@@ -112,44 +72,39 @@ def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str],
     writer.write_file("flythrough.mp4", encode_mp4(label_frames(frames, band) if band else frames, fps))
 
 
-def export(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
+def export(ctx: StepContext) -> dict:
+    config, scene, scene_id, writer = ctx.config, ctx.scene, ctx.scene_id, ctx.writer
     N = config.iterations
+    store = scene.store
+    label = run_label(config)
+    sim = label is not None  # every rendered frame of a labelled run carries a band
+    cloud = ctx.cloud(N)
+    comments = [f"navcrafter scene {scene_id}", f"backend {config.backend}",
+                "frame: world = input camera (OpenCV: x right, y down, z forward)"]
+    if label:
+        comments.append(label)
+    writer.write_file("cloud.ply", ply_bytes(cloud, comments))
+    rows = trajectory_rows(camera_path(scene, config), scene_id, config.backend)
+    if N > 0:
+        frames = np.concatenate([scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)])
+        frames = label_frames(frames, _band(config)) if sim else frames
+        writer.write_file("video.mp4", encode_mp4(frames, config.synthesis.fps))
+    doc = {"scene_id": scene_id, "backend": config.backend,
+           "convention": "OpenCV camera-to-world (x right, y down, z forward); world = input camera",
+           "frames": [{"iteration": r["iteration"], "frame": r["frame"], "c2w": r["c2w"].tolist(),
+                       "intrinsics": {k: r[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}}
+                      for r in rows]}
+    if label:
+        doc["label"] = label
+    writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
+    if config.fit.enabled:
+        write_gaussian_exports(writer, scene, rows, comments, _band(config) if sim else None,
+                               config.synthesis.fps, refined=config.refine.enabled)
+    table = to_table("trajectories", rows)
+    buf = io.BytesIO()
+    import pyarrow.parquet as pq
 
-    def body(writer, seed: int, _) -> dict:
-        store = open_store(store_uri)
-        scene = store.scene(scene_id)
-        label = run_label(config)
-        sim = label is not None  # every rendered frame of a labelled run carries a band
-        cloud = load_cloud(scene, N)
-        comments = [f"navcrafter scene {scene_id}", f"backend {config.backend}",
-                    "frame: world = input camera (OpenCV: x right, y down, z forward)"]
-        if label:
-            comments.append(label)
-        writer.write_file("cloud.ply", ply_bytes(cloud, comments))
-        H, W = config.synthesis.height, config.synthesis.width
-        rows = trajectory_rows(scene, scene_id, N, config.backend, W, H)
-        if N > 0:
-            frames = np.concatenate([scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)])
-            frames = label_frames(frames, _band(config)) if sim else frames
-            writer.write_file("video.mp4", encode_mp4(frames, config.synthesis.fps))
-        doc = {"scene_id": scene_id, "backend": config.backend,
-               "convention": "OpenCV camera-to-world (x right, y down, z forward); world = input camera",
-               "frames": [{"iteration": r["iteration"], "frame": r["frame"], "c2w": r["c2w"].tolist(),
-                           "intrinsics": {k: r[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}}
-                          for r in rows]}
-        if label:
-            doc["label"] = label
-        writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
-        if config.fit.enabled:
-            write_gaussian_exports(writer, scene, rows, comments, _band(config) if sim else None,
-                                   config.synthesis.fps, refined=config.refine.enabled)
-        table = to_table("trajectories", rows)
-        buf = io.BytesIO()
-        import pyarrow.parquet as pq
-
-        pq.write_table(table, buf)
-        writer.write_file("trajectory.parquet", buf.getvalue())
-        store.tables.write("trajectories", table, part=f"scene-{scene_id}")
-        return {"n_points": len(cloud), "num_frames": len(rows), "label": label or ""}
-
-    return run_step(store_uri, scene_id, EXPORT, None, config, run_id, body)
+    pq.write_table(table, buf)
+    writer.write_file("trajectory.parquet", buf.getvalue())
+    store.tables.write("trajectories", table, part=f"scene-{scene_id}")
+    return {"n_points": len(cloud), "num_frames": len(rows), "label": label or ""}

@@ -29,7 +29,9 @@ from navcrafter.models.simulation import GROUNDTRUTH_DIR
 from navcrafter.schemas.config import IngestConfig, RunConfig
 from navcrafter.schemas.layout import INGEST
 from navcrafter.schemas.store import storage_options_for
-from navcrafter.tasks.common import StepRef, run_step
+from navcrafter.tasks import steps
+from navcrafter.tasks.common import StepRef
+from navcrafter.tasks.steps import StepContext
 
 
 class IngestError(ValueError):
@@ -308,6 +310,20 @@ def find_simulation_truth(source: str, sha256: str, loaded: LoadedImage,
 # --------------------------------------------------------------------------------------------------
 # The tasks
 # --------------------------------------------------------------------------------------------------
+def ingest_body(ctx: StepContext, source: str = "", sha: str = "") -> dict:
+    """The ingest step's body: writes the decoded photo and its working image (``ctx.prepared``: the decoded
+    image, the working image, its crop box and the demo ground truth, made before anything is written)."""
+    loaded, work, crop, truth = ctx.prepared
+    ctx.write_all(image=loaded.image, work_image=work)
+    attrs = {"source": source, "sha256": sha, "original_size": list(loaded.original_size),
+             "original_mode": loaded.original_mode, "exif_orientation": loaded.exif_orientation,
+             "crop_box": list(crop), "normalised_size": [loaded.image.shape[1], loaded.image.shape[0]],
+             "work_size": [work.shape[1], work.shape[0]]}
+    if truth is not None:
+        attrs["simulation_truth"] = truth
+    return attrs
+
+
 def identify(source: str, config: RunConfig) -> IngestResult:
     """Read and hash one file, writing nothing: its scene id, or why it cannot be used.
 
@@ -342,20 +358,11 @@ def ingest(store_uri: str, source: str, config: RunConfig, run_id: str) -> Inges
         truth = find_simulation_truth(source, sha, loaded, crop, (W, H))
         return loaded, work, crop, truth
 
-    def body(writer, seed: int, prepared) -> dict:
-        loaded, work, crop, truth = prepared
-        writer.write("image", loaded.image)
-        writer.write("work_image", work)
-        attrs = {"source": source, "sha256": sha, "original_size": list(loaded.original_size),
-                 "original_mode": loaded.original_mode, "exif_orientation": loaded.exif_orientation,
-                 "crop_box": list(crop), "normalised_size": [loaded.image.shape[1], loaded.image.shape[0]],
-                 "work_size": [W, H]}
-        if truth is not None:
-            attrs["simulation_truth"] = truth
-        return attrs
+    def body(ctx: StepContext) -> dict:
+        return ingest_body(ctx, source, sha)
 
     try:
-        ref = run_step(store_uri, sha, INGEST, None, config, run_id, body, prepare=prepare)
+        ref = steps.execute(store_uri, sha, INGEST, None, config, run_id, body, prepare=prepare)
     except Exception as exc:
         cause = getattr(exc, "cause", exc)
         if isinstance(cause, IngestError):

@@ -29,108 +29,71 @@ import torch
 
 from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.gaussians.novelviews import nearest_views, novel_cameras
-from navcrafter.models.gaussians.train import GaussianTrainer, TrainView, render_model
-from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import FIT, REFINE
-from navcrafter.tasks.common import StepRef, load_backend, open_store, run_step
-from navcrafter.tasks.fit import (
-    heldout_metrics,
-    history_array,
-    load_fit_views,
-    load_gaussians,
-    load_lpips,
-    train_config,
-)
+from navcrafter.models.gaussians.recipe import continue_training, heldout_metrics, history_array, load_lpips
+from navcrafter.models.gaussians.train import TrainView, render_model
+from navcrafter.schemas.layout import FIT
 from navcrafter.tasks.progress import TrainingProgress
+from navcrafter.tasks.readers import load_fit_views, load_gaussians
+from navcrafter.tasks.steps import StepContext
 
 
 class RefinerMissing(RuntimeError):
     """The backend has no Refiner role (no exported refiner model)."""
 
 
-def continue_training(model, views: list[TrainView], config: RunConfig, seed: int, scene_scale: float,
-                      lpips_model=None, callback=None):
-    """Train a fitted ``model`` ``refine.iterations`` more on ``views``: the fit's settings, density control off,
-    the position rate decaying from 10 x to 1 x ``fit.lr_means_final``. Returns (trainer, result)."""
-    fc = config.fit
-    lam_lpips = fc.lambda_lpips if lpips_model is not None else 0.0
-    tcfg = train_config(fc.model_copy(update={
-        "iterations": config.refine.iterations, "densify": False, "lr_means": 10 * fc.lr_means_final,
-        "sh_degree_interval": 1}), seed, lambda_lpips=lam_lpips)
-    trainer = GaussianTrainer(model, views, tcfg, scene_scale=scene_scale,
-                              perceptual=lpips_model if lam_lpips > 0 else None)
-    return trainer, trainer.train(callback)
-
-
-def refine(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
-    rc, fc = config.refine, config.fit
-    if not fc.enabled:
-        raise ValueError("refine.enabled needs fit.enabled: the refine step starts from the fitted Gaussians")
-
-    def body(writer, seed: int, _) -> dict:
-        scene = open_store(store_uri).scene(scene_id)
-        backend = load_backend(scene, config)
-        if backend.refiner is None:
-            raise RefinerMissing(
-                f"the {backend.name} backend has no refiner model: export one with `navcrafter models "
-                f"export-refiner <model_dir>/refiner ...` (see README), or turn refine.enabled off")
-        fit_attrs = scene.status(FIT).attrs
-        g = scene.read_all(FIT)
-        model = load_gaussians(scene)
-        train_views, test_views = load_fit_views(scene)
-        w, h = fit_attrs["resolution"]
-        train_idx = np.nonzero(g["train"])[0]
-        rng = np.random.default_rng(seed)
-        pick = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(rc.views, len(train_idx))).round()
-                                   .astype(int))]
-        offset = rc.offset * float(fit_attrs["scene_scale"])
-        c2w, source = novel_cameras(g["c2w"], pick, model.means.numpy(), offset=offset, angle_deg=rc.angle_deg,
-                                    rng=rng)
-        if len(c2w) == 0:
-            raise ValueError("no novel camera found a free position next to the training cameras; lower "
-                             "refine.offset")
-        K = np.asarray(g["K"][int(source[0])], dtype=np.float64)
-        renders = render_model(model, c2w, np.repeat(K[None], len(c2w), 0), w, h, device=fc.device,
-                               renderer=fc.renderer)
-        ref_frames = train_idx[nearest_views(c2w, g["c2w"][train_idx])]
-        frame_pos = {int(f): j for j, f in enumerate(train_idx)}
-        intr = Intrinsics.from_matrix(K, w, h)
-        refined = np.empty_like(renders)
-        for i in range(len(c2w)):
-            ref_img = np.round(train_views[frame_pos[int(ref_frames[i])]].image.numpy() * 255).astype(np.uint8)
-            refined[i] = backend.refiner.refine(renders[i], ref_img, seed=seed + i, hint_c2w=c2w[i],
-                                                hint_intrinsics=intr)
-        extra = [TrainView(torch.from_numpy(refined[i].astype(np.float32) / 255.0),
-                           torch.as_tensor(c2w[i], dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32),
-                           None, rc.weight) for i in range(len(c2w))]
-
-        lpips_model, _ = load_lpips(config)
-        t0 = time.perf_counter()
-        trainer, result = continue_training(model, train_views + extra, config, seed, float(fit_attrs["scene_scale"]),
-                                            lpips_model, TrainingProgress(scene_id, "refine", rc.iterations))
-        seconds = time.perf_counter() - t0
-        gt = np.stack([v.image.numpy() for v in test_views]).astype(np.float64)
-        rgb, _ = trainer.evaluate(test_views)
-        metrics = heldout_metrics(rgb, gt, lpips_model)
-        out = result.model
-        writer.write("c2w", c2w)
-        writer.write("K", K)
-        writer.write("source_frame", source.astype(np.int32))
-        writer.write("reference_frame", ref_frames.astype(np.int32))
-        writer.write("renders", renders)
-        writer.write("refined", refined)
-        for name, t in out.tensors().items():
-            writer.write(name, t.numpy())
-        writer.write("holdout_renders", np.round(rgb * 255).astype(np.uint8))
-        hist = result.history
-        writer.write("history", history_array(hist))
-        return {**metrics, "psnr_before": fit_attrs["psnr"], "ssim_before": fit_attrs["ssim"],
-                "lpips_before": fit_attrs.get("lpips"), "n_views": len(c2w), "n_gaussians": len(out),
-                "refiner": backend.refiner.backend, "train_seconds": seconds}
-
-    return run_step(store_uri, scene_id, REFINE, None, config, run_id, body)
-
-
-def load_refined_gaussians(scene):
-    """The refined model of a scene (its ``renders`` group must be complete)."""
-    return load_gaussians(scene, REFINE)
+def refine(ctx: StepContext) -> dict:
+    rc, fc, scene, seed = ctx.config.refine, ctx.config.fit, ctx.scene, ctx.seed
+    backend = ctx.backend
+    if backend.refiner is None:
+        raise RefinerMissing(
+            f"the {backend.name} backend has no refiner model: export one with `navcrafter models "
+            f"export-refiner <model_dir>/refiner ...` (see README), or turn refine.enabled off")
+    # 1. novel cameras off the trajectory, next to evenly spread training cameras
+    fit_attrs = scene.status(FIT).attrs
+    g = scene.read_all(FIT)
+    model = load_gaussians(scene)
+    train_views, test_views = load_fit_views(scene)
+    w, h = fit_attrs["resolution"]
+    train_idx = np.nonzero(g["train"])[0]
+    rng = np.random.default_rng(seed)
+    pick = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(rc.views, len(train_idx))).round()
+                               .astype(int))]
+    offset = rc.offset * float(fit_attrs["scene_scale"])
+    c2w, source = novel_cameras(g["c2w"], pick, model.means.numpy(), offset=offset, angle_deg=rc.angle_deg,
+                                rng=rng)
+    if len(c2w) == 0:
+        raise ValueError("no novel camera found a free position next to the training cameras; lower "
+                         "refine.offset")
+    # 2. render there; 3. refine each render, guided by the nearest training frame
+    K = np.asarray(g["K"][int(source[0])], dtype=np.float64)
+    renders = render_model(model, c2w, np.repeat(K[None], len(c2w), 0), w, h, device=fc.device,
+                           renderer=fc.renderer)
+    ref_frames = train_idx[nearest_views(c2w, g["c2w"][train_idx])]
+    frame_pos = {int(f): j for j, f in enumerate(train_idx)}
+    intr = Intrinsics.from_matrix(K, w, h)
+    refined = np.empty_like(renders)
+    for i in range(len(c2w)):
+        ref_img = np.round(train_views[frame_pos[int(ref_frames[i])]].image.numpy() * 255).astype(np.uint8)
+        refined[i] = backend.refiner.refine(renders[i], ref_img, seed=seed + i, hint_c2w=c2w[i],
+                                            hint_intrinsics=intr)
+    extra = [TrainView(torch.from_numpy(refined[i].astype(np.float32) / 255.0),
+                       torch.as_tensor(c2w[i], dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32),
+                       None, rc.weight) for i in range(len(c2w))]
+    # 4. fit again with the refined views; 5. evaluate on the fit's held-out frames
+    lpips_model, _ = load_lpips(ctx.config.evaluation)
+    t0 = time.perf_counter()
+    trainer, result = continue_training(model, train_views + extra, fc, rc, seed, float(fit_attrs["scene_scale"]),
+                                        lpips_model, TrainingProgress(ctx.scene_id, "refine", rc.iterations))
+    seconds = time.perf_counter() - t0
+    gt = np.stack([v.image.numpy() for v in test_views]).astype(np.float64)
+    rgb, _ = trainer.evaluate(test_views)
+    metrics = heldout_metrics(rgb, gt, lpips_model)
+    out = result.model
+    ctx.write_all(c2w=c2w, K=K, source_frame=source.astype(np.int32), reference_frame=ref_frames.astype(np.int32),
+                  renders=renders, refined=refined)
+    for name, t in out.tensors().items():
+        ctx.write(name, t.numpy())
+    ctx.write_all(holdout_renders=np.round(rgb * 255).astype(np.uint8), history=history_array(result.history))
+    return {**metrics, "psnr_before": fit_attrs["psnr"], "ssim_before": fit_attrs["ssim"],
+            "lpips_before": fit_attrs.get("lpips"), "n_views": len(c2w), "n_gaussians": len(out),
+            "refiner": backend.refiner.backend, "train_seconds": seconds}

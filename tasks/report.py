@@ -16,7 +16,7 @@ from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.pipeline import scene_steps
+from navcrafter.tasks.steps import scene_steps
 
 
 @dataclass

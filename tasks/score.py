@@ -27,9 +27,11 @@ import numpy as np
 
 from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
-from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SCORE, SYNTHESIZE
+from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
-from navcrafter.tasks.common import open_store, run_step_attrs, simulation_truth
+from navcrafter.tasks import steps
+from navcrafter.tasks.common import open_store, simulation_truth
+from navcrafter.tasks.steps import StepContext
 
 TABLES = {
     "III": "Synthesis quality",
@@ -222,14 +224,14 @@ def scene_rows(scene: SceneStore, config: RunConfig) -> list[dict[str, Any]]:
     return rows
 
 
+def score(ctx: StepContext) -> dict[str, Any]:
+    """The score step: one scene's rows of the evaluation suite."""
+    return {"rows": scene_rows(ctx.scene, ctx.config)}
+
+
 def score_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> list[dict[str, Any]]:
-    """Score one explored and evaluated scene; kept in its ``scores`` group, so scoring again with the
-    same evaluation settings reads the rows back."""
-
-    def body(writer, seed, _):
-        return {"rows": scene_rows(open_store(store_uri).scene(scene_id), config)}
-
-    return [dict(r) for r in run_step_attrs(store_uri, scene_id, SCORE, config, run_id, body)["rows"]]
+    """Run (or read back) the score step of an explored scene: its rows."""
+    return [dict(r) for r in steps.run_attrs(store_uri, scene_id, "score", config, run_id)["rows"]]
 
 
 # -- over all scenes: FID / FVD --------------------------------------------------------------------

@@ -1,4 +1,6 @@
-"""Shared fixtures. One Prefect test server per pytest session (it takes ~15 s to start)."""
+"""Shared fixtures (shared constants and helpers are in helpers.py). One Prefect test server per pytest
+session (it takes ~15 s to start), only for the tests that ask for it: all of them are marked ``system``,
+and ``pytest -m "not system"`` (the fast loop) starts no server at all."""
 
 from __future__ import annotations
 
@@ -16,15 +18,33 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from helpers import BUCKET, TINY, TINY_MODELS_SIZE  # noqa: E402
 
 from navcrafter.schemas.config import RunConfig  # noqa: E402
 
-TINY = RunConfig.load(preset="tiny")
-DEMO = ("room-0.png", "street-0.png", "tabletop-0.png")
-# file -> (what the error says, the fix it suggests)
-BAD = {"notes.txt": ("not an image", "remove it"), "empty.png": ("empty", "remove it"),
-       "truncated.png": ("corrupt or truncated", "re-export"),
-       "no-groundtruth.png": ("no simulation ground truth", "navcrafter demo-data")}
+# Fixtures that start a server: a test whose fixtures include one of them must be marked ``system``
+# (see pytest_collection_modifyitems), so that ``pytest -m "not system"`` never starts one.
+SERVER_FIXTURES = {
+    "prefect_api_url": "the session's Prefect test server",
+    "s3_endpoint": "moto's S3 server",
+    "server": "a `prefect server start` process (test_worker)",
+    "restartable_server": "a `prefect server start` process (test_faults)",
+}
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Every test that starts a server carries ``@pytest.mark.system`` (or its module's ``pytestmark``);
+    one that requests a server fixture without it is a usage error, not a silent member of the fast loop.
+    (Tests that start subprocesses or workers, or kill them, without these fixtures are marked by hand.)"""
+    unmarked = []
+    for item in items:
+        servers = [SERVER_FIXTURES[name] for name in item.fixturenames if name in SERVER_FIXTURES]
+        if servers and item.get_closest_marker("system") is None:
+            unmarked.append(f"{item.nodeid} (starts {'; '.join(servers)})")
+    if unmarked:
+        raise pytest.UsageError("tests that start a server must be marked @pytest.mark.system:\n  "
+                                + "\n  ".join(unmarked))
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +70,36 @@ def prefect_api_url() -> str:
         yield PREFECT_API_URL.value()
 
 
+@pytest.fixture(scope="module")
+def s3_endpoint():
+    """A moto S3 server on a free port, a bucket (``helpers.BUCKET``) on it, and the AWS env pointing at it,
+    for one test module."""
+    pytest.importorskip("s3fs")
+    pytest.importorskip("moto.server")
+    import logging
+
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)  # one log line per request otherwise
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    url = f"http://{host}:{port}"
+    with pytest.MonkeyPatch.context() as mp:
+        for var in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_ENDPOINT_URL_S3", "FSSPEC_S3_ENDPOINT_URL"):
+            mp.delenv(var, raising=False)
+        mp.setenv("AWS_ACCESS_KEY_ID", "testing")
+        mp.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+        mp.setenv("AWS_DEFAULT_REGION", "us-east-1")
+        mp.setenv("AWS_ENDPOINT_URL", url)
+        boto3.client("s3", endpoint_url=url, region_name="us-east-1").create_bucket(Bucket=BUCKET)
+        try:
+            yield url
+        finally:
+            server.stop()
+
+
 @pytest.fixture(scope="session")
 def demo_photos(tmp_path_factory) -> Path:
     """The three demo scenes (small photos to keep the suite fast)."""
@@ -58,10 +108,6 @@ def demo_photos(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("demo") / "photos"
     write_demo_collection(folder, width=320, height=240, supersample=1)
     return folder
-
-
-# frames, height, width of the session's tiny exported synthesizer
-TINY_MODELS_SIZE = (5, 32, 32)
 
 
 @pytest.fixture(scope="session")

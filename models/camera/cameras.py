@@ -180,7 +180,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return q.reshape(*batch, 4)
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
     """Quaternion(s) ``[..., 4]`` (w, x, y, z) to rotation matrices ``[..., 3, 3]``."""
     q = np.asarray(q, dtype=np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
@@ -250,7 +250,7 @@ def interpolate_poses(c2w_start: np.ndarray, c2w_end: np.ndarray, num: int,
         raise ValueError(f"interpolate_poses needs num >= 2, got {num}")
     t = np.linspace(0.0, 1.0, num)
     q = slerp(matrix_to_quat(c2w_start[:3, :3]), matrix_to_quat(c2w_end[:3, :3]), t)
-    R = quat_to_matrix(q)
+    R = quat_wxyz_to_matrix(q)
     p0, p1 = c2w_start[:3, 3], c2w_end[:3, 3]
     if centre is None:
         pos = (1 - t)[:, None] * p0 + t[:, None] * p1

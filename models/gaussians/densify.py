@@ -9,8 +9,8 @@ optimisers (one ``torch.optim.Adam`` per parameter) around each backward pass:
   change the set of Gaussians **in place** in ``params`` and ``optimizers`` (rows added or removed from both
   the tensors and Adam's moments).
 
-:class:`DefaultStrategy` is 3DGS's (and gsplat's ``DefaultStrategy``'s) rule: every ``refine_every`` steps in
-``[refine_start, refine_stop)``, Gaussians whose average screen-space mean gradient (in NDC units: pixels
+:class:`DefaultStrategy` is 3DGS's (and gsplat's ``DefaultStrategy``'s) rule: every ``every`` steps in
+``[start, stop)``, Gaussians whose average screen-space mean gradient (in NDC units: pixels
 times ``W/2``, ``H/2``) exceeds ``grow_grad2d`` are **cloned** when small (max scale <= ``grow_scale3d`` x
 scene scale) and **split** in two when large (new means drawn from the Gaussian, scales / 1.6); then those
 with opacity < ``prune_opa`` (and, after the first opacity reset, those larger than ``prune_scale3d`` x scene
@@ -98,19 +98,20 @@ def _reset_moments(optimizer: torch.optim.Optimizer, param: Tensor) -> None:
 
 @dataclass
 class DefaultStrategy:
-    """3DGS / gsplat default density control (see the module docstring). Defaults are gsplat's; the steps
-    (``refine_start`` ..) are in training iterations."""
+    """3DGS / gsplat default density control (see the module docstring). The settings are the fit config's
+    (``schemas.config.FitConfig``: gsplat's defaults, defined there once; ``models.gaussians.train.strategy_for``
+    builds one); ``start`` / ``stop`` / ``every`` are in training iterations (gsplat: ``refine_start_iter`` ..)."""
 
-    grow_grad2d: float = 0.0002
-    grow_scale3d: float = 0.01
-    prune_opa: float = 0.005
-    prune_scale3d: float = 0.1
-    refine_start: int = 500
-    refine_stop: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
-    max_gaussians: int = 1_000_000
-    seed: int = 0
+    grow_grad2d: float
+    grow_scale3d: float
+    prune_opa: float
+    prune_scale3d: float
+    start: int
+    stop: int
+    every: int
+    reset_every: int
+    max_gaussians: int
+    seed: int
 
     def initialize_state(self, scene_scale: float) -> dict[str, Any]:
         return {"scene_scale": float(scene_scale), "grad2d": None, "count": None,
@@ -120,10 +121,10 @@ class DefaultStrategy:
         info["means2d"].retain_grad()
 
     def step_post_backward(self, params, optimizers, state, step, info) -> None:
-        if step >= self.refine_stop:
+        if step >= self.stop:
             return
         self._update_state(params, state, info)
-        if step >= self.refine_start and step % self.refine_every == 0 and step > 0:
+        if step >= self.start and step % self.every == 0 and step > 0:
             self._grow(params, optimizers, state)
             self._prune(params, optimizers, state, step)
             state["grad2d"] = state["count"] = None

@@ -250,7 +250,7 @@ class GsplatStrategy:
 
 
 def gsplat_default_strategy(config: Any) -> GsplatStrategy:
-    """gsplat's ``DefaultStrategy`` with a :class:`~navcrafter.models.gaussians.train.TrainConfig`'s density
+    """gsplat's ``DefaultStrategy`` with a fit config's (``schemas.config.FitConfig``) density
     settings (``reset_every=0``, "never", becomes a period no run reaches: gsplat divides by it).
     ``max_gaussians`` and ``seed`` have no gsplat equivalent and are not applied."""
     try:
@@ -259,6 +259,6 @@ def gsplat_default_strategy(config: Any) -> GsplatStrategy:
         raise GsplatUnavailableError(f"gsplat's DefaultStrategy needs gsplat ({exc!r}); {INSTALL_HINT}") from exc
     return GsplatStrategy(gsplat.DefaultStrategy(
         prune_opa=config.prune_opa, grow_grad2d=config.grow_grad2d, grow_scale3d=config.grow_scale3d,
-        prune_scale3d=config.prune_scale3d, refine_start_iter=config.refine_start,
-        refine_stop_iter=config.refine_stop, refine_every=config.refine_every,
+        prune_scale3d=config.prune_scale3d, refine_start_iter=config.densify_start,
+        refine_stop_iter=config.densify_stop, refine_every=config.densify_every,
         reset_every=config.reset_every if config.reset_every > 0 else 2**62))

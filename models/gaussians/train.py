@@ -16,9 +16,10 @@ run; the active SH degree grows by one every ``sh_degree_interval`` iterations. 
 :class:`~navcrafter.models.gaussians.densify.Strategy`. Everything random is seeded, so a run is
 deterministic on the CPU.
 
-Devices and renderers (``TrainConfig.device`` / ``renderer``, ``models.gaussians.backend``): parameters, the
-training views, optimiser state and density statistics live on ``device`` (default ``"cpu"``; ``"auto"``, the
-fit step's default: CUDA when available); views are rendered with ``rasterize(..., backend=renderer)``
+The settings are the run config's ``fit`` section (``schemas.config.FitConfig``, the one definition of every
+parameter and its default). Devices and renderers (``fit.device`` / ``fit.renderer``, ``models.gaussians.renderer``):
+parameters, the training views, optimiser state and density statistics live on ``device`` (``"auto"``: CUDA
+when available); views are rendered with ``rasterize(..., backend=renderer)``
 (``"auto"``: gsplat on CUDA when it imports, our PyTorch renderer otherwise). Density control is our
 :class:`~navcrafter.models.gaussians.densify.DefaultStrategy` with either renderer (it is device-agnostic;
 gsplat's own strategy is an opt-in, ``backend.GsplatStrategy``). The trained model, evaluation renders and
@@ -31,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -41,53 +42,19 @@ from navcrafter.models.gaussians.densify import DefaultStrategy, NoStrategy, Str
 from navcrafter.models.gaussians.dropgaussian import DropGaussian
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.renderer import rasterize, resolve_backend, resolve_device
+from navcrafter.schemas.config import FitConfig
 
 PerceptualLoss = Callable[[Tensor, Tensor], Tensor]  # (rendered, target) [1, 3, H, W] in [-1, 1] -> scalar
 
 
-@dataclass(frozen=True)
-class TrainConfig:
-    """Defaults: 3DGS's learning rates, gsplat's density control, DropGaussian's schedule."""
-
-    iterations: int = 10_000
-    lr_means: float = 1.6e-4  # times the scene scale
-    lr_means_final: float = 1.6e-6  # times the scene scale, reached at the last iteration
-    lr_quats: float = 1e-3
-    lr_scales: float = 5e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    lambda_lpips: float = 0.2
-    lambda_depth: float = 0.1
-    drop_gamma: float = 0.1  # DropGaussian r_t = gamma t / T; 0 disables it
-    sh_degree: int = 3
-    sh_degree_interval: int = 1000
-    densify: bool = True
-    # density control: the defaults are DefaultStrategy's (gsplat's)
-    grow_grad2d: float = DefaultStrategy.grow_grad2d
-    grow_scale3d: float = DefaultStrategy.grow_scale3d
-    prune_opa: float = DefaultStrategy.prune_opa
-    prune_scale3d: float = DefaultStrategy.prune_scale3d
-    refine_start: int = DefaultStrategy.refine_start
-    refine_stop: int = DefaultStrategy.refine_stop
-    refine_every: int = DefaultStrategy.refine_every
-    reset_every: int = DefaultStrategy.reset_every
-    max_gaussians: int = DefaultStrategy.max_gaussians
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    seed: int = 0
-    # "cpu", "cuda", "cuda:1", or "auto" (cuda if available, else cpu). The library default stays on the CPU
-    # (deterministic, as before); the fit step passes fit.device, whose default is "auto".
-    device: str = "cpu"
-    renderer: str = "auto"  # "auto" | "torch" | "gsplat": models.gaussians.backend.rasterize's backend
-
-    def strategy(self) -> Strategy:
-        if not self.densify:
-            return NoStrategy()
-        return DefaultStrategy(grow_grad2d=self.grow_grad2d, grow_scale3d=self.grow_scale3d,
-                               prune_opa=self.prune_opa, prune_scale3d=self.prune_scale3d,
-                               refine_start=self.refine_start, refine_stop=self.refine_stop,
-                               refine_every=self.refine_every, reset_every=self.reset_every,
-                               max_gaussians=self.max_gaussians, seed=self.seed + 1)
+def strategy_for(config: FitConfig, seed: int) -> Strategy:
+    """The density control a fit config asks for (``fit.densify``: 3DGS's default rule, else none)."""
+    if not config.densify:
+        return NoStrategy()
+    return DefaultStrategy(grow_grad2d=config.grow_grad2d, grow_scale3d=config.grow_scale3d,
+                           prune_opa=config.prune_opa, prune_scale3d=config.prune_scale3d,
+                           start=config.densify_start, stop=config.densify_stop, every=config.densify_every,
+                           reset_every=config.reset_every, max_gaussians=config.max_gaussians, seed=seed + 1)
 
 
 @dataclass
@@ -135,13 +102,19 @@ class GaussianTrainer:
 
     PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
-    def __init__(self, model: GaussianModel, views: list[TrainView], config: TrainConfig, *, scene_scale: float,
-                 perceptual: PerceptualLoss | None = None, strategy: Strategy | None = None) -> None:
+    def __init__(self, model: GaussianModel, views: list[TrainView], config: FitConfig, *, scene_scale: float,
+                 seed: int = 0, lambda_lpips: float | None = None, perceptual: PerceptualLoss | None = None,
+                 strategy: Strategy | None = None, background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+                 ) -> None:
+        """``config``: the fit's settings (``schemas.config.FitConfig``); ``seed``: of every random choice;
+        ``lambda_lpips``: overrides ``config.lambda_lpips`` (0 where the LPIPS weights are missing)."""
         if not views:
             raise ValueError("training needs at least one view")
         if model.sh_degree < config.sh_degree:
             raise ValueError(f"the model has SH degree {model.sh_degree} < config.sh_degree {config.sh_degree}")
-        if config.lambda_lpips > 0 and perceptual is None:
+        self.seed = int(seed % (2**31))
+        self.lambda_lpips = config.lambda_lpips if lambda_lpips is None else float(lambda_lpips)
+        if self.lambda_lpips > 0 and perceptual is None:
             raise ValueError("lambda_lpips > 0 needs a perceptual model (pass lambda_lpips=0 without LPIPS weights)")
         self.device = resolve_device(config.device)
         self.renderer = resolve_backend(config.renderer, self.device)  # "torch" | "gsplat"; raises early
@@ -156,12 +129,12 @@ class GaussianTrainer:
                "opacity_logits": config.lr_opacities, "sh_dc": config.lr_sh0, "sh_rest": config.lr_shN}
         self.optimizers = {name: torch.optim.Adam([{"params": [self.params[name]], "lr": lrs[name]}], eps=1e-15)
                            for name in self.PARAMS}
-        self.strategy = strategy if strategy is not None else config.strategy()
+        self.strategy = strategy if strategy is not None else strategy_for(config, self.seed)
         self.state = self.strategy.initialize_state(self.scene_scale)
-        self.drop = DropGaussian(config.drop_gamma, max(config.iterations, 1), seed=config.seed + 2)
-        self.order = torch.Generator().manual_seed(config.seed)
+        self.drop = DropGaussian(config.drop_gamma, max(config.iterations, 1), seed=self.seed + 2)
+        self.order = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
-        self.background = torch.tensor(config.background, dtype=torch.float32, device=self.device)
+        self.background = torch.tensor(background, dtype=torch.float32, device=self.device)
         self.history: dict[str, list[float]] = {k: [] for k in ("loss", "l1", "lpips", "depth", "drop_rate",
                                                                 "n_gaussians")}
 
@@ -202,7 +175,7 @@ class GaussianTrainer:
         c = self.config
         view = self._on_device(view)
         terms = {"l1": (rgb - view.image).abs().mean()}
-        if c.lambda_lpips > 0:
+        if self.lambda_lpips > 0:
             terms["lpips"] = self.perceptual(rgb.permute(2, 0, 1)[None] * 2 - 1,
                                              view.image.permute(2, 0, 1)[None] * 2 - 1).reshape(())
         if c.lambda_depth > 0 and view.depth is not None:
@@ -212,7 +185,7 @@ class GaussianTrainer:
                 terms["depth"] = (depth[mask] - ref).abs().mean() / ref.median().clamp(min=1e-8)
         total = terms["l1"]
         if "lpips" in terms:
-            total = total + c.lambda_lpips * terms["lpips"]
+            total = total + self.lambda_lpips * terms["lpips"]
         if "depth" in terms:
             total = total + c.lambda_depth * terms["depth"]
         terms["loss"] = total if view.weight == 1.0 else view.weight * total
@@ -263,12 +236,12 @@ class GaussianTrainer:
         return np.stack(rgbs), np.stack(depths)
 
 
-def train_gaussians(model: GaussianModel, views: list[TrainView], config: TrainConfig, *, scene_scale: float,
-                    perceptual: PerceptualLoss | None = None, strategy: Strategy | None = None,
+def train_gaussians(model: GaussianModel, views: list[TrainView], config: FitConfig, *, scene_scale: float,
+                    seed: int = 0, perceptual: PerceptualLoss | None = None, strategy: Strategy | None = None,
                     callback: Callable[[int, dict[str, float]], None] | None = None
                     ) -> tuple[TrainResult, GaussianTrainer]:
     """Train ``model`` on ``views``; returns the result and the trainer (for rendering held-out views)."""
-    trainer = GaussianTrainer(model, views, config, scene_scale=scene_scale, perceptual=perceptual,
+    trainer = GaussianTrainer(model, views, config, scene_scale=scene_scale, seed=seed, perceptual=perceptual,
                               strategy=strategy)
     return trainer.train(callback), trainer
 
@@ -278,7 +251,7 @@ def render_model(model: GaussianModel, c2w: np.ndarray, K: np.ndarray, width: in
                  renderer: str = "auto") -> np.ndarray:
     """Evaluation renders [V, H, W, 3] uint8 of a trained model at cameras ``c2w`` [V, 4, 4], ``K`` [V, 3, 3].
 
-    ``device`` / ``renderer`` as in :class:`TrainConfig` (default: the CPU, i.e. our renderer)."""
+    ``device`` / ``renderer`` as ``fit.device`` / ``fit.renderer`` (default: the CPU, i.e. our renderer)."""
     dev = resolve_device(device)
     backend = resolve_backend(renderer, dev)
     model = model.to(dev)
@@ -292,6 +265,3 @@ def render_model(model: GaussianModel, c2w: np.ndarray, K: np.ndarray, width: in
             out[i] = np.round(img[0].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8)
     return out
 
-
-def config_dict(config: TrainConfig) -> dict:
-    return asdict(config)

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from navcrafter.models.camera.cameras import quat_wxyz_to_matrix
+
 TARGET_SIZE = 518
 PATCH_SIZE = 14
 
@@ -125,17 +127,11 @@ def preprocess_frames(frames: np.ndarray, img_size: int = TARGET_SIZE, patch_siz
 # --------------------------------------------------------------------------------------------------
 # Rotations (quaternions x, y, z, w: scalar last, as VGGT)
 # --------------------------------------------------------------------------------------------------
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """Quaternions ``[..., 4]`` (x, y, z, w; need not be unit) → rotation matrices ``[..., 3, 3]``."""
+def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Quaternions ``[..., 4]`` in VGGT's order (x, y, z, w; need not be unit) -> rotation matrices ``[..., 3, 3]``
+    (``models.camera.cameras.quat_wxyz_to_matrix`` on the reordered quaternion)."""
     q = np.asarray(q, dtype=np.float64)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    s = 2.0 / np.sum(q * q, axis=-1)
-    R = np.stack([
-        1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w),
-        s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w),
-        s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y),
-    ], axis=-1)
-    return R.reshape(q.shape[:-1] + (3, 3))
+    return quat_wxyz_to_matrix(np.concatenate([q[..., 3:], q[..., :3]], axis=-1))
 
 
 def mat_to_quat(R: np.ndarray) -> np.ndarray:
@@ -180,7 +176,7 @@ def pose_encoding_to_extri_intri(pose_enc: np.ndarray, image_size_hw: tuple[int,
     if pe.shape[-1] != 9:
         raise ValueError(f"pose encoding must have 9 values per camera, got shape {pe.shape}")
     H, W = image_size_hw
-    R = quat_to_mat(pe[..., 3:7])
+    R = quat_xyzw_to_matrix(pe[..., 3:7])
     extrinsics = np.concatenate([R, pe[..., :3, None]], axis=-1)
     K = np.zeros(pe.shape[:-1] + (3, 3))
     K[..., 0, 0] = (W / 2.0) / np.tan(pe[..., 8] / 2.0)
@@ -206,7 +202,7 @@ def extri_intri_to_pose_encoding(extrinsics: np.ndarray, intrinsics: np.ndarray,
 
 def extrinsics_to_c2w(extrinsics: np.ndarray) -> np.ndarray:
     """World-to-camera ``[..., 3, 4]`` → camera-to-world ``[..., 4, 4]`` float64 (rotation inverted by
-    transposition; the rotation must be orthonormal, as ``quat_to_mat`` returns)."""
+    transposition; the rotation must be orthonormal, as ``quat_xyzw_to_matrix`` returns)."""
     E = np.asarray(extrinsics, dtype=np.float64)
     R, t = E[..., :3, :3], E[..., :3, 3]
     Rt = np.swapaxes(R, -1, -2)

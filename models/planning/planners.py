@@ -61,6 +61,7 @@ from scipy.spatial import cKDTree
 from navcrafter.models.camera.cameras import interpolate_poses, look_at, project
 from navcrafter.models.reconstruction.pointcloud import thin_points
 from navcrafter.models.reconstruction.pointrender import render_points
+from navcrafter.schemas.config import PlanConfig
 
 WORLD_UP = np.array([0.0, -1.0, 0.0])  # a scene's world is its input camera's OpenCV frame
 MAX_ELEVATION_DEG = 85.0  # look-at is degenerate straight above or below the centre
@@ -82,6 +83,20 @@ class SearchSpace:
     radius: tuple[float, float] = (0.15, 0.4)
     azimuth_deg: tuple[float, float] = (-90.0, 90.0)
     elevation_deg: tuple[float, float] = (-30.0, 30.0)
+
+
+def search_space(cfg: PlanConfig) -> SearchSpace:
+    """The search space S of a run's planning config."""
+    return SearchSpace(cfg.radius_range, cfg.azimuth_range_deg, cfg.elevation_range_deg)
+
+
+def scene_centre(depth: np.ndarray, confidence: np.ndarray, quantile: float) -> np.ndarray:
+    """The scene centre ``o``: the point on the input camera's optical axis at the given quantile of the input
+    view's valid depth (``plan.centre_depth_quantile``)."""
+    d = depth[(confidence > 0) & (depth > 0)]
+    if d.size == 0:
+        raise ValueError("no valid depth to place the scene centre")
+    return np.array([0.0, 0.0, float(np.quantile(d, quantile))])
 
 
 def search_frame(current: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -510,17 +525,6 @@ class PlanResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class PlannerConfig:
-    num_candidates: int = 3
-    space: SearchSpace = SearchSpace()
-    safe_radius: float = 0.25  # scene units
-    anchor_fraction: float = 0.5
-    smoothness: float = 1.0
-    max_resample: int = 10
-    unknown_space: str = "occupied"  # or "free"
-
-
 def planning_cloud(state: PlanningState, r_safe: float | None = None) -> np.ndarray:
     """The cloud thinned once per planning call, to the splat size (and at most ``r_safe / 8``, so the
     collision detector can use it as is): masks and clearances need no finer detail."""
@@ -545,7 +549,7 @@ class CollisionAwarePlanner:
 
     name = "collision_aware"
 
-    def __init__(self, config: PlannerConfig) -> None:
+    def __init__(self, config: PlanConfig) -> None:
         self.config = config
 
     def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
@@ -559,7 +563,7 @@ class CollisionAwarePlanner:
         # draw K candidates at a time until K of them pass G (colliding draws keep an empty mask)
         cands, collides = [], []
         while len(cands) <= cfg.max_resample:
-            c = sample_candidates(state.current, state.centre, state.d0, cfg.space, cfg.num_candidates, rng)
+            c = sample_candidates(state.current, state.centre, state.d0, search_space(cfg), cfg.num_candidates, rng)
             cands.append(c)
             collides.append(detector.collides(c[:, :3, 3]))
             if sum(int((~x).sum()) for x in collides) >= cfg.num_candidates:
@@ -599,13 +603,13 @@ class ViewCrafterPlanner:
 
     name = "viewcrafter"
 
-    def __init__(self, config: PlannerConfig) -> None:
+    def __init__(self, config: PlanConfig) -> None:
         self.config = config
 
     def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
         cfg = self.config
         t0 = time.perf_counter()
-        cands = sample_candidates(state.current, state.centre, state.d0, cfg.space, cfg.num_candidates, rng)
+        cands = sample_candidates(state.current, state.centre, state.d0, search_space(cfg), cfg.num_candidates, rng)
         none = np.zeros(len(cands), dtype=bool)
         masks, scores = _masks_and_scores(state, planning_cloud(state), cands, none, cfg.anchor_fraction)
         t_score = time.perf_counter()

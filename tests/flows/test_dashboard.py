@@ -16,7 +16,8 @@ import time
 import uuid
 from pathlib import Path
 
-from conftest import DEMO, TINY
+import pytest
+from helpers import DEMO, TINY
 from PIL import Image
 from typer.testing import CliRunner
 
@@ -27,6 +28,7 @@ from navcrafter.schemas.store import Store
 from navcrafter.tasks.dashboard import GRID_MAX, THUMB, scene_dashboard_markdown
 from navcrafter.tasks.report import manifest_rows_for, read_manifest, write_manifest
 
+pytestmark = pytest.mark.system  # the session's collection run and real flow runs on the Prefect test server
 runner = CliRunner()
 IMAGE = re.compile(r"!\[([^\]]*)\]\(data:image/png;base64,([A-Za-z0-9+/=]+)\)")
 

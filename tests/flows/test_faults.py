@@ -23,17 +23,32 @@ import time
 from pathlib import Path
 
 import pytest
-import test_s3_store
-import test_worker
-from conftest import TINY
-from test_flows import _assert_same_outputs, _run_cli, _step_state, completed_counts
+from helpers import (
+    POOL,
+    TINY,
+    VENV_BIN,
+    Worker,
+    api_get,
+    assert_same_outputs,
+    completed_counts,
+    free_port,
+    kill_tree,
+    prefect_env,
+    run_cli,
+    s3_url,
+    step_state,
+    submit,
+    tail,
+)
 
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
+from navcrafter.tasks.steps import scene_steps
 
-pytestmark = pytest.mark.filterwarnings("ignore:Object at .* is not recognized:UserWarning")
-s3_endpoint = test_s3_store.s3_endpoint  # the moto S3 server fixture
+pytestmark = [
+    pytest.mark.system,  # outages of real servers under flows run in subprocesses and by workers
+    pytest.mark.filterwarnings("ignore:Object at .* is not recognized:UserWarning"),
+]
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +161,6 @@ class Proxy:
 def s3_via_proxy(s3_endpoint, monkeypatch):
     """A proxy in front of the moto server; the runs (subprocesses) reach S3 through it, the test
     looks at the bucket directly. Returns (proxy, the test's own view of a fresh store URI)."""
-    from test_s3_store import s3_url
-
     host, port = s3_endpoint.removeprefix("http://").split(":")
     proxy = Proxy((host, int(port)))
     uri = s3_url("fault")
@@ -165,7 +178,7 @@ def _wait_for(store_fn, cond, proc: subprocess.Popen, timeout: float = 180):
     deadline = time.time() + timeout
     while time.time() < deadline and proc.poll() is None:
         try:
-            state = _step_state(store_fn())
+            state = step_state(store_fn())
         except Exception:  # the store is being created
             state = {}
         if cond(state):
@@ -177,10 +190,9 @@ def _wait_for(store_fn, cond, proc: subprocess.Popen, timeout: float = 180):
 
 def _explore(photos: Path, uri: str, api_url: str, **env: str) -> subprocess.Popen:
     args = ["explore", str(photos), "--store", uri, "--preset", "tiny", "--parallel", "1"]
-    return _run_cli(args, env, api_url)
+    return run_cli(args, env, api_url)
 
 
-@pytest.mark.slow
 def test_short_store_outage_mid_run_is_ridden_out(prefect_api_url, s3_via_proxy, one_photo, full_run):
     """The S3 server unreachable for a few seconds mid-scene: botocore (2 attempts here) gives up, the
     step fails with StoreUnavailable, the task retries after 2 s and 10 s, and the run completes."""
@@ -195,12 +207,11 @@ def test_short_store_outage_mid_run_is_ridden_out(prefect_api_url, s3_via_proxy,
     assert proc.returncode == 0, out[-3000:]
     assert "cannot be reached" in out and "Retry 1/2" in out, out[-3000:]  # a step failed and was retried
     store = view()
-    _assert_not_recomputed(before, _step_state(store))
+    _assert_not_recomputed(before, step_state(store))
     assert set(completed_counts(store).values()) == {1}
-    _assert_same_outputs(full_run[0], uri)
+    assert_same_outputs(full_run[0], uri)
 
 
-@pytest.mark.slow
 def test_store_outage_past_all_retries_then_rerun(prefect_api_url, s3_via_proxy, one_photo, full_run):
     """The S3 server down for good mid-scene: the run ends in bounded time, the scene is reported failed
     with an error that names the store and the fix, nothing partial is marked complete; once the server
@@ -219,7 +230,7 @@ def test_store_outage_past_all_retries_then_rerun(prefect_api_url, s3_via_proxy,
     assert f"the store {uri} cannot be reached" in flat and "then rerun the same command" in flat, out[-3000:]
     assert "1 of 1 images failed" in flat, out[-3000:]
     assert "run summary not written" in flat  # the store refused the bookkeeping: said, not crashed
-    during = _step_state(view())
+    during = step_state(view())
     assert "iter_0/geometry" in _complete(during) and "exports" not in _complete(during)  # stopped mid-way
     _assert_complete_steps_match(view(), full_run[0])  # what is marked complete is whole
 
@@ -228,10 +239,10 @@ def test_store_outage_past_all_retries_then_rerun(prefect_api_url, s3_via_proxy,
     out = proc.communicate(timeout=300)[0].decode(errors="replace")
     assert proc.returncode == 0, out[-3000:]
     store = view()
-    _assert_not_recomputed(during, _step_state(store))
+    _assert_not_recomputed(during, step_state(store))
     assert set(completed_counts(store).values()) == {1}
     assert {r["status"] for r in read_manifest(store).to_pylist()} == {"done"}
-    _assert_same_outputs(full_run[0], uri)
+    assert_same_outputs(full_run[0], uri)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -251,7 +262,7 @@ def _assert_disk_full_reported(run, store: Path, reference: Path) -> str:
     assert f"the store {store} is full" in scene.error and "free space" in scene.error, scene.error
     assert "rerun the same command" in scene.error and scene.step in scene.error, scene.error
     view = Store(str(store))
-    state = _step_state(view)
+    state = step_state(view)
     assert "iter_0/geometry" in _complete(state) and "exports" not in _complete(state)  # failed mid-scene
     _assert_complete_steps_match(view, reference)
     return scene.step
@@ -261,10 +272,10 @@ def _rerun_and_compare(photos: Path, store: Path, before, reference: Path) -> No
     run = _explore_in_process(photos, store)
     assert [r.status for r in run.scenes] == ["done"], [r.error for r in run.scenes]
     assert not run.store_errors
-    _assert_not_recomputed(before, _step_state(Store(str(store))))
+    _assert_not_recomputed(before, step_state(Store(str(store))))
     counts = completed_counts(store)
     assert set(counts.values()) == {1} and len(counts) == 2 + len(scene_steps(TINY))  # + input, evaluation
-    _assert_same_outputs(reference, store)
+    assert_same_outputs(reference, store)
 
 
 @pytest.fixture
@@ -289,7 +300,6 @@ def small_tmpfs(tmp_path):
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
-@pytest.mark.slow
 def test_disk_full_on_a_real_small_filesystem(prefect_api_url, small_tmpfs, one_photo, full_run):
     mnt, resize = small_tmpfs
     store = mnt / "store"
@@ -299,7 +309,7 @@ def test_disk_full_on_a_real_small_filesystem(prefect_api_url, small_tmpfs, one_
     assert [e["step"] for e in failed] == [step] and "StoreFull" in failed[0]["error"]  # once: not retried
     assert not list(mnt.rglob(".tmp-*"))  # no partial temporary files left behind
     assert not Store(str(store)).scene(run.scenes[0].scene_id).status(*_spec(step)).exists  # space given back
-    before = _step_state(Store(str(store)))
+    before = step_state(Store(str(store)))
     resize(16_000)  # the operator frees space
     _rerun_and_compare(one_photo, store, before, full_run[0])
 
@@ -362,7 +372,7 @@ def test_injected_disk_full(prefect_api_url, disk_budget, one_photo, full_run, t
     assert disk_budget.refused > 1
     assert run.summary == "" and any("run summary not written" in n and "is full" in n for n in run.store_errors)
     assert not list(store.rglob(".tmp-*"))
-    before = _step_state(Store(str(store)))
+    before = step_state(Store(str(store)))
     disk_budget.left = float("inf")  # space freed
     _rerun_and_compare(one_photo, store, before, full_run[0])
 
@@ -372,10 +382,10 @@ def test_injected_disk_full(prefect_api_url, disk_budget, one_photo, full_run, t
 # --------------------------------------------------------------------------------------------------
 class RestartableServer:
     """``prefect server start`` on SQLite in its own PREFECT_HOME, which can be killed and started
-    again on the same port with the same database (``test_worker.server`` cannot be restarted)."""
+    again on the same port with the same database (test_worker's ``server`` cannot be restarted)."""
 
     def __init__(self, home: Path) -> None:
-        self.home, self.port, self.proc, self.starts = home, test_worker._free_port(), None, 0
+        self.home, self.port, self.proc, self.starts = home, free_port(), None, 0
         self.api = f"http://127.0.0.1:{self.port}/api"
 
     def as_fixture(self) -> dict:
@@ -388,24 +398,24 @@ class RestartableServer:
         self.starts += 1
         with open(log, "wb") as out:
             self.proc = subprocess.Popen(
-                [f"{test_worker.VENV_BIN}/prefect", "server", "start", "--host", "127.0.0.1", "--port", str(self.port)],
-                env=test_worker._env(self.home, None),
+                [f"{VENV_BIN}/prefect", "server", "start", "--host", "127.0.0.1", "--port", str(self.port)],
+                env=prefect_env(self.home, None),
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
             )
         while True:
             try:
-                test_worker._get(f"{self.api}/health")
+                api_get(f"{self.api}/health")
                 return time.time() - t0
             except OSError:
                 if self.proc.poll() is not None or time.time() > t0 + timeout:
-                    raise RuntimeError(f"the Prefect server did not start:\n{test_worker._tail(log)}") from None
+                    raise RuntimeError(f"the Prefect server did not start:\n{tail(log)}") from None
                 time.sleep(0.3)
 
     def kill(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
-            test_worker._kill_tree(self.proc)
+            kill_tree(self.proc)
 
 
 @pytest.fixture
@@ -415,8 +425,8 @@ def restartable_server(tmp_path):
     server.start()
     try:
         res = subprocess.run(
-            [f"{test_worker.VENV_BIN}/prefect", "work-pool", "create", "--type", "process", test_worker.POOL],
-            env=test_worker._env(server.home, server.api),
+            [f"{VENV_BIN}/prefect", "work-pool", "create", "--type", "process", POOL],
+            env=prefect_env(server.home, server.api),
             capture_output=True,
             text=True,
             timeout=120,
@@ -428,7 +438,7 @@ def restartable_server(tmp_path):
 
 
 def _run_state(server: RestartableServer, run_id: str) -> str:
-    return test_worker._get(f"{server.api}/flow_runs/{run_id}")["state"]["type"]
+    return api_get(f"{server.api}/flow_runs/{run_id}")["state"]["type"]
 
 
 OUTAGE_MARKERS = ("Unable to connect", "ConnectError", "All connection attempts failed", "Connection refused",
@@ -440,7 +450,6 @@ def _saw_outage(log) -> bool:
     return any(m in text for m in OUTAGE_MARKERS)
 
 
-@pytest.mark.slow
 def test_prefect_server_restart_under_a_running_flow(restartable_server, one_photo, full_run, tmp_path):
     """The server SIGKILLed once the first step is complete, down until the flow run has tried to reach
     it (8-45 s) plus its restart (same port, same SQLite database). Measured: the flow-run process keeps
@@ -449,15 +458,15 @@ def test_prefect_server_restart_under_a_running_flow(restartable_server, one_pho
     run goes on and completes by itself, with the worker still alive. Task-run events emitted while it
     was down are lost (Prefect warns)."""
     server, store = restartable_server, tmp_path / "store"
-    worker = test_worker.Worker(server.as_fixture(), tmp_path / "worker.log")
+    worker = Worker(server.as_fixture(), tmp_path / "worker.log")
     try:
-        [run_id] = test_worker._submit(server.as_fixture(), one_photo, store)
+        [run_id] = submit(server.as_fixture(), one_photo, store)
         deadline = time.time() + 240
-        while "iter_0/geometry" not in _complete(_step_state(store) if (store / "zarr.json").exists() else {}):
-            assert time.time() < deadline and worker.proc.poll() is None, test_worker._tail(worker.log)
+        while "iter_0/geometry" not in _complete(step_state(store) if (store / "zarr.json").exists() else {}):
+            assert time.time() < deadline and worker.proc.poll() is None, tail(worker.log)
             time.sleep(0.2)
         server.kill()
-        at_kill = _step_state(Store(str(store)))
+        at_kill = step_state(Store(str(store)))
         # down at least 8 s, and until the flow run has tried the API (its next call can come late on a quiet
         # machine), at most 45 s: well inside the client's ~1 min of retries
         down = time.time()
@@ -473,14 +482,14 @@ def test_prefect_server_restart_under_a_running_flow(restartable_server, one_pho
             if state in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
                 break
             time.sleep(1)
-        assert states[-1] == "COMPLETED", (states, test_worker._tail(worker.log))  # it went on by itself
+        assert states[-1] == "COMPLETED", (states, tail(worker.log))  # it went on by itself
         assert worker.proc.poll() is None  # the worker survived the outage
         # the flow run lived through the outage: it logged a failed API call, or was still running on return
-        assert _saw_outage(worker.log) or states[0] == "RUNNING", (states, test_worker._tail(worker.log))
+        assert _saw_outage(worker.log) or states[0] == "RUNNING", (states, tail(worker.log))
     finally:
         worker.kill()
-    _assert_not_recomputed(at_kill, _step_state(Store(str(store))))
+    _assert_not_recomputed(at_kill, step_state(Store(str(store))))
     counts = completed_counts(store)
     assert set(counts.values()) == {1} and len(counts) == 2 + len(scene_steps(TINY))
     assert {r["status"] for r in read_manifest(Store(str(store))).to_pylist()} == {"done"}
-    _assert_same_outputs(full_run[0], store)
+    assert_same_outputs(full_run[0], store)

@@ -9,27 +9,22 @@ import hashlib
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
-from collections import Counter
 from pathlib import Path
 
 import imageio_ffmpeg
 import numpy as np
 import pyarrow.parquet as pq
-from conftest import BAD, DEMO, TINY
+import pytest
+from helpers import BAD, DEMO, TINY, assert_same_outputs, completed_counts, run_cli, step_state
 
 from navcrafter.models.reconstruction.pointcloud import read_ply
-from navcrafter.schemas.layout import EVALUATE, EXPORT, PLAN, STEPS
+from navcrafter.schemas.layout import EXPORT, PLAN
 from navcrafter.schemas.store import FAULT_ENV, Store
-from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
+from navcrafter.tasks.steps import scene_steps
 
-
-def completed_counts(store: Path | Store) -> Counter:
-    events = (store if isinstance(store, Store) else Store(str(store))).tables.read("steps").to_pylist()
-    return Counter((e["scene_id"], e["step"]) for e in events if e["event"] == "completed")
+pytestmark = pytest.mark.system  # whole flows on the Prefect test server, and CLI runs in subprocesses
 
 
 def test_collection_end_to_end(full_run):
@@ -144,71 +139,34 @@ def test_rerun_recomputes_nothing(full_run, collection):
     assert events and {e["event"] for e in events} <= {"skipped", "failed"}
 
 
-def _run_cli(args, env_extra, api_url, **kw):
-    env = {**os.environ, "PREFECT_API_URL": api_url, **env_extra}
-    return subprocess.Popen([sys.executable, "-m", "navcrafter.flows.cli", *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kw)
-
-
-def _step_state(store: Path | Store) -> dict[tuple[str, str], tuple[bool, str | None]]:
-    """(scene, step) -> (complete, exec_id) of every step group present (a path, or a ``Store`` object,
-    e.g. one whose connection is not the run's own)."""
-    s = store if isinstance(store, Store) else Store(str(store))
-    out = {}
-    for sid in s.scene_ids():
-        sc = s.scene(sid)
-        for spec, k in [(STEPS["ingest"], None), *[(s.spec, s.k) for s in scene_steps(TINY)]]:
-            st = sc.status(spec, k)
-            if st.exists:
-                out[(sid, st.path)] = (st.complete, st.attrs.get("exec_id"))
-    return out
-
-
-def _assert_same_outputs(a: Path, b: Path) -> None:
-    sa, sb = Store(str(a)), Store(str(b))
-    for sid in sb.scene_ids():
-        for spec, k in [(s.spec, s.k) for s in scene_steps(TINY)]:
-            if spec is EXPORT:
-                for name in ("cloud.ply", "trajectory.json", "trajectory.parquet", "video.mp4"):
-                    rel = sb.scene(sid).file_rel(EXPORT, None, name)
-                    assert sa.read_bytes(rel) == sb.read_bytes(rel), (sid[:8], name)
-                continue
-            xa, xb = sa.scene(sid).read_all(spec, k), sb.scene(sid).read_all(spec, k)
-            assert xa.keys() == xb.keys()
-            for name in xa:
-                np.testing.assert_array_equal(xa[name], xb[name], err_msg=f"{sid[:8]} {spec.group_path(k)}/{name}")
-        ma, mb = (dict(x.scene(sid).status(EVALUATE).attrs["metrics"]) for x in (sa, sb))
-        assert {**ma, "plan_seconds": 0} == {**mb, "plan_seconds": 0}, sid[:8]  # all but a timing
-
-
 def test_injected_crash_mid_step_then_resume(prefect_api_url, demo_photos, full_run, tmp_path):
     store = tmp_path / "store"
     args = ["explore", str(demo_photos), "--store", str(store), "--preset", "tiny", "--parallel", "1"]
-    proc = _run_cli(args, {FAULT_ENV: "iter_2/lift"}, prefect_api_url)
+    proc = run_cli(args, {FAULT_ENV: "iter_2/lift"}, prefect_api_url)
     out = proc.communicate(timeout=600)[0].decode()
     assert proc.returncode == -signal.SIGKILL, out[-3000:]
-    state = _step_state(store)
+    state = step_state(store)
     assert [p for p, (complete, _) in state.items() if not complete] == \
         [p for p in state if p[1] == "iter_2/lift"]  # the killed step alone is incomplete
-    proc = _run_cli(args, {}, prefect_api_url)
+    proc = run_cli(args, {}, prefect_api_url)
     out = proc.communicate(timeout=600)[0].decode()
     assert proc.returncode == 0, out[-3000:]
-    after = _step_state(store)
+    after = step_state(store)
     for path, (complete, exec_id) in state.items():
         if complete:
             assert after[path] == (True, exec_id), path  # completed steps were not recomputed
     assert all(c == 1 for c in completed_counts(store).values())
-    _assert_same_outputs(full_run[0], store)  # identical to the uninterrupted run
+    assert_same_outputs(full_run[0], store)  # identical to the uninterrupted run
 
 
 def test_sigkill_of_the_whole_process_group_then_resume(prefect_api_url, demo_photos, full_run, tmp_path):
     store = tmp_path / "store"
     args = ["explore", str(demo_photos), "--store", str(store), "--preset", "tiny", "--parallel", "1"]
-    proc = _run_cli(args, {}, prefect_api_url, start_new_session=True)
+    proc = run_cli(args, {}, prefect_api_url, start_new_session=True)
     deadline = time.time() + 300
     killed_at = None
     while time.time() < deadline and proc.poll() is None:
-        state = _step_state(store) if (store / "zarr.json").exists() else {}
+        state = step_state(store) if (store / "zarr.json").exists() else {}
         if any(complete and p[1] == "iter_1/synthesize" for p, (complete, _) in state.items()):
             os.killpg(proc.pid, signal.SIGKILL)
             killed_at = state
@@ -217,25 +175,25 @@ def test_sigkill_of_the_whole_process_group_then_resume(prefect_api_url, demo_ph
     proc.wait(timeout=60)
     assert killed_at is not None, "the run finished before it could be killed"
     assert proc.returncode == -signal.SIGKILL
-    exports_done = [p for p, (c, _) in _step_state(store).items() if p[1] == "exports" and c]
+    exports_done = [p for p, (c, _) in step_state(store).items() if p[1] == "exports" and c]
     assert len(exports_done) < 3  # it really was killed mid-run
-    proc = _run_cli(args, {}, prefect_api_url)
+    proc = run_cli(args, {}, prefect_api_url)
     out = proc.communicate(timeout=600)[0].decode()
     assert proc.returncode == 0, out[-3000:]
-    after = _step_state(store)
+    after = step_state(store)
     for path, (complete, exec_id) in killed_at.items():
         if complete:
             assert after[path] == (True, exec_id), path
     assert all(c == 1 for c in completed_counts(store).values())
-    _assert_same_outputs(full_run[0], store)
+    assert_same_outputs(full_run[0], store)
 
 
 def test_concurrent_runs_over_one_store_do_each_step_once(prefect_api_url, demo_photos, full_run, tmp_path):
     store = tmp_path / "store"
     args = ["explore", str(demo_photos), "--store", str(store), "--preset", "tiny", "--parallel", "2"]
-    procs = [_run_cli(args, {}, prefect_api_url) for _ in range(2)]
+    procs = [run_cli(args, {}, prefect_api_url) for _ in range(2)]
     outs = [p.communicate(timeout=600)[0].decode() for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[-2000:] for o in outs]
     counts = completed_counts(store)
     assert len(counts) == 3 * (2 + len(scene_steps(TINY))) and set(counts.values()) == {1}  # + input, evaluation
-    _assert_same_outputs(full_run[0], store)
+    assert_same_outputs(full_run[0], store)

@@ -6,9 +6,10 @@ from __future__ import annotations
 import uuid
 
 import pytest
-from conftest import TINY
+from helpers import TINY
 
 from navcrafter.flows import explore
+from navcrafter.schemas.layout import STEPS
 
 
 def _active_slots(name: str) -> int:
@@ -31,18 +32,14 @@ def gpu_limit(prefect_api_url) -> str:
         client.delete_global_concurrency_limit_by_name(name)
 
 
+@pytest.mark.system
 def test_gpu_step_holds_a_slot_while_it_runs(gpu_limit):
-    seen = []
-
-    def step(store_uri: str, scene_id: str, config, run_id: str, k: int | None = None) -> str:
-        seen.append(_active_slots(gpu_limit))
-        return scene_id
-
-    wrapped = explore._gpu_bound(step)
     config = TINY.model_copy(update={"gpu_limit": gpu_limit})
-    assert wrapped(store_uri="s", scene_id="a", config=config, run_id="r", k=1) == "a"
-    assert wrapped("s", "b", config, "r") == "b"  # positional arguments too
-    assert seen == [1, 1]
+    gpu_steps = [s for s in STEPS.values() if s.gpu]
+    assert {s.name for s in gpu_steps} == {"geometry", "synthesize", "lift", "fit", "refine"}  # the model steps
+    seen = [explore.in_gpu_slot(s, config, lambda: _active_slots(gpu_limit)) for s in gpu_steps]
+    assert seen == [1] * len(gpu_steps)
+    assert explore.in_gpu_slot(STEPS["plan"], config, lambda: _active_slots(gpu_limit)) == 0  # CPU work: no slot
     assert _active_slots(gpu_limit) == 0  # released afterwards
 
 
@@ -51,15 +48,18 @@ def test_no_limit_means_no_concurrency_call(monkeypatch):
         raise AssertionError("no API call without gpu_limit")
 
     monkeypatch.setattr(explore, "concurrency", forbidden)
-    wrapped = explore._gpu_bound(lambda store_uri, scene_id, config, run_id: scene_id)
-    assert wrapped(store_uri="s", scene_id="a", config=TINY, run_id="r") == "a"
+    assert explore.in_gpu_slot(STEPS["lift"], TINY, lambda: "a") == "a"
     explore.check_gpu_limit(TINY)  # nothing to check
+    assert explore.preflight(TINY) == []
 
 
+@pytest.mark.system
 def test_unknown_limit_is_a_clear_error(prefect_api_url):
     config = TINY.model_copy(update={"gpu_limit": "no-such-limit"})
     with pytest.raises(ValueError, match=r"prefect gcl create no-such-limit --limit"):
         explore.check_gpu_limit(config)
+    # checked before any work starts: explore_collection raises it before ingesting anything
+    assert any("no-such-limit" in p for p in explore.preflight(config))
 
 
 def test_limit_is_not_part_of_any_step_key():

@@ -3,14 +3,12 @@ real S3-compatible server process (moto's server mode) started by these tests.""
 
 from __future__ import annotations
 
-import logging
 import shutil
-import uuid
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from conftest import DEMO, TINY
+from helpers import BUCKET, DEMO, TINY, assert_same_outputs, s3_url
 
 pytest.importorskip("s3fs")
 pytest.importorskip("moto.server")
@@ -19,37 +17,10 @@ from navcrafter.schemas.layout import EVALUATE, EXPORT, LIFT, SYNTHESIZE  # noqa
 from navcrafter.schemas.store import Store, StoreError  # noqa: E402
 from navcrafter.schemas.tables import utcnow  # noqa: E402
 
-BUCKET = "navcrafter-test"
-pytestmark = pytest.mark.filterwarnings("ignore:Object at .* is not recognized:UserWarning")
-
-
-@pytest.fixture(scope="module")
-def s3_endpoint():
-    """A moto S3 server on a free port, a bucket on it, and the AWS env pointing at it."""
-    import boto3
-    from moto.server import ThreadedMotoServer
-
-    logging.getLogger("werkzeug").setLevel(logging.ERROR)  # one log line per request otherwise
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    url = f"http://{host}:{port}"
-    with pytest.MonkeyPatch.context() as mp:
-        for var in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_ENDPOINT_URL_S3", "FSSPEC_S3_ENDPOINT_URL"):
-            mp.delenv(var, raising=False)
-        mp.setenv("AWS_ACCESS_KEY_ID", "testing")
-        mp.setenv("AWS_SECRET_ACCESS_KEY", "testing")
-        mp.setenv("AWS_DEFAULT_REGION", "us-east-1")
-        mp.setenv("AWS_ENDPOINT_URL", url)
-        boto3.client("s3", endpoint_url=url, region_name="us-east-1").create_bucket(Bucket=BUCKET)
-        try:
-            yield url
-        finally:
-            server.stop()
-
-
-def s3_url(name: str) -> str:
-    return f"s3://{BUCKET}/{name}-{uuid.uuid4().hex[:8]}"
+pytestmark = [
+    pytest.mark.system,  # moto's S3 server (conftest.s3_endpoint), and whole flows on the Prefect test server
+    pytest.mark.filterwarnings("ignore:Object at .* is not recognized:UserWarning"),
+]
 
 
 def test_step_roundtrip_on_s3(s3_endpoint):
@@ -154,8 +125,8 @@ def test_explore_collection_on_s3_matches_local(s3_endpoint, prefect_api_url, de
     """One image (the table-top; test_faults runs the room over S3 through a flaky proxy)."""
     from navcrafter.flows.explore import explore_collection
     from navcrafter.models.reconstruction.pointcloud import read_ply
-    from navcrafter.tasks.pipeline import scene_steps
     from navcrafter.tasks.report import read_manifest
+    from navcrafter.tasks.steps import scene_steps
 
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -199,7 +170,6 @@ def test_photos_under_an_s3_prefix(s3_endpoint, prefect_api_url, demo_photos, fu
     """A collection under an s3:// prefix (demo photos with their ground-truth sidecars, uploaded as
     objects) explored by the CLI into a local store: the same arrays and files as from the local photos.
     One image, to stay fast; listing, per-image submission and the errors are checked on three."""
-    from test_flows import _assert_same_outputs
     from typer.testing import CliRunner
 
     from navcrafter.flows.cli import app
@@ -223,7 +193,7 @@ def test_photos_under_an_s3_prefix(s3_endpoint, prefect_api_url, demo_photos, fu
     assert res.exit_code == 0, res.output
     [row] = read_manifest(Store(str(store))).to_pylist()
     assert row["source"] == f"{one}/tabletop-0.png" and row["status"] == "done", row
-    _assert_same_outputs(full_run[0], store)
+    assert_same_outputs(full_run[0], store)
 
     # clear errors, naming the URL and the fix; nothing is written
     errors = {f"s3://{BUCKET}/nothing-here/": "no objects under",

@@ -8,139 +8,64 @@ flow runs are separate processes and need a server they can reach over HTTP.
 
 from __future__ import annotations
 
-import json
-import os
-import re
 import signal
-import socket
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
-from conftest import TINY
-from test_flows import _assert_same_outputs, _step_state, completed_counts
+from helpers import (
+    POOL,
+    TINY,
+    VENV_BIN,
+    Worker,
+    api_get,
+    assert_same_outputs,
+    completed_counts,
+    free_port,
+    kill_tree,
+    prefect_env,
+    step_state,
+    submit,
+    tail,
+)
 
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.pipeline import scene_steps
 from navcrafter.tasks.report import read_manifest
+from navcrafter.tasks.steps import scene_steps
 
-POOL = "navcrafter-test"
 GPU_POOL = "navcrafter-test-gpu"  # process pool standing in for the GPU machines
-DEPLOYMENT = "explore-collection/test"
 SCENE_DEPLOYMENT = "explore-scene/test"
-VENV_BIN = str(Path(sys.executable).parent)
-UUID = re.compile(r"flow run ([0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12})")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _env(home: Path, api_url: str | None) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    env.update(PATH=f"{VENV_BIN}{os.pathsep}{env.get('PATH', '')}", PREFECT_HOME=str(home),
-               PREFECT_SERVER_ANALYTICS_ENABLED="false", PREFECT_WORKER_QUERY_SECONDS="1",
-               PREFECT_LOGGING_LEVEL="INFO")
-    if api_url:
-        env["PREFECT_API_URL"] = api_url
-    return env
-
-
-def _descendants(pid: int) -> list[int]:
-    """Every process below ``pid`` (Linux /proc; psutil is not a dependency)."""
-    children: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    out, todo = [], [pid]
-    while todo:
-        kids = children.get(todo.pop(), [])
-        out += kids
-        todo += kids
-    return out
-
-
-def _kill_tree(proc: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
-    """Kill a process started with start_new_session=True: its group and the groups of its descendants
-    (Prefect starts each flow run in a session of its own)."""
-    groups = {proc.pid}
-    for pid in _descendants(proc.pid):
-        try:
-            groups.add(os.getpgid(pid))
-        except ProcessLookupError:
-            pass
-    groups.discard(os.getpgrp())
-    for pgid in groups:
-        try:
-            os.killpg(pgid, sig)
-        except ProcessLookupError:
-            pass
-    try:
-        proc.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=30)
-
-
-def _tail(path: Path, n: int = 4000) -> str:
-    return path.read_text(errors="replace")[-n:] if path.exists() else ""
-
-
-def _get(url: str, body: dict | None = None):
-    """GET ``url``, or POST ``body`` to it as JSON (the API's filter endpoints)."""
-    data = None if body is None else json.dumps(body).encode()
-    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
-    with urllib.request.urlopen(request, timeout=10) as r:
-        return json.loads(r.read())
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     home = tmp_path_factory.mktemp("prefect-home")
-    port = _free_port()
+    port = free_port()
     api = f"http://127.0.0.1:{port}/api"
     log = home / "server.log"
     with open(log, "wb") as out:
         proc = subprocess.Popen([f"{VENV_BIN}/prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
-                                env=_env(home, None), stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+                                env=prefect_env(home, None), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
     try:
         deadline = time.time() + 120
         while True:
             try:
-                _get(f"{api}/health")
+                api_get(f"{api}/health")
                 break
             except OSError:
                 if proc.poll() is not None or time.time() > deadline:
-                    raise RuntimeError(f"the Prefect server did not start:\n{_tail(log)}") from None
+                    raise RuntimeError(f"the Prefect server did not start:\n{tail(log)}") from None
                 time.sleep(0.5)
         for pool in (POOL, GPU_POOL):
             res = subprocess.run([f"{VENV_BIN}/prefect", "work-pool", "create", "--type", "process", pool],
-                                 env=_env(home, api), capture_output=True, text=True, timeout=120)
+                                 env=prefect_env(home, api), capture_output=True, text=True, timeout=120)
             assert res.returncode == 0, res.stdout + res.stderr
         yield {"api": api, "home": home}
     finally:
-        _kill_tree(proc, signal.SIGTERM)
-
-
-class Worker:
-    def __init__(self, server, log: Path, pool: str = POOL) -> None:
-        self.log = log
-        with open(log, "ab") as out:
-            self.proc = subprocess.Popen([f"{VENV_BIN}/prefect", "worker", "start", "--pool", pool],
-                                         env=_env(server["home"], server["api"]), stdout=out,
-                                         stderr=subprocess.STDOUT, start_new_session=True)
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            _kill_tree(self.proc)
+        kill_tree(proc, signal.SIGTERM)
 
 
 @pytest.fixture
@@ -156,18 +81,8 @@ def start_worker(server, tmp_path):
         w.kill()
 
 
-def _submit(server, collection: Path, store: Path, *extra: str) -> list[str]:
-    res = subprocess.run([sys.executable, "-m", "navcrafter.flows.cli", "submit", str(collection), "--store",
-                          str(store), "--preset", "tiny", "--deployment", DEPLOYMENT, "--work-pool", POOL, *extra],
-                         env=_env(server["home"], server["api"]), capture_output=True, text=True, timeout=180)
-    assert res.returncode == 0, res.stdout + res.stderr
-    ids = UUID.findall(res.stdout)
-    assert ids and f"{server['api'].removesuffix('/api')}/runs/flow-run/{ids[0]}" in res.stdout  # dashboard
-    return ids
-
-
 def _state(server, run_id: str) -> str:
-    return _get(f"{server['api']}/flow_runs/{run_id}")["state"]["type"]
+    return api_get(f"{server['api']}/flow_runs/{run_id}")["state"]["type"]
 
 
 def _wait_completed(server, ids: list[str], workers: list[Worker], timeout: float = 240) -> None:
@@ -180,7 +95,7 @@ def _wait_completed(server, ids: list[str], workers: list[Worker], timeout: floa
         if any(s in ("FAILED", "CRASHED", "CANCELLED") for s in states.values()):
             break
         time.sleep(1)
-    logs = "\n".join(_tail(w.log) for w in workers)
+    logs = "\n".join(tail(w.log) for w in workers)
     raise AssertionError(f"flow runs did not complete: {states}\n{logs}")
 
 
@@ -200,17 +115,17 @@ def uninterrupted(server, two_photos, tmp_path_factory):
     store = tmp_path_factory.mktemp("worker-full") / "store"
     workers = [Worker(server, store.parent / "worker.log"), Worker(server, store.parent / "gpu-worker.log", GPU_POOL)]
     try:
-        ids = _submit(server, two_photos, store, "--tag", "test", "--scene-pool", GPU_POOL)
+        ids = submit(server, two_photos, store, "--tag", "test", "--scene-pool", GPU_POOL)
         assert len(ids) == 1
         _wait_completed(server, ids, workers)
     finally:
         for w in workers:
             w.kill()
-    run = _get(f"{server['api']}/flow_runs/{ids[0]}")
+    run = api_get(f"{server['api']}/flow_runs/{ids[0]}")
     return store, run
 
 
-@pytest.mark.slow
+@pytest.mark.system
 def test_submitted_collection_is_explored_by_a_worker(server, uninterrupted, two_photos):
     store, run = uninterrupted
     assert {"navcrafter", "test"} <= set(run["tags"]) and run["work_pool_name"] == POOL
@@ -221,12 +136,12 @@ def test_submitted_collection_is_explored_by_a_worker(server, uninterrupted, two
     counts = completed_counts(store)
     assert len(counts) == 2 * (2 + len(scene_steps(TINY))) and set(counts.values()) == {1}  # + input, evaluation
     # the scenes ran as child flow runs of the explore-scene deployment, on the GPU pool
-    children = _get(f"{server['api']}/flow_runs/filter",
-                    {"flow_runs": {"parent_flow_run_id": {"any_": [run["id"]]}}})
+    children = api_get(f"{server['api']}/flow_runs/filter",
+                       {"flow_runs": {"parent_flow_run_id": {"any_": [run["id"]]}}})
     assert sorted(c["parameters"]["scene_id"] for c in children) == sorted(Store(str(store)).scene_ids())
     for child in children:
-        deployment = _get(f"{server['api']}/deployments/{child['deployment_id']}")
-        flow = _get(f"{server['api']}/flows/{deployment['flow_id']}")
+        deployment = api_get(f"{server['api']}/deployments/{child['deployment_id']}")
+        flow = api_get(f"{server['api']}/flows/{deployment['flow_id']}")
         assert f"{flow['name']}/{deployment['name']}" == SCENE_DEPLOYMENT
         assert child["work_pool_name"] == GPU_POOL and child["state"]["type"] == "COMPLETED"
         assert child["parameters"]["run_id"] == run["id"] and child["parameters"]["store"] == str(store)
@@ -234,9 +149,9 @@ def test_submitted_collection_is_explored_by_a_worker(server, uninterrupted, two
     assert {r["run_id"] for r in manifest.values()} == {run["id"]}
 
 
-@pytest.mark.slow
+@pytest.mark.system
 def test_submit_errors_are_clear(server, two_photos, tmp_path):
-    env = _env(server["home"], server["api"])
+    env = prefect_env(server["home"], server["api"])
     base = [sys.executable, "-m", "navcrafter.flows.cli", "submit", str(two_photos), "--store", str(tmp_path / "s"),
             "--preset", "tiny"]
     res = subprocess.run([*base, "--deployment", "explore-collection/nope"], env=env, capture_output=True,
@@ -253,15 +168,15 @@ def test_submit_errors_are_clear(server, two_photos, tmp_path):
     assert not (tmp_path / "s").exists()
 
 
-@pytest.mark.slow
+@pytest.mark.system
 def test_worker_killed_mid_scene_then_resubmitted(server, start_worker, uninterrupted, two_photos, tmp_path):
     store = tmp_path / "store"
     worker = start_worker()
-    [first] = _submit(server, two_photos, store)
+    [first] = submit(server, two_photos, store)
     deadline = time.time() + 240
     killed_at = None
     while time.time() < deadline:
-        state = _step_state(store) if (store / "zarr.json").exists() else {}
+        state = step_state(store) if (store / "zarr.json").exists() else {}
         done = {(sid, p) for (sid, p), (complete, _) in state.items() if complete}
         if any(p == "iter_1/synthesize" for _, p in done) and sum(p == "exports" for _, p in done) == 0:
             worker.kill()  # the worker and its flow run process: nothing is left to finish the run
@@ -270,9 +185,9 @@ def test_worker_killed_mid_scene_then_resubmitted(server, start_worker, uninterr
         if _state(server, first) in ("COMPLETED", "FAILED", "CRASHED"):
             break
         time.sleep(0.05)
-    assert killed_at is not None, f"the run ended before it could be killed\n{_tail(worker.log)}"
+    assert killed_at is not None, f"the run ended before it could be killed\n{tail(worker.log)}"
     time.sleep(1)
-    after_kill = _step_state(store)
+    after_kill = step_state(store)
     assert not any(p == "exports" and c for (_, p), (c, _) in after_kill.items())  # really killed mid-scene
     assert _state(server, first) in ("RUNNING", "CRASHED")  # nobody finishes it: it is resubmitted
 
@@ -282,17 +197,17 @@ def test_worker_killed_mid_scene_then_resubmitted(server, start_worker, uninterr
     listing.write_text("# the two demo photos\nroom-0.png\n\ntabletop-0.png\n")
     (tmp_path / "room-0.png").symlink_to(two_photos / "room-0.png")
     (tmp_path / "tabletop-0.png").symlink_to(two_photos / "tabletop-0.png")
-    ids = _submit(server, listing, store, "--tag", "resubmitted")
+    ids = submit(server, listing, store, "--tag", "resubmitted")
     assert len(ids) == 2
     _wait_completed(server, ids, [worker])
-    after = _step_state(store)
+    after = step_state(store)
     for path, (complete, exec_id) in after_kill.items():
         if complete:
             assert after[path] == (True, exec_id), path  # completed steps were not recomputed
     assert all(c == 1 for c in completed_counts(store).values())
     manifest = read_manifest(Store(str(store))).to_pylist()
     assert {r["scene_id"]: r["status"] for r in manifest} == dict.fromkeys(Store(str(store)).scene_ids(), "done")
-    _assert_same_outputs(uninterrupted[0], store)  # identical to the uninterrupted run
+    assert_same_outputs(uninterrupted[0], store)  # identical to the uninterrupted run
 
 
 def test_collection_items_and_list_files(tmp_path, monkeypatch):

@@ -148,6 +148,19 @@ def test_colmap_camera_models(tmp_path):
         read_colmap_cameras(p)
 
 
+def test_package_reexports_each_format_module():
+    # one module per format; the package keeps the old single-module API
+    import navcrafter.schemas.datasets as datasets
+    from navcrafter.schemas.datasets import base, colmap, dl3dv, realestate10k, tanksandtemples
+
+    assert all(hasattr(datasets, name) for name in datasets.__all__)
+    assert datasets.DATASET_KINDS["re10k"] is realestate10k.RealEstate10KReader
+    assert datasets.DATASET_KINDS["dl3dv"] is dl3dv.DL3DVReader
+    assert datasets.DATASET_KINDS["tnt"] is tanksandtemples.TanksAndTemplesReader
+    assert datasets.read_colmap_cameras is colmap.read_colmap_cameras
+    assert datasets.DatasetError is base.DatasetError and datasets.Sample is base.Sample
+
+
 # --------------------------------------------------------------------------------------------------
 # Sampling protocol
 # --------------------------------------------------------------------------------------------------

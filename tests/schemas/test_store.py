@@ -14,7 +14,7 @@ import pytest
 from navcrafter.schemas.layout import GEOMETRY, INGEST, LIFT, PLAN, STEPS, SYNTHESIZE
 from navcrafter.schemas.store import FAULT_ENV, Store, StoreError
 from navcrafter.schemas.tables import Tables, to_table, utcnow
-from navcrafter.tasks.geometry import initial_geometry
+from navcrafter.tasks import steps
 from navcrafter.tasks.ingest import ingest
 
 
@@ -87,22 +87,22 @@ def test_step_protocol_skip_stale_and_incomplete(tmp_path, demo_photos, tiny):
     uri = str(tmp_path / "s")
     res = ingest(uri, str(demo_photos / "room-0.png"), tiny, "run1")
     assert res.ok and res.step is not None and not res.step.skipped
-    first = initial_geometry(uri, res.scene_id, tiny, "run1")
+    first = steps.run(uri, res.scene_id, "geometry", tiny, "run1")
     assert not first.skipped
-    second = initial_geometry(uri, res.scene_id, tiny, "run2")
+    second = steps.run(uri, res.scene_id, "geometry", tiny, "run2")
     assert second.skipped and second.exec_id == first.exec_id
     # a config change that the step reads makes it stale
     changed = tiny.model_copy(update={"lift": tiny.lift.model_copy(update={"voxel_size": 0.05})})
-    third = initial_geometry(uri, res.scene_id, changed, "run3")
+    third = steps.run(uri, res.scene_id, "geometry", changed, "run3")
     assert not third.skipped and third.key != first.key
     # a config change the step does not read does not
     other = tiny.model_copy(update={"plan": tiny.plan.model_copy(update={"orbit_step_deg": 5.0})})
-    assert initial_geometry(uri, res.scene_id, other, "run4").skipped is False  # key(changed) != key(other)
-    assert initial_geometry(uri, res.scene_id, other, "run5").skipped
+    assert steps.run(uri, res.scene_id, "geometry", other, "run4").skipped is False  # key(changed) != key(other)
+    assert steps.run(uri, res.scene_id, "geometry", other, "run5").skipped
     # an incomplete group (a crash mid-step) is rewritten
     scene = Store(uri).scene(res.scene_id)
     scene.begin(GEOMETRY, None, key=scene.status(GEOMETRY).key, backend="simulation")
-    redo = initial_geometry(uri, res.scene_id, other, "run6")
+    redo = steps.run(uri, res.scene_id, "geometry", other, "run6")
     assert not redo.skipped and scene.status(GEOMETRY).complete
     events = Store(uri).tables.read("steps").to_pylist()
     geo = [(e["run_id"], e["event"]) for e in events if e["step"] == "iter_0/geometry"]
@@ -112,21 +112,22 @@ def test_step_protocol_skip_stale_and_incomplete(tmp_path, demo_photos, tiny):
 
 def test_downstream_needs_upstream(tmp_path, tiny):
     with pytest.raises(Exception, match="has not completed"):
-        initial_geometry(str(tmp_path / "s"), "nothing-here", tiny, "r")
+        steps.run(str(tmp_path / "s"), "nothing-here", "geometry", tiny, "r")
 
 
+@pytest.mark.system  # a subprocess killed by the injected fault
 def test_fault_injection_kills_before_commit(tmp_path, demo_photos, tiny):
     uri = str(tmp_path / "s")
     res = ingest(uri, str(demo_photos / "tabletop-0.png"), tiny, "r")
     code = ("import sys; from navcrafter.schemas.config import RunConfig; "
-            "from navcrafter.tasks.geometry import initial_geometry; "
-            f"initial_geometry({uri!r}, {res.scene_id!r}, RunConfig.load(preset='tiny'), 'r')")
+            "from navcrafter.tasks import steps; "
+            f"steps.run({uri!r}, {res.scene_id!r}, 'geometry', RunConfig.load(preset='tiny'), 'r')")
     env = {**os.environ, FAULT_ENV: "iter_0/geometry"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=300)
     assert proc.returncode == -9, proc.stderr.decode()[-2000:]
     st = Store(uri).scene(res.scene_id).status(GEOMETRY)
     assert st.exists and not st.complete  # arrays were written, the marker was not
-    assert initial_geometry(uri, res.scene_id, tiny, "r2").skipped is False
+    assert steps.run(uri, res.scene_id, "geometry", tiny, "r2").skipped is False
     assert Store(uri).scene(res.scene_id).status(GEOMETRY).complete
     assert Store(uri).scene(res.scene_id).status(INGEST).complete
 

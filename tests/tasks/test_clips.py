@@ -63,6 +63,7 @@ def test_clips_hold_the_protocol(re10k_clips):
     assert c2w.shape == (15, 4, 4) and np.allclose(c2w[0], np.eye(4), atol=1e-9)
 
 
+@pytest.mark.system
 def test_perfect_and_wrong_generators_are_told_apart(re10k_clips, tmp_path, prefect_api_url):
     from navcrafter.flows.evaluate import evaluate_clips
     from navcrafter.schemas.config import EvaluationConfig
@@ -92,6 +93,7 @@ def test_perfect_and_wrong_generators_are_told_apart(re10k_clips, tmp_path, pref
     assert len(table) == len(r_good) and "Table IV" in (tmp_path / "o1" / "report.md").read_text()
 
 
+@pytest.mark.system
 def test_bad_generated_clips_are_reported_not_fatal(re10k_clips, tmp_path, prefect_api_url):
     from navcrafter.flows.evaluate import evaluate_clips
     from navcrafter.schemas.config import EvaluationConfig

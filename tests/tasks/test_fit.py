@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from navcrafter.models.gaussians.model import GaussianModel
-from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView, train_gaussians
+from navcrafter.models.gaussians.train import GaussianTrainer, TrainView, train_gaussians
 from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
+from navcrafter.schemas.config import FitConfig
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -94,8 +95,8 @@ def synthetic_views(n_views=6, seed=0):
 
 def quick_config(**kw):
     base = dict(iterations=40, sh_degree=1, sh_degree_interval=20, lambda_lpips=0.0, lambda_depth=0.0,
-                drop_gamma=0.0, densify=False, lr_means=1.6e-3, lr_means_final=1.6e-4)
-    return TrainConfig(**{**base, **kw})
+                drop_gamma=0.0, densify=False, lr_means=1.6e-3, lr_means_final=1.6e-4, device="cpu")
+    return FitConfig(**{**base, **kw})
 
 
 def test_training_loss_decreases_and_is_deterministic():
@@ -163,7 +164,7 @@ def test_drop_gaussian_only_while_training():
 def test_densification_grows_prunes_and_stays_bounded():
     _, init, views = synthetic_views(n_views=3)
     n0 = len(init)
-    cfg = quick_config(iterations=12, densify=True, refine_start=0, refine_every=4, grow_grad2d=1e-6,
+    cfg = quick_config(iterations=12, densify=True, densify_start=0, densify_every=4, grow_grad2d=1e-6,
                        reset_every=0, max_gaussians=n0 + 50)
     res, trainer = train_gaussians(init, views, cfg, scene_scale=3.0)
     counts = res.history["n_gaussians"]
@@ -175,7 +176,7 @@ def test_densification_grows_prunes_and_stays_bounded():
     # pruning removes transparent Gaussians
     faded = init.clone()
     faded.opacity_logits[: n0 // 2] = -10.0
-    res, _ = train_gaussians(faded, views, quick_config(iterations=5, densify=True, refine_start=0, refine_every=4,
+    res, _ = train_gaussians(faded, views, quick_config(iterations=5, densify=True, densify_start=0, densify_every=4,
                                                         grow_grad2d=1e9, reset_every=0), scene_scale=3.0)
     assert len(res.model) == n0 - n0 // 2
 
@@ -189,9 +190,9 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.layout import EXPORT, FIT
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.fit import load_gaussians
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.pipeline import run_scene
+    from navcrafter.tasks.readers import load_gaussians
+    from navcrafter.tasks.steps import run_scene
 
     cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True})
     store = str(tmp_path / "store")
@@ -244,9 +245,10 @@ def test_train_stride_and_depth_from_the_cloud(demo_photos, tmp_path):
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.layout import FIT
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.fit import fit, load_fit_views
+    from navcrafter.tasks import steps
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.pipeline import run_scene
+    from navcrafter.tasks.readers import load_fit_views
+    from navcrafter.tasks.steps import run_scene
 
     base = {"fit.iterations": 5, "lift.max_views": 3}
     cfg = RunConfig.load(preset="tiny", overrides=base)
@@ -257,7 +259,7 @@ def test_train_stride_and_depth_from_the_cloud(demo_photos, tmp_path):
     sources = {}
     for views, stride in (("lift", 1), ("all", 2)):
         over = {**base, "fit.enabled": True, "fit.train_stride": stride, "fit.depth_views": views}
-        fit(store, sid, RunConfig.load(preset="tiny", overrides=over), "t")
+        steps.run(store, sid, "fit", RunConfig.load(preset="tiny", overrides=over), "t")
         a, g = scene.status(FIT).attrs, scene.read_all(FIT)
         held = g["holdout"]
         expect = np.zeros(len(held), dtype=bool)
@@ -309,14 +311,14 @@ def test_simulation_refiner_moves_renders_toward_the_truth(demo_photos, tmp_path
     from navcrafter.models.simulation.render import render
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.store import Store
+    from navcrafter.tasks import steps
     from navcrafter.tasks.common import simulation_truth
-    from navcrafter.tasks.geometry import initial_geometry
     from navcrafter.tasks.ingest import ingest
 
     cfg = RunConfig.load(preset="tiny")
     store = str(tmp_path / "store")
     sid = ingest(store, str(demo_photos / "room-0.png"), cfg, "t").scene_id
-    initial_geometry(store, sid, cfg, "t")
+    steps.run(store, sid, "geometry", cfg, "t")
     truth = simulation_truth(Store(store).scene(sid))
     K = truth.intrinsics_for(24, 32)
     pose = np.eye(4)
@@ -342,9 +344,9 @@ def test_refine_step_trains_on_refined_views_and_feeds_the_exports(demo_photos, 
     from navcrafter.schemas.layout import EXPORT, FIT, REFINE
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.pipeline import run_scene
-    from navcrafter.tasks.refine import load_refined_gaussians
+    from navcrafter.tasks.readers import load_refined_gaussians
     from navcrafter.tasks.score import gaussian_rows
+    from navcrafter.tasks.steps import run_scene
 
     cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "refine.enabled": True, "refine.views": 4,
                                                    "refine.iterations": 30, "simulation.refine_noise": 0.0,
@@ -379,12 +381,11 @@ def test_refine_step_trains_on_refined_views_and_feeds_the_exports(demo_photos, 
 
 
 def test_refine_needs_fit_and_a_refiner(tmp_path):
-    from navcrafter.flows.explore import preflight
     from navcrafter.models.backends import onnx_problems
     from navcrafter.schemas.config import RunConfig
 
-    cfg = RunConfig.load(preset="tiny", overrides={"refine.enabled": True})
-    assert any("refine.enabled needs fit.enabled" in p for p in preflight(cfg))
+    with pytest.raises(ValueError, match="refine.enabled needs fit.enabled"):  # the config's own rule
+        RunConfig.load(preset="tiny", overrides={"refine.enabled": True})
     models = tmp_path / "models"
     models.mkdir()
     onnx = RunConfig.load(preset="tiny", overrides={"backend": "onnx", "model_dir": str(models), "fit.enabled": True,
@@ -392,6 +393,7 @@ def test_refine_needs_fit_and_a_refiner(tmp_path):
     assert any("refiner" in p for p in onnx_problems(onnx))
 
 
+@pytest.mark.system
 def test_training_progress_logs_and_publishes_an_artifact(prefect_api_url):
     from prefect import flow
     from prefect.client.orchestration import get_client

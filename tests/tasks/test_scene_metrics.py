@@ -8,7 +8,7 @@ from collections import Counter
 import numpy as np
 import pytest
 import zarr
-from conftest import DEMO, TINY
+from helpers import DEMO, TINY
 from typer.testing import CliRunner
 
 from navcrafter.flows.cli import app
@@ -28,6 +28,7 @@ def evaluated(full_run, tmp_path_factory, prefect_api_url):
     return store, config, evaluate_store(str(store), config)
 
 
+@pytest.mark.system
 def test_every_finished_scene_gets_every_table(evaluated, full_run):
     store, _, result = evaluated
     done = {r.scene_id for r in full_run[1].scenes if r.status == "done"}
@@ -61,6 +62,7 @@ def test_every_finished_scene_gets_every_table(evaluated, full_run):
         assert "fit.enabled" in by[(sid, "VII", "PSNR")]["note"]
 
 
+@pytest.mark.system
 def test_metrics_without_weights_are_unavailable_not_invented(evaluated):
     _, _, result = evaluated
     lp = [r for r in result.rows if r["metric"] == "LPIPS" and r["table"] == "III"]
@@ -71,6 +73,7 @@ def test_metrics_without_weights_are_unavailable_not_invented(evaluated):
     assert all(r["status"] == "unavailable" and r["value"] is None for r in dist.values())
 
 
+@pytest.mark.system
 def test_tables_report_and_artifacts_are_written(evaluated):
     from prefect.artifacts import Artifact
 
@@ -93,6 +96,7 @@ def test_tables_report_and_artifacts_are_written(evaluated):
     assert art is not None and "Table IV" in art.data
 
 
+@pytest.mark.system
 def test_scoring_again_reads_the_scores_back(evaluated, prefect_api_url):
     from navcrafter.flows.evaluate import evaluate_store
 
@@ -111,6 +115,7 @@ def test_scoring_again_reads_the_scores_back(evaluated, prefect_api_url):
     assert "of 10 frames registered" in reg["note"]  # 5 of the 9 frames of each of the 2 clips
 
 
+@pytest.mark.system
 def test_reference_check_detects_frames_that_do_not_match_their_cameras(evaluated, tmp_path):
     """Table III is a real comparison: frames that are not the requested views score badly."""
     from navcrafter.tasks.score import synthesis_rows

@@ -16,7 +16,7 @@ unit_quat = st.tuples(*[st.floats(-1, 1)] * 4).filter(lambda q: np.linalg.norm(q
 
 
 def random_pose(q, t) -> np.ndarray:
-    return C.make_pose(C.quat_to_matrix(q), t)
+    return C.make_pose(C.quat_wxyz_to_matrix(q), t)
 
 
 @given(unit_quat, vec3)
@@ -27,7 +27,7 @@ def test_invert_pose_is_inverse(q, t):
 
 @given(unit_quat)
 def test_quaternion_roundtrip(q):
-    R = C.quat_to_matrix(q)
+    R = C.quat_wxyz_to_matrix(q)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0)
     q2 = C.matrix_to_quat(R)
@@ -67,7 +67,7 @@ def test_slerp_endpoints_exact_and_constant_speed(q0, q1):
     assert np.array_equal(out[0], q0)
     assert np.array_equal(out[-1], q1) or np.array_equal(out[-1], -q1)
     np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-12)
-    R = C.quat_to_matrix(out)
+    R = C.quat_wxyz_to_matrix(out)
     steps = C.rotation_angle_deg(R[:-1], R[1:])
     np.testing.assert_allclose(steps, steps.mean(), atol=1e-5)
 
@@ -161,7 +161,7 @@ def test_plucker_matches_paper_formula_and_ray_direction():
 def test_umeyama_recovers_similarity():
     rng = np.random.default_rng(1)
     src = rng.normal(size=(30, 3))
-    R = C.quat_to_matrix(np.array([0.9, 0.1, -0.3, 0.2]))
+    R = C.quat_wxyz_to_matrix(np.array([0.9, 0.1, -0.3, 0.2]))
     dst = 2.5 * src @ R.T + np.array([1.0, -2.0, 0.5])
     s, R2, t2 = C.umeyama(src, dst)
     assert s == pytest.approx(2.5)

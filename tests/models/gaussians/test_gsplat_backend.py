@@ -33,7 +33,8 @@ from navcrafter.models.gaussians.renderer import (
     resolve_backend,
     resolve_device,
 )
-from navcrafter.models.gaussians.train import GaussianTrainer, TrainConfig, TrainView, render_model
+from navcrafter.models.gaussians.train import GaussianTrainer, TrainView, render_model
+from navcrafter.schemas.config import FitConfig
 
 S = 24  # image side of the CPU tests
 GSPLAT_ONLY = ("absgrad", "sparse_grad", "channel_chunk", "camera_model", "segmented", "distributed")
@@ -118,10 +119,10 @@ def train_views(n_views=2, size=S, seed=0):
     return init, views
 
 
-def quick_config(**kw) -> TrainConfig:
+def quick_config(**kw) -> FitConfig:
     base = dict(iterations=6, sh_degree=1, sh_degree_interval=3, lambda_lpips=0.0, lambda_depth=0.1,
                 drop_gamma=0.1, densify=False, lr_means=1.6e-3, lr_means_final=1.6e-4, device="cpu")
-    return TrainConfig(**{**base, **kw})
+    return FitConfig(**{**base, **kw})
 
 
 # --------------------------------------------------------------------------------------------------
@@ -176,15 +177,20 @@ def test_trainer_device_and_renderer_resolution(no_gsplat):
             resolve_device("cuda")
 
 
-def test_fit_config_fields_reach_the_train_config():
-    from navcrafter.schemas.config import FitConfig
-    from navcrafter.tasks.fit import train_config
+def test_the_fit_config_is_what_the_trainer_and_its_density_control_use():
+    from navcrafter.models.gaussians.train import strategy_for
 
-    cfg = FitConfig(device="cpu", renderer="torch")
-    tcfg = train_config(cfg, seed=3)
-    assert (tcfg.device, tcfg.renderer) == ("cpu", "torch")
+    init, views = train_views(n_views=1)
+    trainer = GaussianTrainer(init, views, quick_config(device="cpu", renderer="torch"), scene_scale=3.0)
+    assert (str(trainer.device), trainer.renderer) == ("cpu", "torch")
     assert (FitConfig().device, FitConfig().renderer) == ("auto", "auto")  # the fit step: CUDA + gsplat when there
-    assert (TrainConfig.device, TrainConfig.renderer) == ("cpu", "auto")  # the library: the CPU unless asked
+    # every density-control setting reaches the strategy by name (no copy with defaults of its own)
+    cfg = FitConfig(grow_grad2d=1e-3, grow_scale3d=0.02, prune_opa=0.01, prune_scale3d=0.2, densify_start=7,
+                    densify_stop=70, densify_every=9, reset_every=11, max_gaussians=123)
+    s = strategy_for(cfg, seed=4)
+    assert (s.grow_grad2d, s.grow_scale3d, s.prune_opa, s.prune_scale3d, s.start, s.stop, s.every, s.reset_every,
+            s.max_gaussians, s.seed) == (1e-3, 0.02, 0.01, 0.2, 7, 70, 9, 11, 123, 5)
+    assert type(strategy_for(cfg.model_copy(update={"densify": False}), 0)).__name__ == "NoStrategy"
     for bad in ({"device": "gpu"}, {"renderer": "cuda"}):
         with pytest.raises(ValueError):
             FitConfig(**bad)
@@ -233,7 +239,7 @@ def test_meta_normalisation_of_every_radii_layout():
 def test_training_through_the_gsplat_glue_with_our_density_control(gsplat_on_cpu):
     init, views = train_views(n_views=2)
     n0 = len(init)
-    cfg = quick_config(renderer="gsplat", densify=True, refine_start=0, refine_every=3, grow_grad2d=1e-6,
+    cfg = quick_config(renderer="gsplat", densify=True, densify_start=0, densify_every=3, grow_grad2d=1e-6,
                        reset_every=0, max_gaussians=n0 + 25)
     trainer = GaussianTrainer(init, views, cfg, scene_scale=3.0)
     assert trainer.renderer == "gsplat"
@@ -297,7 +303,7 @@ def test_gsplat_strategies_run_on_the_trainers_parameters(gsplat_on_cpu):
     # gsplat_default_strategy maps the config's density settings onto gsplat's DefaultStrategy
     made = {}
     gsplat_on_cpu.DefaultStrategy = lambda **kw: made.update(kw) or "gsplat-default"
-    cfg = quick_config(refine_start=10, refine_stop=90, refine_every=5, reset_every=0, prune_opa=0.01)
+    cfg = quick_config(densify_start=10, densify_stop=90, densify_every=5, reset_every=0, prune_opa=0.01)
     adapter = gsplat_default_strategy(cfg)
     assert adapter.strategy == "gsplat-default"
     assert made == {"prune_opa": 0.01, "grow_grad2d": cfg.grow_grad2d, "grow_scale3d": cfg.grow_scale3d,
@@ -353,7 +359,7 @@ def test_parity_with_gsplat_on_cuda(opacity):
 def test_training_on_cuda_with_gsplat_and_our_density_control():
     init, views = train_views(n_views=2, size=32)
     n0 = len(init)
-    cfg = quick_config(iterations=12, device="cuda", renderer="auto", densify=True, refine_start=0, refine_every=4,
+    cfg = quick_config(iterations=12, device="cuda", renderer="auto", densify=True, densify_start=0, densify_every=4,
                        grow_grad2d=1e-6, reset_every=0, max_gaussians=n0 + 40)
     trainer = GaussianTrainer(init, views, cfg, scene_scale=3.0)
     assert trainer.renderer == "gsplat" and trainer.params["means"].is_cuda

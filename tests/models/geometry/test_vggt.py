@@ -239,7 +239,7 @@ def test_tiny_config_validation():
 def _random_cameras(rng, n):
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    R = proc.quat_to_mat(q)
+    R = proc.quat_xyzw_to_matrix(q)
     t = rng.normal(size=(n, 3))
     extr = np.concatenate([R, t[:, :, None]], axis=-1)
     K = np.zeros((n, 3, 3))
@@ -266,7 +266,7 @@ def test_pose_encoding_round_trip():
     qs = np.where(q[:, 3:4] < 0, -q, q)[2:]
     assert np.allclose(enc[2:, 3:7], qs, atol=1e-12)
     # non-unit quaternions (as the network outputs) still give rotations
-    R = proc.quat_to_mat(3.0 * q)
+    R = proc.quat_xyzw_to_matrix(3.0 * q)
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-12)
 
 

@@ -11,7 +11,6 @@ from navcrafter.models.planning.planners import (
     WORLD_UP,
     CollisionAwarePlanner,
     CollisionDetector,
-    PlannerConfig,
     PlanningState,
     SearchSpace,
     SeenView,
@@ -25,6 +24,7 @@ from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import Light, SceneObject, SimScene
 from navcrafter.models.simulation.textures import Material
+from navcrafter.schemas.config import PlanConfig
 
 K64 = Intrinsics.from_fov(70, 64, 64)
 
@@ -239,7 +239,7 @@ def room_state(num_frames: int = 21) -> tuple[SimScene, PlanningState]:
 
 def test_collision_aware_planner_returns_a_safe_trajectory_to_its_choice():
     scene, state = room_state()
-    res = CollisionAwarePlanner(PlannerConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
+    res = CollisionAwarePlanner(PlanConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
     assert res.chosen >= 0 and res.fallback in ("", "next-candidate")
     assert not res.collides[res.chosen] and res.scores[res.chosen] > 0
     assert np.array_equal(res.trajectory[0], state.current)
@@ -248,7 +248,7 @@ def test_collision_aware_planner_returns_a_safe_trajectory_to_its_choice():
     det = CollisionDetector(state.cloud_points, 0.25, state.views)
     assert not det.trajectory_collides(res.trajectory)
     assert (scene.distance(res.trajectory[:, :3, 3]) > 0.2).all()  # clear of the true walls and pillar
-    assert (~res.collides).sum() >= 6 or res.rounds == PlannerConfig().max_resample + 1  # K valid ones
+    assert (~res.collides).sum() >= 6 or res.rounds == PlanConfig().max_resample + 1  # K valid ones
     if res.fallback == "":  # the next-best view: the best score among collision-free candidates
         assert res.chosen == int(np.argmax(np.where(res.collides, -1, res.scores)))
     assert (res.scores[res.collides] == 0).all() and not res.masks[res.collides].any()  # empty masks
@@ -256,7 +256,7 @@ def test_collision_aware_planner_returns_a_safe_trajectory_to_its_choice():
 
 def test_baseline_ignores_collisions_and_moves_straight():
     _, state = room_state()
-    res = ViewCrafterPlanner(PlannerConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
+    res = ViewCrafterPlanner(PlanConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
     assert not res.collides.any() and res.collision_free is None and not res.optimised
     assert res.chosen == int(np.argmax(res.scores))
     p = res.trajectory[:, :3, 3]

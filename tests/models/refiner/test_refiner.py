@@ -316,7 +316,7 @@ def test_encode_prompt_pads_to_77_tokens(tmp_path):
 def test_export_command_needs_a_source(tmp_path):
     from typer.testing import CliRunner
 
-    from navcrafter.flows.models_cli import models_app
+    from navcrafter.flows.cli.models import models_app
     from navcrafter.models.runtime.exporters import export_refiner as export_role
 
     res = CliRunner().invoke(models_app, ["export-refiner", str(tmp_path / "r")])
@@ -337,7 +337,7 @@ def test_onnx_backend_serves_the_refiner_and_the_refine_step_runs_it(exported, d
     from navcrafter.schemas.layout import REFINE
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.pipeline import run_scene
+    from navcrafter.tasks.steps import run_scene
 
     models = tmp_path / "models"
     shutil.copytree(exported, models / "refiner")

@@ -8,13 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TINY, TINY_MODELS_SIZE
+from helpers import TINY, TINY_MODELS_SIZE
 
 from navcrafter.models.backends import RANDOM_WEIGHTS_LABEL, onnx_problems, run_label
 from navcrafter.schemas.layout import GEOMETRY, LIFT, SYNTHESIZE
 from navcrafter.schemas.store import Store
-
-pytestmark = pytest.mark.slow
 
 
 def _onnx_config(models: Path, **updates):
@@ -36,6 +34,7 @@ def test_preflight_names_what_is_missing(tiny_models, tmp_path):
     assert run_label(_onnx_config(tiny_models)) == RANDOM_WEIGHTS_LABEL
 
 
+@pytest.mark.system
 def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, tiny_models, tmp_path):
     from navcrafter.flows.explore import explore_collection
 

@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("diffusers")
 pytest.importorskip("onnxruntime")
 
-from conftest import TINY_MODELS_SIZE  # noqa: E402
+from helpers import TINY_MODELS_SIZE  # noqa: E402
 
 from navcrafter.models.camera.cameras import Intrinsics, look_at  # noqa: E402
 from navcrafter.models.roles import SynthesisRequest, Synthesizer  # noqa: E402

@@ -8,18 +8,15 @@ from typing import Annotated, Optional
 
 import typer
 
+from navcrafter.flows.cli.options import run_config, usage_errors
+
 models_app = typer.Typer(help="Export the learned models (Wan2.1 camera control, VGGT, MoGe-2, Difix) to ONNX and "
                               "inspect model directories.", no_args_is_help=True)
 
 _RANDOM = typer.Option(help="Random weights instead of a checkpoint: 'tiny' (test sizes) or 'full' (published "
                             "sizes, for timing). Outputs of runs using them are labelled RANDOM WEIGHTS.")
-
-
-def _fail(exc: Exception) -> None:
-    from rich.console import Console
-
-    Console(stderr=True).print(f"[red]{exc}[/red]")
-    raise typer.Exit(2)
+# what an exporter raises for a missing or wrong checkpoint, or an unsupported option
+_EXPORT_ERRORS = (ValueError, FileNotFoundError, NotImplementedError)
 
 
 def _done(path: Path) -> None:
@@ -43,10 +40,8 @@ def export_geometry_cmd(
     """VGGT-architecture multi-view geometry (frames -> cameras, depth, points) as ONNX."""
     from navcrafter.models.runtime.exporters import export_geometry
 
-    try:
+    with usage_errors(*_EXPORT_ERRORS):
         _done(export_geometry(out, checkpoint=checkpoint, random=random, seed=seed))
-    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
-        _fail(exc)
 
 
 @models_app.command("export-monodepth")
@@ -60,10 +55,8 @@ def export_monodepth_cmd(
     """MoGe-2-architecture monocular geometry (image -> points, mask, metric scale) as ONNX."""
     from navcrafter.models.runtime.exporters import export_monodepth
 
-    try:
+    with usage_errors(*_EXPORT_ERRORS):
         _done(export_monodepth(out, checkpoint=checkpoint, random=random, seed=seed))
-    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
-        _fail(exc)
 
 
 @models_app.command("export-refiner")
@@ -86,11 +79,9 @@ def export_refiner_cmd(
     """Difix-architecture single-step diffusion refiner (render + reference view -> refined view) as ONNX."""
     from navcrafter.models.runtime.exporters import export_refiner
 
-    try:
+    with usage_errors(*_EXPORT_ERRORS):
         _done(export_refiner(out, checkpoint=checkpoint, random=random, seed=seed, base=base,
                              prompt_embeds=prompt_embeds, reference=reference))
-    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
-        _fail(exc)
 
 
 @models_app.command("export-synthesizer")
@@ -110,11 +101,9 @@ def export_synthesizer_cmd(
     """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
     from navcrafter.models.runtime.exporters import export_synthesizer
 
-    try:
+    with usage_errors(*_EXPORT_ERRORS):
         _done(export_synthesizer(out, num_frames=frames, height=height, width=width, base_dir=base,
                                  control_dir=control, random=random, prompt=prompt, seed=seed))
-    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
-        _fail(exc)
 
 
 @models_app.command("export-all")
@@ -127,15 +116,12 @@ def export_all_cmd(
 ) -> None:
     """All three models with random weights (tests, demos of the onnx path, timing)."""
     from navcrafter.models.runtime.exporters import export_all
-    from navcrafter.schemas.config import RunConfig
 
-    s = RunConfig.load(preset=preset).synthesis
-    try:
+    s = run_config(preset).synthesis
+    with usage_errors(*_EXPORT_ERRORS):
         for path in export_all(model_dir, num_frames=s.num_frames, height=s.height, width=s.width, random=random,
                                seed=seed).values():
             _done(path)
-    except (ValueError, FileNotFoundError, NotImplementedError) as exc:
-        _fail(exc)
 
 
 @models_app.command("show")
@@ -153,9 +139,7 @@ def show_cmd(
             typer.echo(f"{d}: missing")
             continue
         kind = json.loads((d / "manifest.json").read_text())["kind"]
-        try:
+        with usage_errors(ModelDirError):
             m = load_manifest(d, kind, verify=verify)
-        except ModelDirError as exc:
-            _fail(exc)
         typer.echo(f"{d}: {kind} {m['architecture']}, weights {m['weights']['source']}, graphs "
                    f"{', '.join(m['graphs'])}, {len(m['files'])} files" + (" (checksums ok)" if verify else ""))

@@ -1,0 +1,32 @@
+"""The ``navcrafter`` command line: ``app`` (typer) and ``main`` (the console script).
+
+One module per group of commands; what they share (consoles, exit codes, the config options, turning a user's
+mistake into a message and the usage exit code) is in ``options``. Commands import their heavy dependencies
+(Prefect, torch, the flows) only when they run, so that ``--help`` and usage errors stay quick.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from navcrafter.flows.cli import clips, demo, evaluate, explore, models, status
+from navcrafter.flows.cli.options import prefect_env
+
+app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a resumable batch workflow.",
+                  no_args_is_help=True, add_completion=False)
+app.add_typer(models.models_app, name="models")
+app.command("demo-data")(demo.demo_data)
+app.command()(explore.explore)
+app.command()(evaluate.evaluate)
+app.command("dataset-clips")(clips.dataset_clips)
+app.command("evaluate-clips")(clips.evaluate_clips)
+app.command()(status.status)
+app.command()(explore.submit)
+
+__all__ = ["app", "main"]
+
+
+def main() -> None:
+    """The ``navcrafter`` console script."""
+    prefect_env()
+    app()
