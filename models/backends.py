@@ -76,7 +76,7 @@ def onnx_problems(config: RunConfig) -> list[str]:
     root = Path(config.model_dir)
     if not root.is_dir():
         return [f"model directory {root} does not exist; export models into it with "
-                f"`navcrafter models export-all {root}` (see README)"]
+                f"`navcrafter models export-all {root}` (see models/runtime/README.md)"]
     needed = (["synthesizer", "geometry"] + (["monodepth"] if config.fit.enabled else [])
               + (["refiner"] if config.fit.enabled and config.refine.enabled else []))
     problems = []
@@ -119,7 +119,7 @@ def _onnx_backend(model_dir: str, synthesis_key: str) -> Backend:
     root = Path(model_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"model directory {root} does not exist; export models into it with "
-                                f"`navcrafter models export-all {root}` (see README)")
+                                f"`navcrafter models export-all {root}` (see models/runtime/README.md)")
     synthesis = SynthesisConfig.model_validate_json(synthesis_key)
 
     def synthesizer():

@@ -132,7 +132,7 @@ class FitConfig(_Section):
     calibrated to the lift step's geometry depth, and DropGaussian. Learning rates are 3DGS's, density control
     gsplat's defaults; the paper's own values for the lambdas and iterations were not available here, so they
     are the usual choices of depth-regularised 3DGS and DropGaussian (documented per field). Off by default:
-    at paper sizes it takes hours on a CPU (README, "3DGS fit").
+    at paper sizes it takes hours on a CPU (models/gaussians/README.md).
     """
 
     enabled: bool = Field(False, description="Run the fit step after the last lift.")

@@ -47,7 +47,7 @@ def refine(ctx: StepContext) -> dict:
     if backend.refiner is None:
         raise RefinerMissing(
             f"the {backend.name} backend has no refiner model: export one with `navcrafter models "
-            f"export-refiner <model_dir>/refiner ...` (see README), or turn refine.enabled off")
+            f"export-refiner <model_dir>/refiner ...` (see models/runtime/README.md), or turn refine.enabled off")
     # 1. novel cameras off the trajectory, next to evenly spread training cameras
     fit_attrs = scene.status(FIT).attrs
     g = scene.read_all(FIT)

@@ -44,6 +44,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from navcrafter.models.synthesis.pipeline import WAN_FLOW_SHIFT
+
 ARCHITECTURE = "wan2.1-i2v-camera"
 KIND = "synthesizer"
 TEXT_EMBEDDINGS = "text_embeddings.npy"
@@ -58,7 +60,7 @@ CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
 # Scheduler defaults (DPM-solver++ for flow matching, as in NavCrafter; Wan2.1's 480p shift).
 SCHEDULER_DEFAULTS = {"name": "DPMSolverMultistepScheduler", "prediction_type": "flow_prediction",
-                      "use_flow_sigmas": True, "flow_shift": 3.0, "num_train_timesteps": 1000,
+                      "use_flow_sigmas": True, "flow_shift": WAN_FLOW_SHIFT, "num_train_timesteps": 1000,
                       "solver_order": 2, "algorithm_type": "dpmsolver++", "steps": 40, "guidance_scale": 6.5,
                       "lora_scale": 0.7}
 

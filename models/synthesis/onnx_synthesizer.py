@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from navcrafter.models.roles import SynthesisRequest
-from navcrafter.models.synthesis.pipeline import OrtRunner, SamplerConfig, SynthesisShapeError, sample_video
+from navcrafter.models.synthesis.pipeline import (
+    OrtRunner,
+    SamplerConfig,
+    SynthesisShapeError,
+    sample_video,
+    sampler_settings,
+)
 
 POINT_SIZE_FACTOR = 1.5
 _SPACING_SAMPLE = 20_000
@@ -75,12 +81,9 @@ class OnnxSynthesizer:
                 f"with export_synthesizer(..., num_frames={want[0]}, height={want[1]}, width={want[2]})")
         self.convention = mcfg.get("plucker_convention", "ray")
         self.text_emb, self.neg_text_emb = self.runner.text_embeddings()
-        self.flow_shift = float(mcfg.get("scheduler", {}).get("flow_shift", SamplerConfig.flow_shift))
 
     def sampler_config(self, seed: int) -> SamplerConfig:
-        c = self.config
-        return SamplerConfig(steps=c.steps, guidance_scale=c.guidance_scale, lora_scale=c.lora_scale,
-                             flow_shift=self.flow_shift, seed=int(seed))
+        return sampler_settings(self.config, seed, self.runner.config.get("scheduler"))
 
     def _check(self, request: SynthesisRequest) -> tuple[int, int, int]:
         c = self.config

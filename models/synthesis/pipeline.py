@@ -42,26 +42,43 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from navcrafter.schemas.config import SynthesisConfig
+
 
 class SynthesisShapeError(ValueError):
     """Inputs do not fit the model (frame count, size, channel layout); the message names the fix."""
 
 
+WAN_FLOW_SHIFT = 3.0  # Wan2.1's scheduler shift: exported models record it; used when a manifest has none
+
+
 @dataclass(frozen=True)
 class SamplerConfig:
-    """Sampler settings (paper defaults: DPM-solver 40 steps, CFG 6.5, camera LoRA weight 0.7)."""
+    """The settings of one sampling call, resolved from the run's ``synthesis`` section (the one definition of
+    every sampling parameter and its default: DPM-solver 40 steps, CFG 6.5, camera LoRA 0.7) by
+    :func:`sampler_settings`; no defaults of its own."""
 
-    steps: int = 40
-    guidance_scale: float = 6.5
-    lora_scale: float = 0.7
-    flow_shift: float = 3.0
-    seed: int = 0
+    steps: int
+    guidance_scale: float
+    lora_scale: float
+    flow_shift: float
+    seed: int
 
     def __post_init__(self) -> None:
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.flow_shift <= 0:
             raise ValueError(f"flow_shift must be positive, got {self.flow_shift}")
+
+
+def sampler_settings(synthesis: SynthesisConfig, seed: int, scheduler: dict | None = None) -> SamplerConfig:
+    """One call's settings: ``synthesis`` (steps, CFG, LoRA scale, and ``flow_shift`` when set), else the exported
+    model's scheduler shift (its manifest's ``scheduler``), else Wan2.1's."""
+    shift = synthesis.flow_shift
+    if shift is None:
+        shift = float((scheduler or {}).get("flow_shift", WAN_FLOW_SHIFT))
+    return SamplerConfig(steps=synthesis.steps, guidance_scale=synthesis.guidance_scale,
+                         lora_scale=synthesis.lora_scale, flow_shift=float(shift), seed=int(seed))
 
 
 class Runner(Protocol):

@@ -71,7 +71,7 @@ def test_onnx_matches_torch_and_seeds(tiny_export, ort_runner, inputs):
 
     torch_runner = pl.TorchRunner(tiny_export[1])  # rebuilt from the export's seed
     pos, neg = ort_runner.text_embeddings()
-    cfg = pl.SamplerConfig(steps=2, seed=3)
+    cfg = pl.sampler_settings(SynthesisConfig(steps=2), seed=3)
     lat_ort = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg)
     lat_torch = pl.sample_latents(torch_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg)
     assert lat_ort.shape == (1, 16, 2, H // 8, W // 8)
@@ -85,7 +85,7 @@ def test_onnx_matches_torch_and_seeds(tiny_export, ort_runner, inputs):
     again = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg, conditions=conds)
     assert np.array_equal(again, lat_ort)
     other = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg,
-                              cfg=pl.SamplerConfig(steps=2, seed=4), conditions=conds)
+                              cfg=pl.sampler_settings(SynthesisConfig(steps=2), seed=4), conditions=conds)
     assert np.abs(other - lat_ort).max() > 1e-2
     moved = dict(inputs, plucker=inputs["plucker"][::-1].copy())
     camera = pl.sample_latents(ort_runner, **moved, text_emb=pos, neg_text_emb=neg, cfg=cfg)
@@ -118,7 +118,7 @@ def test_onnx_synthesizer(tiny_export):
 
 def test_wrong_frame_count(tiny_export, ort_runner, inputs):
     from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer
-    from navcrafter.models.synthesis.pipeline import SamplerConfig, SynthesisShapeError, sample_video
+    from navcrafter.models.synthesis.pipeline import SynthesisShapeError, sample_video, sampler_settings
 
     with pytest.raises(SynthesisShapeError, match="synthesis.num_frames"):
         OnnxSynthesizer(tiny_export[0], SynthesisConfig(num_frames=9, height=H, width=W, steps=2), providers=CPU)
@@ -129,7 +129,8 @@ def test_wrong_frame_count(tiny_export, ort_runner, inputs):
     nine = {k: np.concatenate([v, v[1:]]) if k != "image" else v for k, v in inputs.items()}
     pos, neg = ort_runner.text_embeddings()
     with pytest.raises(SynthesisShapeError, match="exported for num_frames=5"):
-        sample_video(ort_runner, **nine, text_emb=pos, neg_text_emb=neg, cfg=SamplerConfig(steps=2))
+        sample_video(ort_runner, **nine, text_emb=pos, neg_text_emb=neg,
+                     cfg=sampler_settings(SynthesisConfig(steps=2), seed=0))
 
 
 def test_load_components_from_diffusers_dir(tiny_export, tmp_path):
@@ -168,3 +169,13 @@ def test_load_components_from_diffusers_dir(tiny_export, tmp_path):
     assert set(w["control"]["files"]) == {"camera_control.safetensors", "camera_control.json"}
     with pytest.raises(FileNotFoundError, match="text_encoder"):
         load_components(tmp_path / "control")
+
+
+def test_sampler_settings_come_from_the_run_config_alone():
+    from navcrafter.models.synthesis.pipeline import WAN_FLOW_SHIFT, sampler_settings
+
+    s = sampler_settings(SynthesisConfig(), seed=5)
+    assert (s.steps, s.guidance_scale, s.lora_scale, s.seed) == (40, 6.5, 0.7, 5)  # the paper's, defined once
+    assert s.flow_shift == WAN_FLOW_SHIFT
+    assert sampler_settings(SynthesisConfig(), 0, {"flow_shift": 5.0}).flow_shift == 5.0  # the model's own
+    assert sampler_settings(SynthesisConfig(flow_shift=7.0), 0, {"flow_shift": 5.0}).flow_shift == 7.0  # the run's
