@@ -29,7 +29,7 @@ from navcrafter.schemas.layout import EXPORT, LIFT, PLAN
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import load_cloud, simulation_truth
-from navcrafter.tasks.readers import stored_scene_centre
+from navcrafter.tasks.readers import camera_path, stored_scene_centre
 from navcrafter.tasks.steps import StepContext
 
 
@@ -72,13 +72,13 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
         reference = reference_points(truth, centre, d0, search_space(config.plan),
                                      max(1, config.iterations), r_safe_m)
         metrics.update(coverage_metrics(points_gt, reference, dist))
+        path = camera_path(scene, config)
         if config.iterations:
-            trajs = np.concatenate([scene.read(PLAN, k, "trajectory") for k in range(1, config.iterations + 1)])
-            metrics.update(trajectory_collisions(truth, trajs, r_safe_m))
+            metrics.update(trajectory_collisions(truth, path.c2w, r_safe_m))
         errs = []
         for k in range(1, config.iterations + 1):
             est = scene.read(LIFT, k, "c2w")[:, :3, 3]
-            req = scene.read(PLAN, k, "trajectory")[scene.read(LIFT, k, "view_index")][:, :3, 3]
+            req = path.clip(k).c2w[scene.read(LIFT, k, "view_index")][:, :3, 3]
             errs.append(np.linalg.norm(est - req, axis=1) / truth.world_scale)
         if errs:
             metrics["camera_median_err_m"] = float(np.median(np.concatenate(errs)))

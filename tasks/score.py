@@ -31,6 +31,7 @@ from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SYNTHES
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import open_store, simulation_truth
+from navcrafter.tasks.readers import camera_path
 from navcrafter.tasks.steps import StepContext
 
 TABLES = {
@@ -129,13 +130,13 @@ def camera_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[d
     from navcrafter.models.metrics.pose import camera_guidance_precision
 
     r_err, t_err, registered, total, notes = [], [], 0, 0, []
+    path = camera_path(scene, config, iterations)
     for k in range(1, iterations + 1):
-        traj = scene.read(PLAN, k, "trajectory")
-        idx = clip_indices(len(traj), config.evaluation.pose_frames)
+        clip = path.clip(k)
+        idx = clip_indices(len(clip), config.evaluation.pose_frames)
         frames = scene.read(SYNTHESIZE, k, "frames")[idx]
         with tempfile.TemporaryDirectory(prefix="navcrafter-colmap-") as work:
-            res = camera_guidance_precision(frames, traj[idx], scene.read(PLAN, k, "K"), work,
-                                            scale="farthest", num_threads=2)
+            res = camera_guidance_precision(frames, clip.c2w[idx], clip.K[0], work, scale="farthest", num_threads=2)
         registered += int(res["n_registered"])
         total += int(res["n_frames"])
         if np.isfinite(res["R_err_deg_sum"]) and np.isfinite(res["T_err_sum"]):
