@@ -4,9 +4,11 @@
   valid image as its own ``explore_scene`` flow run, several at once; a failing image is recorded in
   the manifest and never stops the others. With ``scene_deployment`` the scenes are flow runs of that
   deployment (e.g. on a GPU work pool) instead of in-process subflows (``flows/dispatch.py``).
-* ``explore_scene(store, scene_id, config, run_id, sources)``: initial geometry, then N x (plan ->
-  synthesize -> lift), then fit (when fit.enabled) and export. Each step is a Prefect task whose body
-  skips itself when its group in the store is already complete: rerunning after a crash resumes.
+* ``explore_scene(store, scene_id, config, run_id, sources)``: the scene's steps in the order the step specs
+  give (``tasks.steps.scene_steps``: initial geometry, then N x (plan -> synthesize -> lift), then fit and
+  refine when enabled, and export), then the evaluation. Each step is a Prefect task derived from its spec
+  (``STEP_TASKS``) whose body skips itself when its group in the store is already complete: rerunning after a
+  crash resumes.
 """
 
 from __future__ import annotations
@@ -201,17 +203,18 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     _best_effort(store, "manifest", write_manifest, store,
                  manifest_rows_for(SceneResult(scene_id, sources, "running", backend=config.backend), run_id))
     dashboard.tag_scene_run(store, scene_id)
-    steps = scene_steps(config)
-    progress = dashboard.SceneProgress(scene_id, len(steps) + 1)  # the steps, then the evaluation
+    order = scene_steps(config)
+    progress = dashboard.SceneProgress(scene_id, len(order) + 1)  # the steps, then the evaluation
     metrics: dict[str, float] = {}
     failure: Exception | None = None
     try:
-        for step in steps:
+        for step in order:
             STEP_TASKS[step.spec.name](store, scene_id, config, run_id, **step.kwargs())
             progress.advance()
             if step.spec.name == "plan":
                 publish_plan_artifact(store, scene_id, step.k)
-        metrics = {k: float(v) for k, v in STEP_TASKS["evaluate"](store, scene_id, config, run_id)["metrics"].items()}
+        evaluation = STEP_TASKS["evaluate"](store, scene_id, config, run_id)
+        metrics = {k: float(v) for k, v in evaluation["metrics"].items()}
         progress.advance()
     except Exception as exc:  # recorded, then raised so that the flow run shows as failed
         failure = exc
