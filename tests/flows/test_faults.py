@@ -200,10 +200,25 @@ def test_short_store_outage_mid_run_is_ridden_out(prefect_api_url, s3_via_proxy,
     view = lambda: Store(uri, create=False, storage_options=direct)
     proc = _explore(one_photo, uri, prefect_api_url, AWS_MAX_ATTEMPTS="2")
     before = _wait_for(view, lambda st: "iter_0/geometry" in _complete(st), proc)
-    proxy.cut()  # connections closed, the port refuses new ones: the server is down for 4 s
+    lines, failed = [], threading.Event()
+
+    def read() -> None:
+        for line in iter(proc.stdout.readline, b""):
+            lines.append(line)
+            if b"cannot be reached" in line:
+                failed.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    # connections closed, the port refuses new ones: the server is down for at least 4 s, and until a step has
+    # met the outage (a busy machine may spend 4 s in a step that does not touch the store); at most 60 s
+    proxy.cut()
     time.sleep(4)
+    failed.wait(timeout=60)
     proxy.restore()
-    out = proc.communicate(timeout=300)[0].decode(errors="replace")
+    proc.wait(timeout=300)
+    reader.join(timeout=30)
+    out = b"".join(lines).decode(errors="replace")
     assert proc.returncode == 0, out[-3000:]
     assert "cannot be reached" in out and "Retry 1/2" in out, out[-3000:]  # a step failed and was retried
     store = view()
