@@ -12,13 +12,14 @@ os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("NAVCRAFTER_CHECKSUM_CACHE",
                       os.path.join(tempfile.mkdtemp(prefix="navcrafter-tests-"), "checksums.json"))
 
+import functools  # noqa: E402
 import io  # noqa: E402
 import shutil  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-from helpers import BUCKET, TINY, TINY_MODELS_SIZE  # noqa: E402
+from helpers import BUCKET, TINY, TINY_MODELS_SIZE, cached_export  # noqa: E402
 
 from navcrafter.schemas.config import RunConfig  # noqa: E402
 
@@ -111,14 +112,26 @@ def demo_photos(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def tiny_models(tmp_path_factory) -> Path:
-    """All three learned roles exported once per session with random weights (seed 0, tiny configs):
+def export_cache(request):
+    """``export_cache(dest, name, args, export)``: the files of ``export(folder)`` in ``dest`` (see
+    ``helpers.cached_export``). The tiny ONNX exports take about 2 minutes of a session on 2 cores, so they
+    are kept in pytest's cache folder (.pytest_cache) under a hash of the package's models/ code, the calling
+    test file, ``args`` and the torch/ONNX versions, and made again only when one of those changes.
+    ``pytest --cache-clear`` or ``-p no:cacheprovider`` exports afresh."""
+    cache = getattr(request.config, "cache", None)
+    return functools.partial(cached_export, cache.mkdir("navcrafter-onnx-exports") if cache else None)
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory, export_cache) -> Path:
+    """All three learned roles exported with random weights (seed 0, tiny configs):
     MODEL_DIR/{synthesizer,geometry,monodepth}. Tests must not modify it (copy it first)."""
     from navcrafter.models.runtime.exporters import export_all
 
     root = tmp_path_factory.mktemp("models")
     T, H, W = TINY_MODELS_SIZE
-    export_all(root, num_frames=T, height=H, width=W, random="tiny", seed=0, prompt="a room")
+    args = dict(num_frames=T, height=H, width=W, random="tiny", seed=0, prompt="a room")
+    export_cache(root, "tiny-models", args, lambda out: bool(export_all(out, **args)))
     return root
 
 

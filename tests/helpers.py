@@ -6,18 +6,23 @@ fixtures live in conftest.py. ``tests`` is on pytest's ``pythonpath`` (pyproject
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import urllib.request
 import uuid
 from collections import Counter
+from collections.abc import Callable
+from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,6 +42,70 @@ BAD = {"notes.txt": ("not an image", "remove it"), "empty.png": ("empty", "remov
        "no-groundtruth.png": ("no simulation ground truth", "navcrafter demo-data")}
 # frames, height, width of the session's tiny exported synthesizer (conftest.tiny_models)
 TINY_MODELS_SIZE = (5, 32, 32)
+
+
+# --------------------------------------------------------------------------------------------------
+# ONNX exports kept between sessions (conftest's ``export_cache`` fixture)
+# --------------------------------------------------------------------------------------------------
+# what an export's files depend on besides the package's models/ code and the caller's arguments
+EXPORT_STACK = ("torch", "onnx", "onnxscript", "onnx-ir", "onnxruntime", "diffusers", "transformers",
+                "safetensors", "numpy")
+EXPORT_ENV = ("NAVCRAFTER_ONNX_OPTIMIZE",)
+_KEEP_PER_NAME = 3  # cached versions kept per export name (older ones are deleted)
+
+
+def _export_key(name: str, args: dict, caller: Path) -> str:
+    """Hash of everything an export's files depend on: every file of the package's models/ tree (the
+    exporters, the architectures, their key lists), the calling test file, ``args``, the installed
+    torch/ONNX stack and the exporter's environment switches."""
+    import navcrafter.models
+
+    h = hashlib.sha256(json.dumps([name, args], sort_keys=True, default=repr).encode())
+    for root in sorted(Path(p) for p in navcrafter.models.__path__):
+        for path in sorted(root.rglob("*")):
+            if path.is_file() and "__pycache__" not in path.parts:
+                h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    h.update(caller.read_bytes())
+    stack = {}
+    for dist in EXPORT_STACK:
+        try:
+            stack[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            stack[dist] = None
+    h.update(json.dumps([sys.version, stack, {v: os.environ.get(v) for v in EXPORT_ENV}]).encode())
+    return h.hexdigest()[:24]
+
+
+def cached_export(cache: Path | None, dest: Path, name: str, args: dict, export: Callable[[Path], Any]) -> Any:
+    """``export(folder)`` writes an export (a directory of files) into a new ``folder``; this puts the same
+    files in ``dest`` and returns what ``export`` returned (JSON round trip: return plain data).
+
+    With a ``cache`` folder the files come from an export made earlier by the same code (same models/ tree,
+    same calling test file, same ``args``, same torch/ONNX stack: see ``_export_key``), and a missing one is
+    made once and kept. ``cache=None`` exports into ``dest`` every time. ``args`` must name every value the
+    export depends on that is not in those files (sizes, seeds, configs).
+    """
+    if cache is None:
+        return json.loads(json.dumps(export(Path(dest))))
+    caller = Path(sys._getframe(1).f_code.co_filename)  # the fixture that asks (conftest's is a partial)
+    cache = Path(cache)
+    entry = cache / f"{name}-{_export_key(name, args, caller)}"
+    if not (entry / "result.json").is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=cache, prefix=f".{name}-"))
+        try:
+            (tmp / "result.json").write_text(json.dumps(export(tmp / "files")))
+            os.replace(tmp, entry)  # complete or absent; a concurrent session may have put it there first
+        except OSError:
+            if not (entry / "result.json").is_file():
+                raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        versions = sorted(cache.glob(f"{name}-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for old in versions[_KEEP_PER_NAME:]:
+            shutil.rmtree(old, ignore_errors=True)
+    shutil.copytree(entry / "files", Path(dest), dirs_exist_ok=True)  # a copy: no test can change the cached files
+    return json.loads((entry / "result.json").read_text())
 
 
 # --------------------------------------------------------------------------------------------------

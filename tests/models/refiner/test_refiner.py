@@ -43,8 +43,10 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    return export_refiner(tmp_path_factory.mktemp("models") / "refiner", TINY, seed=0)
+def exported(tmp_path_factory, export_cache):
+    out = tmp_path_factory.mktemp("models") / "refiner"
+    export_cache(out, "refiner", {"config": TINY, "seed": 0}, lambda d: bool(export_refiner(d, TINY, seed=0)))
+    return out
 
 
 def _model(seed: int = 0, config: DifixConfig = TINY) -> DifixRefinerModel:

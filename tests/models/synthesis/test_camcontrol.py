@@ -45,19 +45,29 @@ def trained(tiny) -> cc.CameraControlledWan:
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory):
+def exported(tmp_path_factory, export_cache):
     """ONE export of the full camera-controlled DiT (batch 2, 2 latent frames, 4x4 latents), every control path
     active. One DiT block instead of the tiny preset's two: each block costs ~20 s of export time on these
-    CPUs, and all blocks run the same code (the torch tests above cover two)."""
+    CPUs, and all blocks run the same code (the torch tests above cover two). Kept between sessions while the
+    code stays the same (conftest.export_cache)."""
     import time
 
-    model = cc.randomize_camera_control(cc.build_camera_wan({**cc.TINY_I2V_CONFIG, "num_layers": 1},
-                                                            cc.tiny_camera_config(), seed=0), seed=1)
-    path = tmp_path_factory.mktemp("dit") / "dit.onnx"
-    t0 = time.perf_counter()
-    info = cc.export_dit(model, path, (2, 2, 4, 4))
-    print(f"export_dit: {time.perf_counter() - t0:.1f} s")
-    return model, path, info
+    from navcrafter.models.runtime.onnxio import GraphInfo
+
+    config, seeds, shape = {**cc.TINY_I2V_CONFIG, "num_layers": 1}, (0, 1), (2, 2, 4, 4)
+    model = cc.randomize_camera_control(cc.build_camera_wan(config, cc.tiny_camera_config(), seed=seeds[0]),
+                                        seed=seeds[1])
+    folder = tmp_path_factory.mktemp("dit")
+
+    def export(out):
+        t0 = time.perf_counter()
+        info = cc.export_dit(model, out / "dit.onnx", shape)
+        print(f"export_dit: {time.perf_counter() - t0:.1f} s")
+        return info.__dict__
+
+    args = {"config": config, "camera": cc.tiny_camera_config(), "seeds": seeds, "shape": shape}
+    info = GraphInfo(**export_cache(folder, "camcontrol-dit", args, export))
+    return model, folder / "dit.onnx", info
 
 
 def test_zero_init_equals_base(tiny):
