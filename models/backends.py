@@ -25,6 +25,18 @@ from navcrafter.schemas.config import RunConfig
 ROLE_DIRS = {"synthesizer": "synthesizer", "geometry": "geometry", "monodepth": "monodepth", "refiner": "refiner"}
 RANDOM_WEIGHTS_LABEL = ("RANDOM WEIGHTS: these models were exported with random weights (test or timing "
                         "configurations); their outputs are noise, not results")
+CAMERA_CONTROL_UNTRAINED_LABEL = (
+    "CAMERA CONTROL UNTRAINED: the synthesizer is a Wan base exported without trained camera-control weights; "
+    "its videos ignore the requested cameras, so the planned cameras that later steps use do not match the frames")
+# the short text burnt into frames and figures, by label
+BANDS = {RANDOM_WEIGHTS_LABEL: "RANDOM WEIGHTS", CAMERA_CONTROL_UNTRAINED_LABEL: "CAMERA CONTROL UNTRAINED"}
+
+
+def is_untrained_control(manifest: dict) -> bool:
+    """A synthesizer exported from a checkpoint without camera-control weights (``weights.control``)."""
+    weights = manifest.get("weights", {})
+    return (manifest.get("kind") == "synthesizer" and weights.get("source") == "checkpoint"
+            and not weights.get("control"))
 
 
 class _LazyRole:
@@ -107,9 +119,20 @@ def run_label(config: RunConfig) -> str | None:
     if config.backend == "onnx" and config.model_dir is not None:
         from navcrafter.models.runtime.onnxio import is_random_weights
 
-        if any(is_random_weights(m) for m in model_manifests(config.model_dir).values()):
+        manifests = model_manifests(config.model_dir)
+        if any(is_random_weights(m) for m in manifests.values()):
             return RANDOM_WEIGHTS_LABEL
+        if any(is_untrained_control(m) for m in manifests.values()):
+            return CAMERA_CONTROL_UNTRAINED_LABEL
     return None
+
+
+def run_band(config: RunConfig) -> str | None:
+    """The short form of ``run_label`` burnt into the frames of videos and figures ("SIMULATION", ...)."""
+    label = run_label(config)
+    if label is None:
+        return None
+    return "SIMULATION" if config.backend == "simulation" else BANDS[label]
 
 
 @functools.lru_cache(maxsize=8)

@@ -16,7 +16,7 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, ImageDraw
 
-from navcrafter.models.backends import run_label
+from navcrafter.models.backends import run_band, run_label
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
 from navcrafter.tasks.common import open_store
@@ -135,10 +135,10 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig) -
             idx = clip_frame_indices(n)
             clips.append((k, scene.read_rows(SYNTHESIZE, k, "frames", idx), idx))
     if clips:
-        band = "SIMULATION" if sim else ("RANDOM WEIGHTS" if label else None)
+        band = run_band(config)
         grid = render_grid(clips, band)
         title = "## Synthesized views" + (" (SIMULATION: ground-truth renders, not a learned model)" if sim else
-                                          " (RANDOM WEIGHTS: noise, not a result)" if label else "")
+                                          f" ({label})" if label else "")
         lines += [title, "", f"![render grid]({png_data_uri(grid, palette=True)})", ""]
     ev = scene.status(EVALUATE)
     if ev.complete:

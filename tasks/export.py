@@ -20,20 +20,14 @@ import tempfile
 
 import numpy as np
 
-from navcrafter.models.backends import run_label
+from navcrafter.models.backends import run_band, run_label
 from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
-from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import FIT, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
 from navcrafter.tasks.readers import CameraPath, camera_path, load_gaussians, load_refined_gaussians
 from navcrafter.tasks.steps import StepContext
-
-
-def _band(config: RunConfig) -> str:
-    """The text burnt into the frames of a labelled run."""
-    return "SIMULATION" if config.backend == "simulation" else "RANDOM WEIGHTS"
 
 
 def trajectory_rows(path: CameraPath, scene_id: str, backend: str) -> list[dict]:
@@ -77,7 +71,7 @@ def export(ctx: StepContext) -> dict:
     N = config.iterations
     store = scene.store
     label = run_label(config)
-    sim = label is not None  # every rendered frame of a labelled run carries a band
+    band = run_band(config)  # every rendered frame of a labelled run carries a band
     cloud = ctx.cloud(N)
     comments = [f"navcrafter scene {scene_id}", f"backend {config.backend}",
                 "frame: world = input camera (OpenCV: x right, y down, z forward)"]
@@ -87,7 +81,7 @@ def export(ctx: StepContext) -> dict:
     rows = trajectory_rows(camera_path(scene, config), scene_id, config.backend)
     if N > 0:
         frames = np.concatenate([scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)])
-        frames = label_frames(frames, _band(config)) if sim else frames
+        frames = label_frames(frames, band) if band else frames
         writer.write_file("video.mp4", encode_mp4(frames, config.synthesis.fps))
     doc = {"scene_id": scene_id, "backend": config.backend,
            "convention": "OpenCV camera-to-world (x right, y down, z forward); world = input camera",
@@ -98,7 +92,7 @@ def export(ctx: StepContext) -> dict:
         doc["label"] = label
     writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
     if config.fit.enabled:
-        write_gaussian_exports(writer, scene, rows, comments, _band(config) if sim else None,
+        write_gaussian_exports(writer, scene, rows, comments, band,
                                config.synthesis.fps, refined=config.refine.enabled)
     table = to_table("trajectories", rows)
     buf = io.BytesIO()

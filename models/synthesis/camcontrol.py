@@ -103,13 +103,17 @@ class CameraControlWeightsError(ValueError):
 # --------------------------------------------------------------------------------------------------
 # Config
 # --------------------------------------------------------------------------------------------------
+TRAINING_LORA_SCALE = 1.0  # the camera LoRA's strength while it is trained (inference: CameraControlConfig.lora_scale)
+
+
 @dataclass
 class CameraControlConfig:
     """Hyper-parameters of the camera-control modules (the base DiT's sizes come from the base config).
 
     ``adapter_channels``/``adapter_res_blocks``: width/depth of the camera adapter A.
     ``lora_in_channels`` (``r_in``) and ``lora_rank``: the LoRA control encoder width and the LoRA rank.
-    ``lora_scale``: default ``α`` when the caller passes none (the sampler passes it explicitly).
+    ``lora_scale``: default ``α`` at inference when the caller passes none (the paper's 0.7; the sampler passes
+    ``synthesis.lora_scale`` explicitly); in training mode the default is ``TRAINING_LORA_SCALE`` (1.0).
     ``cond_channels``: extra patch-embedding channels (16 render latents + 4 packed visibility mask).
     ``num_reference_frames``: reference frames drawn per training sample (frame 0 included).
     ``inference_reference_frames``: reference latent frames at inference (baked into an export).
@@ -665,8 +669,8 @@ class CameraControlledWan(nn.Module):
         if cond is not None and tuple(cond.shape) != (batch_size, cfg.cond_channels, num_frames, height, width):
             raise ValueError(f"cond must be [B, {cfg.cond_channels}, F, h, w] matching hidden_states "
                              f"{tuple(hidden_states.shape)}, got {tuple(cond.shape)}")
-        if lora_scale is None:
-            lora_scale = cfg.lora_scale
+        if lora_scale is None:  # the LoRA is trained at full strength and scaled down at inference (paper: 0.7)
+            lora_scale = TRAINING_LORA_SCALE if self.training else cfg.lora_scale
         if not torch.is_tensor(lora_scale):
             lora_scale = torch.tensor(float(lora_scale))
         lora_scale = lora_scale.to(device=hidden_states.device, dtype=hidden_states.dtype).reshape(())
@@ -701,6 +705,10 @@ class CameraControlledWan(nn.Module):
 
         ref_tokens = ref_x_c = ref_rope = None
         frames = self.reference_indices(ppf, reference_frames)
+        if self.training and frames and reference_latents is None:
+            raise ValueError("training mode needs reference_latents (the clean video latents [B, 16, F, h, w]) for "
+                             f"its reference frames {frames}: without them they would be taken from the I2V "
+                             "conditioning latents, which hold black frames after frame 0")
         src = reference_latents
         if src is None and hidden_states.shape[1] == 2 * cfg.latent_channels + 4:
             src = hidden_states[:, cfg.latent_channels + 4:]

@@ -34,6 +34,30 @@ def test_preflight_names_what_is_missing(tiny_models, tmp_path):
     assert run_label(_onnx_config(tiny_models)) == RANDOM_WEIGHTS_LABEL
 
 
+def test_a_base_exported_without_trained_camera_control_is_labelled_everywhere_random_weights_would_be(tmp_path):
+    """A real Wan base without camera-control weights ignores the cameras: runs with it say so (the label of the
+    summary, manifest, PLY comment and trajectory.json; the band burnt into videos and figures)."""
+    import json
+
+    from navcrafter.models.backends import CAMERA_CONTROL_UNTRAINED_LABEL, run_band
+
+    def manifest(role: str, weights: dict) -> None:
+        (tmp_path / role).mkdir(exist_ok=True)
+        (tmp_path / role / "manifest.json").write_text(json.dumps(
+            {"format": "navcrafter-onnx", "format_version": 1, "kind": role, "architecture": "x", "config": {},
+             "weights": weights, "files": {}}))
+
+    manifest("geometry", {"source": "checkpoint"})
+    manifest("synthesizer", {"source": "checkpoint", "path": "/wan", "files": {}})
+    config = _onnx_config(tmp_path)
+    assert run_label(config) == CAMERA_CONTROL_UNTRAINED_LABEL and run_band(config) == "CAMERA CONTROL UNTRAINED"
+    manifest("synthesizer", {"source": "checkpoint", "path": "/wan", "files": {},
+                             "control": {"path": "/control", "files": {"camera_control.safetensors": "ab"}}})
+    assert run_label(config) is None and run_band(config) is None  # trained control: no label
+    manifest("monodepth", {"source": "random", "seed": 0})
+    assert run_band(config) == "RANDOM WEIGHTS"  # random weights say more
+
+
 @pytest.mark.system
 def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, tiny_models, tmp_path):
     from navcrafter.flows.explore import explore_collection

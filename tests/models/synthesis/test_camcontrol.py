@@ -138,6 +138,22 @@ def test_training_mode_reference_selection(trained):
     assert not torch.allclose(out, _out(model, inp, reference_frames=[0, 2], reference_latents=changed), atol=1e-6)
 
 
+def test_training_needs_clean_reference_latents_and_trains_the_lora_at_full_strength(trained):
+    model = copy.deepcopy(trained).train()
+    inp = cc.example_inputs(model, (1, 3, 4, 4), seed=6)
+    with pytest.raises(ValueError, match="training mode needs reference_latents"):
+        _out(model, inp)
+    clean = torch.randn(1, 16, 3, 4, 4)
+    default = {**inp, "lora_scale": None}
+    assert torch.equal(_out(model, default, reference_frames=[0], reference_latents=clean),
+                       _out(model, inp, reference_frames=[0], reference_latents=clean, lora_scale=1.0))
+    assert not torch.allclose(_out(model, default, reference_frames=[0], reference_latents=clean),
+                              _out(model, inp, reference_frames=[0], reference_latents=clean, lora_scale=0.7))
+    model.eval()
+    assert model.config.lora_scale == 0.7
+    assert torch.equal(_out(model, default), _out(model, inp, lora_scale=0.7))
+
+
 def test_input_shape_errors(tiny):
     inp = cc.example_inputs(tiny, (1, 2, 4, 4))
     with pytest.raises(ValueError, match="plucker must be"):
