@@ -172,13 +172,6 @@ def gpu_limit_problem(config: RunConfig) -> str | None:
     return None
 
 
-def check_gpu_limit(config: RunConfig) -> None:
-    """``gpu_limit_problem`` as an error (for callers that check one config before submitting)."""
-    problem = gpu_limit_problem(config)
-    if problem:
-        raise ValueError(problem)
-
-
 @dataclass
 class CollectionResult:
     run_id: str

@@ -21,7 +21,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import SCHEMA_VERSION, STEPS, Key, StepSpec
+from navcrafter.schemas.layout import SCHEMA_VERSION, STEPS, Key, StepSpec, cloud_step
 
 Dependency = tuple[StepSpec, int | None]
 
@@ -56,7 +56,7 @@ def dependencies(spec: StepSpec, k: int | None, config: RunConfig) -> list[Depen
             continue
         at = None if read.at is None else {"k": k, "k-1": None if k is None else k - 1}[read.at]
         if read.step == "cloud":
-            deps.append((STEPS["geometry"], None) if at == 0 else (STEPS["lift"], at))
+            deps.append(cloud_step(at))
         elif at == 0:
             if read.otherwise is None:
                 raise ValueError(f"step {spec.name!r} reads {read.step!r} of iteration 0, which does not exist")

@@ -62,9 +62,6 @@ def open_store(uri: str) -> Store:
         return _stores[uri]
 
 
-# The steps table is an event log for people and tests: the group's completion marker is the truth
-# (a process killed between commit and this write leaves a complete step without its event row).
-
 # --------------------------------------------------------------------------------------------------
 # Shared readers
 # --------------------------------------------------------------------------------------------------

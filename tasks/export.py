@@ -21,7 +21,6 @@ import tempfile
 import numpy as np
 
 from navcrafter.models.backends import run_band, run_label
-from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.layout import FIT, SYNTHESIZE
@@ -41,28 +40,26 @@ def trajectory_rows(path: CameraPath, scene_id: str, backend: str) -> list[dict]
     return rows
 
 
-def write_gaussian_exports(writer, scene, rows: list[dict], comments: list[str], band: str | None,
+def write_gaussian_exports(writer, scene, path: CameraPath, comments: list[str], band: str | None,
                            fps: int, refined: bool = False) -> None:
     """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group), or of the refined
     one (``renders`` group) when ``refined``."""
     from navcrafter.models.gaussians.ply import save_ply
     from navcrafter.models.gaussians.train import render_model
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
-    fd, path = tempfile.mkstemp(suffix=".ply")
+    fd, ply = tempfile.mkstemp(suffix=".ply")
     os.close(fd)
     try:
         step = "fit and refine steps" if refined else "fit step"
-        save_ply(path, model, comments=[*comments, f"3D Gaussian Splatting (navcrafter {step})"])
-        with open(path, "rb") as fh:
+        save_ply(ply, model, comments=[*comments, f"3D Gaussian Splatting (navcrafter {step})"])
+        with open(ply, "rb") as fh:
             writer.write_file("gaussians.ply", fh.read())
     finally:
-        if os.path.exists(path):
-            os.unlink(path)
+        if os.path.exists(ply):
+            os.unlink(ply)
     w, h = scene.status(FIT).attrs["resolution"]
-    c2w = np.stack([r["c2w"] for r in rows])
-    K = np.stack([Intrinsics(r["fx"], r["fy"], r["cx"], r["cy"], r["width"], r["height"]).resize(w, h).K
-                  for r in rows])
-    frames = render_model(model, c2w, K, w, h)
+    K = np.stack([path.intrinsics(f).resize(w, h).K for f in range(len(path))])
+    frames = render_model(model, path.c2w, K, w, h)
     writer.write_file("flythrough.mp4", encode_mp4(label_frames(frames, band) if band else frames, fps))
 
 
@@ -78,7 +75,8 @@ def export(ctx: StepContext) -> dict:
     if label:
         comments.append(label)
     writer.write_file("cloud.ply", ply_bytes(cloud, comments))
-    rows = trajectory_rows(camera_path(scene, config), scene_id, config.backend)
+    path = camera_path(scene, config)
+    rows = trajectory_rows(path, scene_id, config.backend)
     if N > 0:
         frames = np.concatenate([scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)])
         frames = label_frames(frames, band) if band else frames
@@ -92,7 +90,7 @@ def export(ctx: StepContext) -> dict:
         doc["label"] = label
     writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
     if config.fit.enabled:
-        write_gaussian_exports(writer, scene, rows, comments, band,
+        write_gaussian_exports(writer, scene, path, comments, band,
                                config.synthesis.fps, refined=config.refine.enabled)
     table = to_table("trajectories", rows)
     buf = io.BytesIO()

@@ -310,10 +310,11 @@ def find_simulation_truth(source: str, sha256: str, loaded: LoadedImage,
 # --------------------------------------------------------------------------------------------------
 # The tasks
 # --------------------------------------------------------------------------------------------------
-def ingest_body(ctx: StepContext, source: str = "", sha: str = "") -> dict:
-    """The ingest step's body: writes the decoded photo and its working image (``ctx.prepared``: the decoded
-    image, the working image, its crop box and the demo ground truth, made before anything is written)."""
-    loaded, work, crop, truth = ctx.prepared
+def ingest_body(ctx: StepContext) -> dict:
+    """The ingest step's body: writes the decoded photo and its working image. ``ctx.prepared`` (made by
+    ``ingest`` before anything is written): the file's source and sha256, the decoded image, the working image,
+    its crop box and the demo ground truth."""
+    source, sha, loaded, work, crop, truth = ctx.prepared
     ctx.write_all(image=loaded.image, work_image=work)
     attrs = {"source": source, "sha256": sha, "original_size": list(loaded.original_size),
              "original_mode": loaded.original_mode, "exif_orientation": loaded.exif_orientation,
@@ -352,17 +353,14 @@ def ingest(store_uri: str, source: str, config: RunConfig, run_id: str) -> Inges
     sha = hashlib.sha256(data).hexdigest()
     H, W = config.synthesis.height, config.synthesis.width
 
-    def prepare() -> tuple[LoadedImage, np.ndarray, tuple, dict | None]:
+    def prepare() -> tuple[str, str, LoadedImage, np.ndarray, tuple, dict | None]:
         loaded = decode_image(data, source, cfg)
         work, crop = make_work_image(loaded.image, H, W)
         truth = find_simulation_truth(source, sha, loaded, crop, (W, H))
-        return loaded, work, crop, truth
-
-    def body(ctx: StepContext) -> dict:
-        return ingest_body(ctx, source, sha)
+        return source, sha, loaded, work, crop, truth
 
     try:
-        ref = steps.execute(store_uri, sha, INGEST, None, config, run_id, body, prepare=prepare)
+        ref = steps.execute(store_uri, sha, INGEST, None, config, run_id, ingest_body, prepare=prepare)
     except Exception as exc:
         cause = getattr(exc, "cause", exc)
         if isinstance(cause, IngestError):

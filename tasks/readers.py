@@ -45,7 +45,7 @@ class CameraPath:
 
     def distinct(self) -> CameraPath:
         """Without frame 0 of clips k >= 2: it repeats the last frame of clip k-1 at the same pose."""
-        return self.select((self.iteration == self.iteration.min(initial=1)) | (self.frame > 0))
+        return self.select((self.iteration == 1) | (self.frame > 0))
 
     def clip(self, k: int) -> CameraPath:
         return self.select(self.iteration == k)
