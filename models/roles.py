@@ -20,12 +20,16 @@ from navcrafter.models.camera.cameras import Intrinsics
 
 @dataclass
 class SynthesisRequest:
-    image: np.ndarray  # [H, W, 3] uint8 reference image (the scene's working image)
+    image: np.ndarray  # [H, W, 3] uint8 conditioning image: the view at trajectory[0] (frame 0 of the clip)
     trajectory: np.ndarray  # [T, 4, 4] float64 world c2w; trajectory[0] is the current pose
     intrinsics: Intrinsics  # of the working image and of every synthesized frame
     cloud_points: np.ndarray  # [N, 3] float32 current scene cloud (world)
     cloud_colors: np.ndarray  # [N, 3] uint8
     seed: int
+    # The scene's input photo and its world c2w, an extra reference frame for clips that start elsewhere
+    # (iteration k >= 2 starts at the previous clip's last pose). None for the first clip (image is the photo).
+    reference_image: np.ndarray | None = None  # [H, W, 3] uint8
+    reference_c2w: np.ndarray | None = None  # [4, 4] float64
 
 
 @dataclass
