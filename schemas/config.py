@@ -50,9 +50,14 @@ class SynthesisConfig(_Section):
         None, gt=0, description="Shift of the flow-matching sigmas (onnx backend); None: the exported model's own "
         "scheduler setting (its manifest), else 3.0 (Wan2.1's).")
     fps: int = Field(16, ge=1, description="Frame rate of exported videos (Wan2.1 native rate).")
+    # Literal[..., None] is Literal[...] | None (PEP 586), spelled so that its values enumerate as one Literal
+    plucker_convention: Literal["relative", "ray", "paper", None] = Field(
+        None, description="Plücker-ray convention the run expects the camera control to use (onnx backend; "
+        "models.camera.cameras.plucker_rays); None: the exported weights' recorded convention. When set, a model "
+        "recorded with another convention is refused (re-export the matching weights).")
 
     # added after stores existed: keys the synthesize step only when set (schemas.keys)
-    keyed_when_set: ClassVar[dict[str, Any]] = {"flow_shift": None}
+    keyed_when_set: ClassVar[dict[str, Any]] = {"flow_shift": None, "plucker_convention": None}
 
 
 class PlanConfig(_Section):

@@ -218,11 +218,15 @@ PLAN = StepSpec(
 
 SYNTHESIZE = StepSpec(
     "synthesize", "iter_{k}/synthesize",
-    "The video clip synthesized along the trajectory of iteration k.",
+    "The video clip synthesized along the trajectory of iteration k, conditioned on the view at its first camera "
+    "(the working image, then the last frame of clip k-1) with the input photo as an extra reference from k = 2.",
     arrays=(ArraySpec("frames", "uint8", ("T", "H", "W", 3), (1, "H", "W", 3), "RGB frames"),),
     iterative=True,
     body="synthesize:synthesize", gpu=True, models=MODEL_ROLES,
-    reads=(Read("ingest"), Read("plan", at="k"), Read("cloud", at="k-1")),
+    # the conditioning image: the last frame of clip k-1, for k = 1 the working image (ingest); the reference
+    # camera: the input pose (geometry)
+    reads=(Read("ingest"), Read("plan", at="k"), Read("cloud", at="k-1"),
+           Read("synthesize", at="k-1", otherwise="ingest"), Read("geometry")),
     keyed_by=(Key("synthesis", "synthesis"), _SIM),
 )
 

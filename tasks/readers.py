@@ -22,7 +22,14 @@ from navcrafter.schemas.store import SceneStore
 @dataclass(frozen=True)
 class CameraPath:
     """Frames of a scene's clips at the cameras they were synthesized for (the planned poses): per frame its
-    iteration ``k`` and index ``i`` in clip k, OpenCV c2w [F, 4, 4] and K [F, 3, 3] at ``width`` x ``height``."""
+    iteration ``k`` and index ``i`` in clip k, OpenCV c2w [F, 4, 4] and K [F, 3, 3] at ``width`` x ``height``.
+
+    Repeated first frames: iteration k >= 2 starts at the last pose of clip k-1, and its clip is conditioned on
+    clip k-1's last frame (``tasks/synthesize.py``), which an I2V model reproduces as frame 0. So frame 0 of
+    clip k >= 2 is a second view of the camera of (k-1, T-1), a reproduction rather than a new view.
+    ``distinct()`` drops the repeat and keeps the first occurrence (the frame clip k was conditioned on), so each
+    camera of the path counts once; the lift step never selects frame 0 (``lifting.select_views``), and the fit
+    trains on and holds out only distinct frames (its ``frame_ref``, which ``load_fit_views`` reads back)."""
 
     iteration: np.ndarray
     frame: np.ndarray
@@ -44,7 +51,7 @@ class CameraPath:
                           self.K[mask_or_index], self.width, self.height)
 
     def distinct(self) -> CameraPath:
-        """Without frame 0 of clips k >= 2: it repeats the last frame of clip k-1 at the same pose."""
+        """Without frame 0 of clips k >= 2: it reproduces the last frame of clip k-1 at the same pose (kept)."""
         return self.select((self.iteration == 1) | (self.frame > 0))
 
     def clip(self, k: int) -> CameraPath:
@@ -69,6 +76,11 @@ def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = N
     return CameraPath(np.asarray(ks, dtype=np.int64), np.asarray(idx, dtype=np.int64),
                       np.concatenate(c2w) if c2w else np.zeros((0, 4, 4)),
                       np.concatenate(K) if K else np.zeros((0, 3, 3)), int(width), int(height))
+
+
+def input_pose(scene: SceneStore) -> np.ndarray:
+    """World c2w of the input camera (``iter_0/geometry``: the identity, which defines the world frame)."""
+    return scene.read(GEOMETRY, None, "c2w")
 
 
 def current_pose(scene: SceneStore, k: int) -> np.ndarray:

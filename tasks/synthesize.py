@@ -1,4 +1,11 @@
-"""Synthesize: a video clip along the planned trajectory (the Synthesizer role)."""
+"""Synthesize: a video clip along the planned trajectory (the Synthesizer role).
+
+The clip is conditioned on the view at its first camera, which an I2V model reproduces as frame 0: for
+iteration 1 the working image (the input camera), for k >= 2 the last frame of clip k-1, since iteration k
+starts where clip k-1 ended (``readers.current_pose``). A trajectory that starts anywhere else has no view
+to condition on and fails the step. From k >= 2 the working image and the input camera's world pose come as an
+extra reference frame (``SynthesisRequest.reference_image`` / ``reference_c2w``).
+"""
 
 from __future__ import annotations
 
@@ -6,18 +13,33 @@ import numpy as np
 
 from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.roles import SynthesisRequest
-from navcrafter.schemas.layout import INGEST, PLAN
+from navcrafter.schemas.layout import INGEST, PLAN, SYNTHESIZE
+from navcrafter.tasks.readers import current_pose, input_pose
 from navcrafter.tasks.steps import StepContext
 
 
 def synthesize(ctx: StepContext) -> dict:
-    work = ctx.scene.read(INGEST, None, "work_image")
-    plan = ctx.scene.read_all(PLAN, ctx.k)
-    cloud = ctx.cloud(ctx.k - 1)
+    scene, k = ctx.scene, ctx.k
+    work = scene.read(INGEST, None, "work_image")
+    plan = scene.read_all(PLAN, k)
+    cloud = ctx.cloud(k - 1)
     H, W = work.shape[:2]
-    request = SynthesisRequest(image=work, trajectory=plan["trajectory"],
+    # plan k-1 (read by current_pose) keys this step through plan k and synthesize k-1
+    start = input_pose(scene) if k == 1 else current_pose(scene, k)
+    if not np.allclose(plan["trajectory"][0], start, rtol=1e-6, atol=1e-6):
+        where = "the input camera" if k == 1 else f"the last pose of iteration {k - 1}"
+        raise ValueError(f"the trajectory of iteration {k} does not start at {where} (first position "
+                         f"{np.round(plan['trajectory'][0][:3, 3], 4).tolist()}, expected "
+                         f"{np.round(start[:3, 3], 4).tolist()}): the view at its first camera, which the clip "
+                         f"is conditioned on, is not available; plan iteration {k} from the current pose")
+    if k == 1:
+        image, reference = work, {}
+    else:
+        image = scene.read_rows(SYNTHESIZE, k - 1, "frames", [-1])[0]
+        reference = {"reference_image": work, "reference_c2w": input_pose(scene)}
+    request = SynthesisRequest(image=image, trajectory=plan["trajectory"],
                                intrinsics=Intrinsics.from_matrix(plan["K"], W, H),
-                               cloud_points=cloud.points, cloud_colors=cloud.colors, seed=ctx.seed)
+                               cloud_points=cloud.points, cloud_colors=cloud.colors, seed=ctx.seed, **reference)
     frames = ctx.backend.synthesizer.synthesize(request)
     expected = (len(plan["trajectory"]), H, W, 3)
     if frames.shape != expected or frames.dtype != np.uint8:

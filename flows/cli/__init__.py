@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import typer
 
-from navcrafter.flows.cli import clips, demo, evaluate, explore, models, status
+from navcrafter.flows.cli import clips, demo, evaluate, explore, models, status, train
 from navcrafter.flows.cli.options import prefect_env
 
 app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a resumable batch workflow.",
@@ -22,6 +22,8 @@ app.command("dataset-clips")(clips.dataset_clips)
 app.command("evaluate-clips")(clips.evaluate_clips)
 app.command()(status.status)
 app.command()(explore.submit)
+app.command("train-camera")(train.train_camera)
+app.command("simulate-datasets")(train.simulate_datasets)
 
 __all__ = ["app", "main"]
 

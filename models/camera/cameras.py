@@ -24,7 +24,9 @@ from typing import Literal
 
 import numpy as np
 
-PluckerConvention = Literal["paper", "ray"]
+PluckerConvention = Literal["relative", "ray", "paper"]
+PLUCKER_CONVENTIONS: tuple[str, ...] = ("relative", "ray", "paper")
+MIN_POSE_SCALE = 1e-6  # below this largest relative translation a clip is a pure rotation: scale 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -290,43 +292,116 @@ def world_rays(c2w: np.ndarray, K: np.ndarray, height: int, width: int) -> tuple
     return o, d
 
 
-def plucker_rays(c2w: np.ndarray, K: np.ndarray, height: int, width: int,
-                 convention: PluckerConvention = "paper") -> np.ndarray:
-    """Per-pixel Plücker embedding ``[T, H, W, 6] = (t x d, d)`` as float32.
+def relative_poses(c2w: np.ndarray, origin: np.ndarray | None = None,
+                   scale: float | None = None) -> tuple[np.ndarray, float]:
+    """A clip's camera-to-world poses in its own frame, translations scale-normalised (CameraCtrl-style).
 
-    ``c2w``: ``[T, 4, 4]`` (or ``[4, 4]``); ``K``: ``[T, 3, 3]`` or one ``[3, 3]`` for all frames.
-
-    * ``convention="paper"`` follows the paper's equation literally:
-      ``d = normalise(R K^-1 [u, v, 1]^T + t)``, ``p = (t x d, d)``.
-    * ``convention="ray"`` drops the ``+ t``: ``d`` is the true unit ray direction, so ``(t x d, d)``
-      are the Plücker coordinates of the pixel's viewing ray (what CameraCtrl's released code
-      computes). The two agree whenever ``t = 0``.
-
-    Both satisfy ``m . d = 0`` and ``|d| = 1``. The camera-control model must be trained and run
-    with one convention; it is recorded in the synthesizer's config.
+    ``c2w``: ``[T, 4, 4]`` world poses. Returns ``(c2w_rel [T, 4, 4], scale)`` with
+    ``c2w_rel[i] = inv(origin) @ c2w[i]`` and its translation divided by ``scale``. By default
+    ``origin = c2w[0]`` (so ``c2w_rel[0] = I``) and ``scale`` = the largest ``|t_rel|`` over the clip
+    when it exceeds ``MIN_POSE_SCALE`` (1e-6), else 1 (a pure rotation). ``scale`` is returned so the
+    same normalisation can be applied to other poses (training and inference share it: pass the clip's
+    ``origin`` and ``scale`` to express extra poses, e.g. a reference frame, in the clip's frame; their
+    ``|t|`` may then exceed 1).
     """
     c2w = np.asarray(c2w, dtype=np.float64)
-    single = c2w.ndim == 2
-    if single:
-        c2w = c2w[None]
-    T = c2w.shape[0]
-    K = np.asarray(K, dtype=np.float64)
-    Ks = np.broadcast_to(K, (T, 3, 3)) if K.ndim == 2 else K
-    if Ks.shape != (T, 3, 3):
-        raise ValueError(f"K must be [3,3] or [{T},3,3], got {K.shape}")
-    if convention not in ("paper", "ray"):
-        raise ValueError(f"unknown Plücker convention {convention!r}; use 'paper' or 'ray'")
-    out = np.empty((T, height, width, 6), dtype=np.float32)
-    for i in range(T):
+    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4) or len(c2w) == 0:
+        raise ValueError(f"c2w must be [T, 4, 4] with T >= 1, got {c2w.shape}")
+    origin = c2w[0] if origin is None else np.asarray(origin, dtype=np.float64)
+    if origin.shape != (4, 4):
+        raise ValueError(f"origin must be a [4, 4] camera-to-world pose, got {origin.shape}")
+    rel = np.einsum("ij,tjk->tik", invert_pose(origin), c2w)
+    if scale is None:
+        largest = float(np.linalg.norm(rel[:, :3, 3], axis=-1).max())
+        scale = largest if largest > MIN_POSE_SCALE else 1.0
+    scale = float(scale)
+    if not np.isfinite(scale) or scale <= 0:
+        raise ValueError(f"scale must be a positive number, got {scale}")
+    rel[:, :3, 3] /= scale
+    return rel, scale
+
+
+def _plucker_lines(c2w: np.ndarray, Ks: np.ndarray, height: int, width: int, add_t: bool) -> np.ndarray:
+    out = np.empty((len(c2w), height, width, 6), dtype=np.float32)
+    for i in range(len(c2w)):
         R, t = c2w[i, :3, :3], c2w[i, :3, 3]
         d = camera_directions(Ks[i], height, width) @ R.T
-        if convention == "paper":
+        if add_t:
             d = d + t
         d = d / np.linalg.norm(d, axis=-1, keepdims=True)
         m = np.cross(np.broadcast_to(t, d.shape), d)
         out[i, ..., :3] = m
         out[i, ..., 3:] = d
+    return out
+
+
+def plucker_rays(c2w: np.ndarray, K: np.ndarray, height: int, width: int,
+                 convention: PluckerConvention = "relative", *, origin: np.ndarray | None = None,
+                 scale: float | None = None) -> np.ndarray:
+    """Per-pixel Plücker embedding ``[T, H, W, 6] = (m, d) = (t x d, d)`` as float32.
+
+    ``c2w``: ``[T, 4, 4]`` (or ``[4, 4]``) world poses; ``K``: ``[T, 3, 3]`` or one ``[3, 3]`` for all frames.
+
+    * ``convention="relative"`` (default; what RealEstate10K/DL3DV camera-control training pipelines do,
+      CameraCtrl-style): the poses are first made relative to the clip's first camera and scale-normalised
+      (``relative_poses``: ``c2w_rel[i] = inv(c2w[0]) @ c2w[i]``, so frame 0 is the identity, translations
+      divided by the clip's largest ``|t_rel|``), then each pixel's true Plücker line is taken:
+      ``d = normalise(R K^-1 [u, v, 1]^T)``, ``m = t x d``. The embedding is invariant to where the clip is
+      in the world and to its units. ``origin`` / ``scale`` override the clip's own (``c2w[0]`` and its
+      scale): rays of extra poses in another clip's frame (``clip_relative_rays``).
+    * ``convention="ray"``: the same true Plücker line on the absolute world ``c2w``.
+    * ``convention="paper"`` follows the paper's equation literally on the absolute world ``c2w``:
+      ``d = normalise(R K^-1 [u, v, 1]^T + t)``, ``m = t x d``. Far from the world origin the ``+ t`` dominates:
+      with ``|t| = 10`` the directions span ~1/10 of the field of view and barely move when the camera
+      turns, which is why it is no longer the default.
+
+    All three satisfy ``m . d = 0`` and ``|d| = 1``; "ray" and "paper" agree whenever ``t = 0``, and
+    "relative" equals "ray" for a clip whose first camera is the world frame and whose scale is 1. The
+    camera-control model must be trained and run with one convention; it is recorded in its config
+    (``CameraControlConfig.plucker_convention``) and in an exported synthesizer's manifest.
+    """
+    c2w = np.asarray(c2w, dtype=np.float64)
+    single = c2w.ndim == 2
+    if single:
+        c2w = c2w[None]
+    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
+        raise ValueError(f"c2w must be [T, 4, 4] or [4, 4], got {c2w.shape}")
+    T = c2w.shape[0]
+    K = np.asarray(K, dtype=np.float64)
+    Ks = np.broadcast_to(K, (T, 3, 3)) if K.ndim == 2 else K
+    if Ks.shape != (T, 3, 3):
+        raise ValueError(f"K must be [3,3] or [{T},3,3], got {K.shape}")
+    if convention not in PLUCKER_CONVENTIONS:
+        raise ValueError(f"unknown Plücker convention {convention!r}; use one of {list(PLUCKER_CONVENTIONS)}")
+    if convention == "relative":
+        c2w, _ = relative_poses(c2w, origin, scale)
+    elif origin is not None or scale is not None:
+        raise ValueError(f"origin/scale only apply to the 'relative' convention, not {convention!r} "
+                         f"(which embeds absolute world poses)")
+    out = _plucker_lines(c2w, Ks, height, width, add_t=convention == "paper")
     return out[0] if single else out
+
+
+def clip_relative_rays(clip_c2w: np.ndarray, c2w_extra: np.ndarray, K: np.ndarray, height: int, width: int,
+                       convention: PluckerConvention = "relative") -> np.ndarray:
+    """Rays ``[R, H, W, 6]`` of extra poses ``c2w_extra [R, 4, 4]`` (or ``[4, 4]``) in the embedding frame of the
+    clip ``clip_c2w [T, 4, 4]``, i.e. comparable with ``plucker_rays(clip_c2w, K, H, W, convention)`` (both in
+    the same world frame).
+
+    For "relative": the clip's first camera is the origin and the clip's scale (``relative_poses(clip_c2w)``)
+    normalises the extra translations too (a reference frame outside the clip may then have ``|t| > 1``). "ray"
+    and "paper" embed absolute world poses, so the clip does not enter. ``K``: ``[3, 3]`` or ``[R, 3, 3]``.
+    """
+    c2w_extra = np.asarray(c2w_extra, dtype=np.float64)
+    if c2w_extra.ndim == 2:
+        c2w_extra = c2w_extra[None]
+    if convention != "relative":
+        return plucker_rays(c2w_extra, K, height, width, convention)
+    clip_c2w = np.asarray(clip_c2w, dtype=np.float64)
+    if clip_c2w.ndim == 2:
+        clip_c2w = clip_c2w[None]
+    _, scale = relative_poses(clip_c2w)
+    return plucker_rays(c2w_extra, K, height, width, "relative", origin=clip_c2w[0], scale=scale)
 
 
 def project(points: np.ndarray, c2w: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

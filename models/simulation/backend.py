@@ -3,7 +3,10 @@
 It exists so that the whole product runs, and is measured against ground truth, where no model
 weights are present. Everything it produces is labelled ``backend: simulation``.
 
-* **Synthesizer** renders the true scene along the requested trajectory (a perfect video model).
+* **Synthesizer** renders the true scene along the requested trajectory (a perfect video model). It checks the
+  request's images (shapes, the reference frame given with its camera) but never looks at their pixels: its frame
+  0 is the truth at ``trajectory[0]``, which is what the conditioning image shows (the working image, or the
+  previous clip's last frame, a render at the same pose); the reference (input photo) adds nothing to the truth.
 * **Geometry** returns the true depth and relative cameras of the requested views, corrupted like a
   feed-forward model's output: an arbitrary global scale per call, per-pixel depth noise, pose
   jitter, optional focal error, low confidence at depth discontinuities, nothing on the sky.
@@ -127,13 +130,36 @@ class _SimulationRole:
 class SimulationSynthesizer(_SimulationRole):
 
     def synthesize(self, request: SynthesisRequest) -> np.ndarray:
-        H, W = request.image.shape[:2]
+        H, W = _check_request(request)
         K = self.truth.intrinsics_for(H, W)
         poses = self.truth.gt_pose(request.trajectory)
         frames = np.empty((len(poses), H, W, 3), dtype=np.uint8)
         for i, c2w in enumerate(poses):
             frames[i] = render(self.truth.scene, c2w, K, supersample=self.config.supersample).rgb
         return frames
+
+
+def _check_request(request: SynthesisRequest) -> tuple[int, int]:
+    """(H, W) of a request whose images and cameras have the shapes of the ``SynthesisRequest`` contract: a
+    uint8 conditioning image [H, W, 3], a trajectory [T, 4, 4] (T >= 1), and the reference frame either absent
+    or given whole (an image like the conditioning image, with its [4, 4] world c2w)."""
+    image = np.asarray(request.image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"request.image must be uint8 [H, W, 3], got {image.dtype} {image.shape}")
+    traj = np.asarray(request.trajectory)
+    if traj.ndim != 3 or traj.shape[1:] != (4, 4) or len(traj) == 0:
+        raise ValueError(f"request.trajectory must be [T, 4, 4] with T >= 1, got {traj.shape}")
+    if (request.reference_image is None) != (request.reference_c2w is None):
+        raise ValueError("request.reference_image and request.reference_c2w come together (the input photo and "
+                         "its camera) or not at all")
+    if request.reference_image is not None:
+        ref = np.asarray(request.reference_image)
+        if ref.shape != image.shape or ref.dtype != np.uint8:
+            raise ValueError(f"request.reference_image must be uint8 {image.shape} like request.image, got "
+                             f"{ref.dtype} {ref.shape}")
+        if np.shape(request.reference_c2w) != (4, 4):
+            raise ValueError(f"request.reference_c2w must be [4, 4], got {np.shape(request.reference_c2w)}")
+    return image.shape[0], image.shape[1]
 
 
 class SimulationGeometry(_SimulationRole):

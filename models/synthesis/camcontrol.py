@@ -7,8 +7,11 @@ adds four zero-initialised control paths, so an untrained wrapper returns exactl
 1. **Camera adapter A (dual-branch injection).** A 3D-conv encoder maps per-pixel Plücker rays
    ``[B, 6, T, 8h, 8w]`` to tokens ``x_c [B, L, D]`` on the DiT's token grid (``L = F * h/2 * w/2``).
    In every block ``i``: ``hidden += P_i(x_c)`` before the block, and inside the block's self-attention
-   ``attn_out += S_i(x_c)`` (after ``to_out``, before the block's gate), with ``P_i``/``S_i`` zero-initialised
-   ``Linear(D, D)``.
+   ``attn_out += S_i(x_c)`` (after ``to_out``, before the block's gate). ``P_i``/``S_i`` (``pre_proj`` /
+   ``attn_proj``) are low-rank ``D -> r -> D`` (``projection_rank`` ``r``, capped at ``D``; the down
+   projection random, the up projection zero-initialised): a full ``Linear(D, D)`` pair per block is ~2.1 B
+   parameters on Wan2.1-I2V-14B, ~13 % of the base (``control_parameter_counts``). ``projection_rank = 0``
+   is the full zero-initialised ``Linear(D, D)`` of format-version-1 weights.
 2. **LoRA control.** A lightweight 3D-conv encoder maps the same Plücker rays to ``x_l [B, L, r_in]``; in
    every block's self-attention ``Q' = Q + α·U_q(D_q x_l)`` (same for K and V) on the projection outputs,
    before the q/k RMS norms and rope. ``U_*`` are zero-initialised; ``α`` (``lora_scale``) is an input so
@@ -28,7 +31,14 @@ adds four zero-initialised control paths, so an untrained wrapper returns exactl
    frames drawn from a seeded generator, and the clean latents come from ``reference_latents`` (the
    training loop passes the clean video latents). At inference ``S = inference_reference_frames`` (default
    ``(0,)``, baked into an exported graph) and the clean latents are the I2V conditioning latents
-   (channels 20:36 of ``hidden_states``), whose frame 0 is the encoded input image.
+   (channels 20:36 of ``hidden_states``), whose frame 0 is the encoded conditioning image.
+   **Extra reference frames** (``image_reference [B, 16, R, h, w]``, clean latents of views outside the clip,
+   e.g. the scene's input photo when a clip starts elsewhere, with their rays ``image_reference_plucker
+   [B, 6, R, 8h, 8w]`` in the clip's Plücker frame: ``models.camera.cameras.clip_relative_rays``) join the
+   same reference set: patch-embedded with ``ref_embedding``, their camera tokens are the adapter run on each
+   frame's rays as a one-frame clip (``x_c`` of that frame), and their rope is the one of latent frame 0 (a
+   known clean frame at the start of the clip, like the I2V conditioning frame: where the view is comes from
+   its camera tokens, not from a time position it does not have).
 4. **Render conditioning.** ``cond [B, cond_channels, F, h, w]`` enters through an extended patch
    embedding: ``patch_embedding(hidden_states) + cond_embedding(cond)``, which equals one Conv3d over the
    concatenated channels whose new input channels are zero-initialised. The default ``cond_channels = 20``
@@ -37,13 +47,23 @@ adds four zero-initialised control paths, so an untrained wrapper returns exactl
    ``k`` is the (8×8 average-pooled) visibility of video frame ``4k - 3 + c`` (frame 0 for all four
    channels of latent frame 0).
 
+**Plücker convention** (``CameraControlConfig.plucker_convention``, default ``"relative"``): rays are computed
+from the clip's poses made relative to its first camera and scale-normalised by the clip's largest translation
+(CameraCtrl-style, as RealEstate10K/DL3DV training clips are), then the true Plücker line of each pixel ray;
+``"ray"`` and ``"paper"`` (the paper's literal ``d = normalise(RK^-1[u,v,1] + t)``) on absolute world poses stay
+selectable (see ``models.camera.cameras.plucker_rays``). The convention is saved with the weights and recorded in
+an exported synthesizer's manifest.
+
 Temporal alignment follows the Wan VAE: latent frame 0 is video frame 0, latent frame ``k ≥ 1`` covers video
 frames ``4k-3 .. 4k``; so ``T = 4(F - 1) + 1``. Both Plücker encoders repeat frame 0 three times in front
 (``4F`` frames) and patchify with stride 4 in time.
 
 Weights: the base comes from a diffusers-format directory; the control weights are one safetensors file
-plus a JSON config (``save_camera_control`` / ``load_camera_control``), never pickles.
-The whole wrapper exports to ONNX (``export_dit``) with dynamic batch, frames, height and width.
+plus a JSON config (``save_camera_control`` / ``load_camera_control``), never pickles. Format version 2 (low-rank
+projections, ``projection_rank`` in the config); version-1 files load as ``projection_rank = 0`` with the
+convention they record.
+The whole wrapper exports to ONNX (``export_dit``) with dynamic batch, frames, height, width and number of extra
+reference frames.
 """
 
 from __future__ import annotations
@@ -55,7 +75,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn as nn
@@ -63,7 +83,7 @@ import torch.nn.functional as F
 from diffusers.models.attention_dispatch import dispatch_attention_fn
 from diffusers.models.transformers.transformer_wan import WanTransformer3DModel, _get_qkv_projections
 
-PluckerConvention = Literal["ray", "paper"]
+from navcrafter.models.camera.cameras import PLUCKER_CONVENTIONS, PluckerConvention
 
 VAE_STRIDE = (4, 8, 8)  # Wan2.1 VAE: time, height, width
 LATENT_CHANNELS = 16  # Wan2.1 VAE latent channels
@@ -71,10 +91,13 @@ TEXT_TOKENS = 512  # diffusers' Wan I2V path splits image/text tokens at `shape[
 CONTROL_WEIGHTS = "camera_control.safetensors"
 CONTROL_CONFIG = "camera_control.json"
 CONTROL_FORMAT = "navcrafter-camera-control"
-CONTROL_FORMAT_VERSION = 1
+CONTROL_FORMAT_VERSION = 2  # 2: low-rank pre_proj/attn_proj (projection_rank); 1: full Linear(D, D)
+READABLE_FORMAT_VERSIONS = (1, 2)
+# what a version-1 config lacks, as version 1 built it
+_V1_DEFAULTS: dict[str, Any] = {"projection_rank": 0, "plucker_convention": "paper"}
 
 DIT_INPUTS = ["hidden_states", "timestep", "encoder_hidden_states", "encoder_hidden_states_image", "plucker",
-              "cond", "lora_scale"]
+              "cond", "lora_scale", "image_reference", "image_reference_plucker"]
 DIT_OUTPUTS = ["noise_pred"]
 
 # Tiny random Wan2.1 I2V config for tests (see shared/FACTS.md): 2 heads x 12 dims, 2 layers.
@@ -92,6 +115,15 @@ WAN_1_3B_I2V_CONFIG: dict[str, Any] = {
     "patch_size": (1, 2, 2), "num_attention_heads": 12, "attention_head_dim": 128, "in_channels": 36,
     "out_channels": 16, "text_dim": 4096, "freq_dim": 256, "ffn_dim": 8960, "num_layers": 30, "cross_attn_norm": True,
     "qk_norm": "rms_norm_across_heads", "eps": 1e-6, "image_dim": 1280, "added_kv_proj_dim": 1536,
+    "rope_max_seq_len": 1024,
+}
+
+# Wan2.1-I2V-14B (the diffusers transformer config of Wan-AI/Wan2.1-I2V-14B-*-Diffusers): 40 heads x 128 = 5120,
+# 40 layers; added_kv_proj_dim == inner_dim as above.
+WAN_14B_I2V_CONFIG: dict[str, Any] = {
+    "patch_size": (1, 2, 2), "num_attention_heads": 40, "attention_head_dim": 128, "in_channels": 36,
+    "out_channels": 16, "text_dim": 4096, "freq_dim": 256, "ffn_dim": 13824, "num_layers": 40, "cross_attn_norm": True,
+    "qk_norm": "rms_norm_across_heads", "eps": 1e-6, "image_dim": 1280, "added_kv_proj_dim": 5120,
     "rope_max_seq_len": 1024,
 }
 
@@ -118,8 +150,12 @@ class CameraControlConfig:
     ``num_reference_frames``: reference frames drawn per training sample (frame 0 included).
     ``inference_reference_frames``: reference latent frames at inference (baked into an export).
     ``reference_seed``: seed of the training-time reference-frame generator.
-    ``plucker_convention``: how the Plücker rays were computed (``models.cameras.plucker_rays``); recorded so
-    the weights are always run with the convention they were trained with.
+    ``projection_rank``: rank ``r`` of the per-block ``pre_proj``/``attn_proj`` (``D -> r -> D``, capped at the
+    DiT width ``D``); ``0`` = full ``Linear(D, D)`` (format-version-1 weights; a saved config without the field
+    loads as 0).
+    ``plucker_convention``: how the Plücker rays were computed (``models.camera.cameras.plucker_rays``:
+    ``"relative"`` (default), ``"ray"`` or ``"paper"``); recorded so the weights are always run with the
+    convention they were trained with (saved configs keep the one they record).
     """
 
     adapter_channels: int = 64
@@ -131,7 +167,8 @@ class CameraControlConfig:
     num_reference_frames: int = 2
     inference_reference_frames: tuple[int, ...] = (0,)
     reference_seed: int = 0
-    plucker_convention: PluckerConvention = "paper"  # models.cameras.plucker_rays default
+    projection_rank: int = 64
+    plucker_convention: PluckerConvention = "relative"  # models.camera.cameras.plucker_rays default
     latent_channels: int = LATENT_CHANNELS
     vae_stride: tuple[int, int, int] = VAE_STRIDE
     extra: dict[str, Any] = field(default_factory=dict)  # free-form notes (training run, data, ...)
@@ -139,8 +176,11 @@ class CameraControlConfig:
     def __post_init__(self) -> None:
         self.inference_reference_frames = tuple(int(i) for i in self.inference_reference_frames)
         self.vae_stride = tuple(int(s) for s in self.vae_stride)
-        if self.plucker_convention not in ("ray", "paper"):
-            raise ValueError(f"plucker_convention must be 'ray' or 'paper', got {self.plucker_convention!r}")
+        if self.plucker_convention not in PLUCKER_CONVENTIONS:
+            raise ValueError(f"plucker_convention must be one of {list(PLUCKER_CONVENTIONS)}, "
+                             f"got {self.plucker_convention!r}")
+        if int(self.projection_rank) < 0:
+            raise ValueError(f"projection_rank must be >= 0 (0 = full D x D projections), got {self.projection_rank}")
         for name in ("adapter_channels", "lora_in_channels", "lora_rank", "latent_channels"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -159,14 +199,16 @@ class CameraControlConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> CameraControlConfig:
+        """A saved config. One without ``projection_rank`` predates low-rank projections: it loads as 0."""
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
             raise ValueError(f"unknown CameraControlConfig keys {unknown}; known: {sorted(known)}")
-        return cls(**d)
+        return cls(**{"projection_rank": 0, **d})
 
 
 def tiny_camera_config() -> CameraControlConfig:
+    """Tiny test control (``projection_rank`` 64, capped at the tiny DiT's width 24)."""
     return CameraControlConfig(adapter_channels=16, adapter_res_blocks=1, lora_in_channels=8, lora_rank=4,
                                num_reference_frames=2)
 
@@ -175,11 +217,20 @@ def wan_1_3b_camera_config() -> tuple[dict[str, Any], CameraControlConfig]:
     """(base ``WanTransformer3DModel`` kwargs at Wan2.1-1.3B width with I2V inputs, control config).
 
     Build with random weights: ``build_camera_wan(*wan_1_3b_camera_config(), device="cuda")``.
-    Control adds ~2·D² per block for the adapter projections (≈142M at D=1536, 30 layers) plus the encoders.
+    Rank-128 projections: 47 M control parameters, 3.0 % of the 1.56 B base (full-rank ones are 142 M at D=1536,
+    30 layers: 165 M, 10.6 %, with the encoders); see ``control_parameter_counts`` and models/synthesis/README.md.
     """
     return dict(WAN_1_3B_I2V_CONFIG), CameraControlConfig(adapter_channels=320, adapter_res_blocks=2,
                                                           lora_in_channels=128, lora_rank=64,
-                                                          num_reference_frames=3)
+                                                          projection_rank=128, num_reference_frames=3)
+
+
+def wan_14b_camera_config() -> tuple[dict[str, Any], CameraControlConfig]:
+    """(Wan2.1-I2V-14B base kwargs, control config): rank-256 projections, 266 M control parameters, 1.6 % of the
+    16.4 B base (full-rank ones are 2.10 B: 2.15 B, 13.1 %, in all). Counts: ``control_parameter_counts``."""
+    return dict(WAN_14B_I2V_CONFIG), CameraControlConfig(adapter_channels=320, adapter_res_blocks=2,
+                                                         lora_in_channels=128, lora_rank=64,
+                                                         projection_rank=256, num_reference_frames=3)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -345,13 +396,35 @@ class _LoRA(nn.Module):
         return self.up(self.down(x))
 
 
+class _LowRankProjection(nn.Module):
+    """``up(down(x))``: ``D -> r -> D``, ``down`` random (no bias), ``up`` zero-initialised (weight and bias), so it
+    outputs exactly zero until trained."""
+
+    def __init__(self, dim: int, rank: int) -> None:
+        super().__init__()
+        self.down = nn.Linear(dim, rank, bias=False)
+        self.up = _zero_(nn.Linear(rank, dim))
+        nn.init.kaiming_uniform_(self.down.weight, a=math.sqrt(5))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.up(self.down(x))
+
+
+def _projection(dim: int, rank: int) -> nn.Module:
+    """Zero-output ``x_c`` projection: full ``Linear(D, D)`` for ``rank == 0`` (format v1), else low-rank with
+    ``min(rank, D)``."""
+    if rank == 0:
+        return _zero_(nn.Linear(dim, dim))
+    return _LowRankProjection(dim, min(int(rank), dim))
+
+
 class CameraControlBlock(nn.Module):
     """Per-DiT-block control weights (all zero-initialised where they touch the base stream)."""
 
-    def __init__(self, dim: int, kv_dim: int, lora_in: int, rank: int) -> None:
+    def __init__(self, dim: int, kv_dim: int, lora_in: int, rank: int, projection_rank: int = 0) -> None:
         super().__init__()
-        self.pre_proj = _zero_(nn.Linear(dim, dim))  # x_c -> added to the block input
-        self.attn_proj = _zero_(nn.Linear(dim, dim))  # x_c -> added to the self-attention output
+        self.pre_proj = _projection(dim, projection_rank)  # x_c -> added to the block input
+        self.attn_proj = _projection(dim, projection_rank)  # x_c -> added to the self-attention output
         self.lora_q = _LoRA(lora_in, rank, dim)
         self.lora_k = _LoRA(lora_in, rank, kv_dim)
         self.lora_v = _LoRA(lora_in, rank, kv_dim)
@@ -371,8 +444,36 @@ class CameraControl(nn.Module):
         self.cond_embedding = (_zero_(nn.Conv3d(config.cond_channels, dim, kernel_size=patch, stride=patch,
                                                 bias=False)) if config.cond_channels else None)
         self.ref_embedding = nn.Conv3d(config.latent_channels, dim, kernel_size=patch, stride=patch)
-        self.blocks = nn.ModuleList([CameraControlBlock(dim, dim, config.lora_in_channels, config.lora_rank)
+        self.blocks = nn.ModuleList([CameraControlBlock(dim, dim, config.lora_in_channels, config.lora_rank,
+                                                        config.projection_rank)
                                      for _ in range(base_config.num_layers)])
+
+
+def _count(module: nn.Module | None) -> int:
+    return sum(p.numel() for p in module.parameters()) if module is not None else 0
+
+
+def control_parameter_counts(base_config: dict[str, Any], control_config: CameraControlConfig | None = None
+                             ) -> dict[str, Any]:
+    """Parameter counts of a base DiT (``WanTransformer3DModel`` kwargs) and its camera control, built on
+    ``torch.device("meta")`` (no memory, well under a second even at 14B).
+
+    Returns ``{"base", "control", "ratio" (control / base), "parts": {adapter, lora_encoder, cond_embedding,
+    ref_embedding, projections (pre_proj + attn_proj of all blocks), lora, ref_gate}}``.
+    """
+    control_config = control_config or CameraControlConfig()
+    with torch.device("meta"):
+        base = WanTransformer3DModel(**base_config)
+        control = CameraControl(control_config, base.config)
+    blocks = control.blocks
+    parts = {"adapter": _count(control.adapter), "lora_encoder": _count(control.lora_encoder),
+             "cond_embedding": _count(control.cond_embedding), "ref_embedding": _count(control.ref_embedding),
+             "projections": sum(_count(b.pre_proj) + _count(b.attn_proj) for b in blocks),
+             "lora": sum(_count(b.lora_q) + _count(b.lora_k) + _count(b.lora_v) for b in blocks),
+             "ref_gate": sum(b.ref_gate.numel() for b in blocks)}
+    n_base, n_control = _count(base), _count(control)
+    assert sum(parts.values()) == n_control
+    return {"base": n_base, "control": n_control, "ratio": n_control / n_base, "parts": parts}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -539,7 +640,8 @@ class CameraControlledWan(nn.Module):
 
     ``forward(hidden_states [B, C_in, F, h, w], timestep [B], encoder_hidden_states [B, 512, text_dim],
     encoder_hidden_states_image [B, L_img, image_dim] | None, plucker [B, 6, 4(F-1)+1, 8h, 8w] | None,
-    cond [B, cond_channels, F, h, w] | None, lora_scale: scalar tensor | float | None)
+    cond [B, cond_channels, F, h, w] | None, lora_scale: scalar tensor | float | None,
+    image_reference [B, 16, R, h, w] | None, image_reference_plucker [B, 6, R, 8h, 8w] | None)
     -> noise/flow prediction [B, out_channels, F, h, w]``.
     """
 
@@ -644,7 +746,8 @@ class CameraControlledWan(nn.Module):
 
     def forward(self, hidden_states: torch.Tensor, timestep: torch.Tensor, encoder_hidden_states: torch.Tensor,
                 encoder_hidden_states_image: torch.Tensor | None = None, plucker: torch.Tensor | None = None,
-                cond: torch.Tensor | None = None, lora_scale: torch.Tensor | float | None = None, *,
+                cond: torch.Tensor | None = None, lora_scale: torch.Tensor | float | None = None,
+                image_reference: torch.Tensor | None = None, image_reference_plucker: torch.Tensor | None = None, *,
                 reference_frames: torch.Tensor | Sequence[int] | None = None,
                 reference_latents: torch.Tensor | None = None) -> torch.Tensor:
         """Noise/flow prediction ``[B, out_channels, F, h, w]``.
@@ -653,6 +756,12 @@ class CameraControlledWan(nn.Module):
         ``config.inference_reference_frames`` in eval). ``reference_latents [B, 16, F, h, w]``: clean latents
         the reference frames are taken from (training: the clean video latents); default: the I2V
         conditioning latents in ``hidden_states`` (channels 20:36).
+        ``image_reference [B, 16, R, h, w]`` (R >= 1): clean latents of extra reference frames outside the clip
+        (e.g. the scene's input photo, VAE-encoded as a one-frame video), and ``image_reference_plucker
+        [B, 6, R, 8h, 8w]`` their rays in the clip's Plücker frame (same convention, origin and scale as
+        ``plucker``: ``cameras.clip_relative_rays``), required when ``plucker`` is given (without ``plucker`` the
+        call is camera-free and they are unused). They join the reference frames at the rope position of latent
+        frame 0 (module docstring).
         """
         base, control, cfg = self.base, self.control, self.config
         batch_size, _, num_frames, height, width = hidden_states.shape
@@ -669,6 +778,22 @@ class CameraControlledWan(nn.Module):
         if cond is not None and tuple(cond.shape) != (batch_size, cfg.cond_channels, num_frames, height, width):
             raise ValueError(f"cond must be [B, {cfg.cond_channels}, F, h, w] matching hidden_states "
                              f"{tuple(hidden_states.shape)}, got {tuple(cond.shape)}")
+        if image_reference is not None:
+            R = image_reference.shape[2] if image_reference.ndim == 5 else 0
+            want = (batch_size, cfg.latent_channels, R, height, width)
+            if tuple(image_reference.shape) != want or R < 1:
+                raise ValueError(f"image_reference must be [B, {cfg.latent_channels}, R, h, w] (R >= 1) matching "
+                                 f"hidden_states {tuple(hidden_states.shape)}, got {tuple(image_reference.shape)}")
+            if image_reference_plucker is None and plucker is not None:
+                raise ValueError("image_reference needs image_reference_plucker (the rays of its frames in the "
+                                 "clip's Plücker frame, cameras.clip_relative_rays) when plucker is given")
+            if image_reference_plucker is not None:
+                want = (batch_size, 6, R, height * st_h, width * st_w)
+                if tuple(image_reference_plucker.shape) != want:
+                    raise ValueError(f"image_reference_plucker must be [B, 6, R, 8h, 8w] = {want} for image_reference "
+                                     f"{tuple(image_reference.shape)}, got {tuple(image_reference_plucker.shape)}")
+        elif image_reference_plucker is not None:
+            raise ValueError("image_reference_plucker given without image_reference (the frames' clean latents)")
         if lora_scale is None:  # the LoRA is trained at full strength and scaled down at inference (paper: 0.7)
             lora_scale = TRAINING_LORA_SCALE if self.training else cfg.lora_scale
         if not torch.is_tensor(lora_scale):
@@ -712,12 +837,28 @@ class CameraControlledWan(nn.Module):
         src = reference_latents
         if src is None and hidden_states.shape[1] == 2 * cfg.latent_channels + 4:
             src = hidden_states[:, cfg.latent_channels + 4:]
+        tokens, cams, ropes = [], [], []  # reference tokens, their camera tokens, their rope
         if frames and src is not None:
             ref = control.ref_embedding(_take_frames(src.to(x.dtype), 2, frames, 1))
-            ref_tokens = ref.flatten(2).transpose(1, 2)
-            ref_rope = self._reference_rope(frames, pph, ppw)
+            tokens.append(ref.flatten(2).transpose(1, 2))
+            ropes.append(self._reference_rope(frames, pph, ppw))
             if x_c is not None:
-                ref_x_c = _take_frames(x_c, 1, frames, pph * ppw)
+                cams.append(_take_frames(x_c, 1, frames, pph * ppw))
+        if image_reference is not None:  # extra reference frames: rope of latent frame 0 (module docstring)
+            ref = control.ref_embedding(image_reference.to(x.dtype))  # [B, D, R, pph, ppw]
+            n_ref = ref.shape[2]
+            tokens.append(ref.flatten(2).transpose(1, 2))
+            cos, sin = self._reference_rope([0], pph, ppw)
+            ropes.append((cos.repeat(1, n_ref, 1, 1), sin.repeat(1, n_ref, 1, 1)))
+            if image_reference_plucker is not None and x_c is not None:  # each frame's rays as a one-frame clip
+                rays = image_reference_plucker.to(x.dtype).transpose(1, 2).flatten(0, 1).unsqueeze(2)
+                cam = control.adapter(rays)  # [B * R, pph * ppw, D]
+                cams.append(cam.reshape(batch_size, -1, cam.shape[-1]))
+        if tokens:
+            ref_tokens = tokens[0] if len(tokens) == 1 else torch.cat(tokens, dim=1)
+            ref_x_c = None if not cams else cams[0] if len(cams) == 1 else torch.cat(cams, dim=1)
+            ref_rope = ropes[0] if len(ropes) == 1 else (torch.cat([r[0] for r in ropes], dim=1),
+                                                         torch.cat([r[1] for r in ropes], dim=1))
 
         state = _ControlState(control=control, x_c=x_c, x_l=x_l, lora_scale=lora_scale, ref_tokens=ref_tokens,
                               ref_x_c=ref_x_c, ref_rope=ref_rope, eps=float(base.config.eps))
@@ -831,8 +972,13 @@ def _read_meta(directory: str | os.PathLike) -> dict[str, Any]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no camera-control config (write one with save_camera_control)")
     meta = json.loads(path.read_text())
-    if meta.get("format") != CONTROL_FORMAT or meta.get("format_version") != CONTROL_FORMAT_VERSION:
-        raise CameraControlWeightsError(f"{path}: not a {CONTROL_FORMAT} v{CONTROL_FORMAT_VERSION} config")
+    version = meta.get("format_version")
+    if meta.get("format") != CONTROL_FORMAT or version not in READABLE_FORMAT_VERSIONS:
+        raise CameraControlWeightsError(f"{path}: not a {CONTROL_FORMAT} config of a readable version "
+                                        f"{list(READABLE_FORMAT_VERSIONS)} (format {meta.get('format')!r}, "
+                                        f"version {version!r})")
+    if version == 1:  # full D x D projections; the convention it records (v1's default when absent)
+        meta["config"] = {**_V1_DEFAULTS, **meta.get("config", {})}
     return meta
 
 
@@ -897,15 +1043,16 @@ class _ExportWrapper(nn.Module):
         self.model = model
 
     def forward(self, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
-                lora_scale):
+                lora_scale, image_reference, image_reference_plucker):
         return self.model(hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker,
-                          cond, lora_scale)
+                          cond, lora_scale, image_reference, image_reference_plucker)
 
 
 def example_inputs(model: CameraControlledWan, example_shape: Sequence[int], image_tokens: int = 257,
-                   seed: int = 0) -> dict[str, torch.Tensor]:
+                   seed: int = 0, reference_images: int = 1) -> dict[str, torch.Tensor]:
     """Random inputs named as the exported graph's inputs. ``example_shape = (batch, F, h, w)`` in latent
-    units (video frames ``4(F-1)+1``, pixels ``8h × 8w``)."""
+    units (video frames ``4(F-1)+1``, pixels ``8h × 8w``); ``reference_images`` extra reference frames
+    (``image_reference`` / ``image_reference_plucker``; 0: none)."""
     b, f, h, w = (int(v) for v in example_shape)
     c = model.base.config
     st_t, st_h, st_w = model.config.vae_stride
@@ -924,6 +1071,9 @@ def example_inputs(model: CameraControlledWan, example_shape: Sequence[int], ima
     if model.config.cond_channels:
         inputs["cond"] = r(b, model.config.cond_channels, f, h, w)
     inputs["lora_scale"] = torch.tensor(model.config.lora_scale, dtype=dtype)
+    if reference_images:
+        inputs["image_reference"] = r(b, model.config.latent_channels, reference_images, h, w)
+        inputs["image_reference_plucker"] = r(b, 6, reference_images, h * st_h, w * st_w)
     return inputs
 
 
@@ -934,9 +1084,11 @@ def export_dit(model: CameraControlledWan, out_path: str | os.PathLike, example_
     Inputs (in order; ``encoder_hidden_states_image`` only for an I2V base, ``cond`` only when
     ``cond_channels > 0``): hidden_states [B, C_in, F, h, w], timestep [B] (float), encoder_hidden_states
     [B, 512, text_dim], encoder_hidden_states_image [B, L_img, image_dim], plucker [B, 6, 4F-3, 8h, 8w],
-    cond [B, cond_channels, F, h, w], lora_scale [] -> noise_pred [B, out_channels, F, h, w].
-    Dynamic: batch, F (``latent_frames``), h = 2·``half_height``, w = 2·``half_width``, L_img; the text length
-    is fixed at 512. ``example_shape = (batch, F, h, w)`` (batch 2 = one CFG pair; F ≥ 2).
+    cond [B, cond_channels, F, h, w], lora_scale [], image_reference [B, 16, R, h, w], image_reference_plucker
+    [B, 6, R, 8h, 8w] -> noise_pred [B, out_channels, F, h, w].
+    Dynamic: batch, F (``latent_frames``), h = 2·``half_height``, w = 2·``half_width``, L_img, R
+    (``reference_images``, >= 1); the text length is fixed at 512. ``example_shape = (batch, F, h, w)`` (batch 2 =
+    one CFG pair; F ≥ 2; the example has R = 2 so that R stays dynamic).
     Reference frames are ``config.inference_reference_frames`` (constant in the graph).
     """
     from torch.export import Dim
@@ -950,13 +1102,14 @@ def export_dit(model: CameraControlledWan, out_path: str | os.PathLike, example_
                          f"patch ({p_h}, {p_w}); got {tuple(example_shape)}")
     rope_max = model.base.config.rope_max_seq_len
     st_t, st_h, st_w = model.config.vae_stride
-    inputs = example_inputs(model, example_shape, image_tokens)
+    inputs = example_inputs(model, example_shape, image_tokens, reference_images=2)
     names = [n for n in DIT_INPUTS if n in inputs]
 
     batch = Dim("batch", min=1, max=1024)
     frames = Dim("latent_frames", min=2, max=max_latent_frames or rope_max)
     hh = Dim("half_height", min=1, max=rope_max)
     hw = Dim("half_width", min=1, max=rope_max)
+    refs = Dim("reference_images", min=1, max=64)
     shapes: dict[str, dict[int, Any]] = {
         "hidden_states": {0: batch, 2: frames, 3: p_h * hh, 4: p_w * hw},
         "timestep": {0: batch},
@@ -965,6 +1118,8 @@ def export_dit(model: CameraControlledWan, out_path: str | os.PathLike, example_
         "plucker": {0: batch, 2: st_t * frames - (st_t - 1), 3: st_h * p_h * hh, 4: st_w * p_w * hw},
         "cond": {0: batch, 2: frames, 3: p_h * hh, 4: p_w * hw},
         "lora_scale": {},
+        "image_reference": {0: batch, 2: refs, 3: p_h * hh, 4: p_w * hw},
+        "image_reference_plucker": {0: batch, 2: refs, 3: st_h * p_h * hh, 4: st_w * p_w * hw},
     }
     wrapper = _ExportWrapper(model).eval()
     args = tuple(inputs.get(n) for n in DIT_INPUTS)
@@ -972,6 +1127,7 @@ def export_dit(model: CameraControlledWan, out_path: str | os.PathLike, example_
     info = export_graph(wrapper, args, Path(out_path), input_names=names, output_names=list(DIT_OUTPUTS),
                         dynamic_shapes=dynamic)
     info.notes = (f"camera-controlled Wan2.1 DiT; plucker_convention={model.config.plucker_convention}; "
-                  f"reference_frames={list(model.config.inference_reference_frames)}; "
+                  f"reference_frames={list(model.config.inference_reference_frames)} + image_reference "
+                  f"(rope frame 0); projection_rank={model.config.projection_rank}; "
                   f"text tokens fixed at {TEXT_TOKENS}")
     return info

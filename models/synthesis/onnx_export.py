@@ -140,7 +140,9 @@ class SynthesisComponents:
     sources: dict[str, str] = field(default_factory=dict)  # file -> sha256 of checkpoint files read
 
     def config(self, num_frames: int, height: int, width: int, dynamic: bool = True) -> dict[str, Any]:
-        """The manifest ``config``: everything the sampler needs besides the graphs."""
+        """The manifest ``config``: everything the sampler needs besides the graphs. ``plucker_convention`` is the
+        camera control's (``self.dit.config``, the saved config of the loaded weights), which ``OnnxSynthesizer``
+        requires and checks against ``synthesis.plucker_convention``."""
         base = self.dit.base.config
         control = self.dit.config
         vae = self.vae.config
@@ -159,6 +161,7 @@ class SynthesisComponents:
             "image_encoder": {**self.image_preprocess, "hidden_size": int(self.image_encoder.config.hidden_size),
                               "features": "hidden_states[-2]"},
             "control": control.to_dict(),
+            # the loaded weights' own (load_camera_control replaces the model's config with the saved one)
             "plucker_convention": control.plucker_convention,
             "cond_layout": "render latents (16) + packed visibility mask (4), camcontrol.make_render_condition",
             "scheduler": dict(SCHEDULER_DEFAULTS),
@@ -325,9 +328,9 @@ class _DitGraph(nn.Module):
         self.dit = dit
 
     def forward(self, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
-                lora_scale):
+                lora_scale, image_reference, image_reference_plucker):
         return self.dit(hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
-                        lora_scale)
+                        lora_scale, image_reference, image_reference_plucker)
 
 
 @dataclass(frozen=True)
@@ -359,11 +362,12 @@ def _export_one(name: str, module: nn.Module, out: Path, sh: _Shapes):
             p_h, p_w = module.base.config.patch_size[1:]
             example = (2, 2, min(sh.latent_height, 2 * p_h), min(sh.latent_width, 2 * p_w))
             return export_dit(module, out / "dit.onnx", example_shape=example, image_tokens=sh.image_tokens)
-        inputs = example_inputs(module, (2, sh.latent_frames, sh.latent_height, sh.latent_width), sh.image_tokens)
+        inputs = example_inputs(module, (2, sh.latent_frames, sh.latent_height, sh.latent_width), sh.image_tokens,
+                                reference_images=1)  # the sampler's one extra reference frame
         info = export_graph(_DitGraph(module).eval(), tuple(inputs.get(n) for n in DIT_INPUTS), out / "dit.onnx",
                             input_names=[n for n in DIT_INPUTS if n in inputs], output_names=list(DIT_OUTPUTS))
         info.notes = (f"static shapes: batch 2, {sh.latent_frames} latent frames, "
-                      f"{sh.latent_height}x{sh.latent_width} latents")
+                      f"{sh.latent_height}x{sh.latent_width} latents, 1 extra reference frame")
         return info
     if name == "vae_encoder":
         video = torch.zeros(2, 3, sh.num_frames, sh.height, sh.width)

@@ -3,8 +3,13 @@
 ``OnnxSynthesizer(model_dir, synthesis_config)`` turns a ``SynthesisRequest`` into the sampler's inputs:
 
 * **Plücker rays** ``[T, H, W, 6]`` of ``request.trajectory`` with ``request.intrinsics``
-  (``models.cameras.plucker_rays``) in the convention the camera control was trained with (manifest
-  ``config.plucker_convention``);
+  (``models.camera.cameras.plucker_rays``) in the convention the camera control was trained with (manifest
+  ``config.plucker_convention``, required: a manifest without it is refused, never given a default; a run
+  config's ``synthesis.plucker_convention``, when set, must equal it);
+* the **extra reference frame**: ``request.reference_image`` (the scene's input photo, for clips that start
+  elsewhere) with the rays of ``request.reference_c2w`` in the clip's Plücker frame (same origin and scale as the
+  trajectory's: ``cameras.clip_relative_rays``); without one the sampler uses the conditioning image at
+  ``trajectory[0]``;
 * **point-cloud renders and visibility masks**: the current cloud splatted along the trajectory with
   ``models.pointrender.render_points`` (nearest point per pixel, z-buffered). The world-space point size defaults
   to ``POINT_SIZE_FACTOR`` (1.5) times the cloud's median nearest-neighbour spacing (a KD-tree over at most 20k
@@ -32,6 +37,11 @@ from navcrafter.models.synthesis.pipeline import (
 )
 
 POINT_SIZE_FACTOR = 1.5
+
+
+class PluckerConventionError(SynthesisShapeError):
+    """The model directory's Plücker convention is missing, unknown or not the run's (the message names the fix)."""
+
 _SPACING_SAMPLE = 20_000
 
 
@@ -79,8 +89,28 @@ class OnnxSynthesizer:
                 f"width={have[2]}, but the run config asks for num_frames={want[0]}, height={want[1]}, "
                 f"width={want[2]}: set synthesis.num_frames/height/width to the exported values or re-export "
                 f"with export_synthesizer(..., num_frames={want[0]}, height={want[1]}, width={want[2]})")
-        self.convention = mcfg.get("plucker_convention", "ray")
+        self.convention = self._convention(mcfg, getattr(synthesis_config, "plucker_convention", None))
         self.text_emb, self.neg_text_emb = self.runner.text_embeddings()
+
+    def _convention(self, mcfg: dict, wanted: str | None) -> str:
+        """The weights' recorded Plücker convention (manifest), checked against the run's when it sets one."""
+        from navcrafter.models.camera.cameras import PLUCKER_CONVENTIONS
+
+        have = mcfg.get("plucker_convention")
+        if have is None:
+            raise PluckerConventionError(
+                f"the synthesizer in {self.model_dir} records no plucker_convention in its manifest config, so the "
+                f"camera rays its weights were trained with are unknown: re-export it with this navcrafter version "
+                f"(export_synthesizer / navcrafter models export-synthesizer records the camera control's)")
+        if have not in PLUCKER_CONVENTIONS:
+            raise PluckerConventionError(f"the synthesizer in {self.model_dir} records plucker_convention="
+                                         f"{have!r}, not one of {list(PLUCKER_CONVENTIONS)}: re-export it")
+        if wanted is not None and wanted != have:
+            raise PluckerConventionError(
+                f"the run config asks for synthesis.plucker_convention={wanted!r}, but the camera control in "
+                f"{self.model_dir} was trained with {have!r}: unset synthesis.plucker_convention (use the weights' "
+                f"own) or export weights trained with {wanted!r}")
+        return have
 
     def sampler_config(self, seed: int) -> SamplerConfig:
         return sampler_settings(self.config, seed, self.runner.config.get("scheduler"))
@@ -106,17 +136,40 @@ class OnnxSynthesizer:
         if (K.width, K.height) != (W, H):
             raise SynthesisShapeError(f"request.intrinsics are for {K.width}x{K.height}, the frames are {W}x{H} "
                                       f"(synthesis.width/height): scale them with Intrinsics.resize({W}, {H})")
+        if (request.reference_image is None) != (request.reference_c2w is None):
+            raise SynthesisShapeError("request.reference_image and request.reference_c2w come together (the input "
+                                      "photo and its world camera-to-world); got only one of them")
+        if request.reference_image is not None:
+            ref = np.asarray(request.reference_image)
+            if ref.shape != (H, W, 3):
+                raise SynthesisShapeError(f"request.reference_image is {ref.shape}, the synthesizer makes {H}x{W} "
+                                          f"frames: resize it to {W}x{H} like the conditioning image")
+            if np.asarray(request.reference_c2w).shape != (4, 4):
+                raise SynthesisShapeError(f"request.reference_c2w must be [4, 4], got "
+                                          f"{np.asarray(request.reference_c2w).shape}")
         return T, H, W
 
-    def conditions(self, request: SynthesisRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(Plücker rays ``[T, H, W, 6]``, renders uint8 ``[T, H, W, 3]``, visibility bool ``[T, H, W]``)."""
-        from navcrafter.models.camera.cameras import plucker_rays
+    def conditions(self, request: SynthesisRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                             np.ndarray | None, np.ndarray | None]:
+        """(Plücker rays ``[T, H, W, 6]``, renders uint8 ``[T, H, W, 3]``, visibility bool ``[T, H, W]``, reference
+        image uint8 ``[H, W, 3]`` or None, its rays ``[1, H, W, 6]`` or None).
+
+        The reference's rays are in the trajectory's Plücker frame (``clip_relative_rays``: for "relative" the
+        trajectory's first camera is the origin and its scale normalises the reference translation too); None
+        when the request has no reference (the sampler then uses the conditioning image at ``trajectory[0]``).
+        """
+        from navcrafter.models.camera.cameras import clip_relative_rays, plucker_rays
         from navcrafter.models.reconstruction.pointrender import render_points
 
         T, H, W = self._check(request)
         K = request.intrinsics.K
         traj = np.asarray(request.trajectory, dtype=np.float64)
         plucker = plucker_rays(traj, K, H, W, convention=self.convention)
+        ref_image = ref_plucker = None
+        if request.reference_image is not None:
+            ref_image = np.asarray(request.reference_image, dtype=np.uint8)
+            ref_plucker = clip_relative_rays(traj, np.asarray(request.reference_c2w, dtype=np.float64)[None], K, H,
+                                             W, convention=self.convention)
         renders = np.zeros((T, H, W, 3), dtype=np.uint8)
         masks = np.zeros((T, H, W), dtype=bool)
         pts = np.asarray(request.cloud_points, dtype=np.float32).reshape(-1, 3)
@@ -128,10 +181,11 @@ class OnnxSynthesizer:
             for i in range(T):
                 r = render_points(pts, traj[i], K, H, W, size, colors=cols)
                 renders[i], masks[i] = r.color, r.mask
-        return plucker, renders, masks
+        return plucker, renders, masks, ref_image, ref_plucker
 
     def synthesize(self, request: SynthesisRequest) -> np.ndarray:
         """Frames ``[T, H, W, 3]`` uint8 following ``request.trajectory``."""
-        plucker, renders, masks = self.conditions(request)
+        plucker, renders, masks, ref_image, ref_plucker = self.conditions(request)
         return sample_video(self.runner, np.asarray(request.image, dtype=np.uint8), plucker, renders, masks,
-                            self.text_emb, self.neg_text_emb, self.sampler_config(request.seed))
+                            self.text_emb, self.neg_text_emb, self.sampler_config(request.seed),
+                            reference_image=ref_image, reference_plucker=ref_plucker)

@@ -18,6 +18,10 @@ Sampling (``sample_video``), following diffusers' ``WanImageToVideoPipeline`` wh
 3. the render condition ``cond`` = render latents (16) + the visibility masks packed like the I2V mask
    (4 channels; ``camcontrol.pack_visibility_mask``: 8x8 average pooling, frame 0 repeated 4 times);
 4. CLIP image features of the input image (penultimate layer, as Wan I2V);
+   the **extra reference frame** (``image_reference`` / ``image_reference_plucker``, see ``camcontrol``): the
+   reference image (the scene's input photo when the clip starts elsewhere) VAE-encoded as a one-frame video,
+   with its Plücker rays in the clip's frame; without one, the conditioning image itself with the rays of the
+   clip's first camera (the latent frame 0 of step 1, so no extra encoding);
 5. initial noise ``[1, 16, F, h, w]`` from a CPU ``torch.Generator`` seeded with ``cfg.seed`` (so the same seed
    gives the same video on every engine and provider);
 6. ``cfg.steps`` steps of ``DPMSolverMultistepScheduler(prediction_type="flow_prediction", use_flow_sigmas=True,
@@ -96,8 +100,9 @@ class Runner(Protocol):
 
     def dit(self, hidden_states: np.ndarray, timestep: np.ndarray, encoder_hidden_states: np.ndarray,
             encoder_hidden_states_image: np.ndarray, plucker: np.ndarray, cond: np.ndarray,
-            lora_scale: np.ndarray) -> np.ndarray:
-        """Flow prediction ``[B, 16, F, h, w]`` (inputs as ``CameraControlledWan.forward``)."""
+            lora_scale: np.ndarray, image_reference: np.ndarray, image_reference_plucker: np.ndarray) -> np.ndarray:
+        """Flow prediction ``[B, 16, F, h, w]`` (inputs as ``CameraControlledWan.forward``: ``image_reference``
+        ``[B, 16, R, h, w]``, ``image_reference_plucker`` ``[B, 6, R, H, W]``)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -139,9 +144,9 @@ class TorchRunner:
         return self._run(self._dec, latents)
 
     def dit(self, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
-            lora_scale) -> np.ndarray:
+            lora_scale, image_reference, image_reference_plucker) -> np.ndarray:
         return self._run(self._dit, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image,
-                         plucker, cond, lora_scale)
+                         plucker, cond, lora_scale, image_reference, image_reference_plucker)
 
 
 _ORT_TYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16, "tensor(double)": np.float64,
@@ -195,11 +200,17 @@ class OrtRunner:
         return self._call("vae_decoder", {"latents": latents})
 
     def dit(self, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
-            lora_scale) -> np.ndarray:
+            lora_scale, image_reference, image_reference_plucker) -> np.ndarray:
+        names = {i.name for i in self.graphs.session("dit").get_inputs()}
+        if "image_reference" not in names:
+            raise SynthesisShapeError(f"{self.model_dir}: its DiT graph has no image_reference input (exported before "
+                                      f"extra reference frames), so the reference would be dropped; re-export the "
+                                      f"model with this navcrafter version")
         return self._call("dit", {"hidden_states": hidden_states, "timestep": timestep,
                                   "encoder_hidden_states": encoder_hidden_states,
                                   "encoder_hidden_states_image": encoder_hidden_states_image, "plucker": plucker,
-                                  "cond": cond, "lora_scale": lora_scale})
+                                  "cond": cond, "lora_scale": lora_scale, "image_reference": image_reference,
+                                  "image_reference_plucker": image_reference_plucker})
 
 
 # --------------------------------------------------------------------------------------------------
@@ -238,7 +249,8 @@ def i2v_mask(num_latent_frames: int, h: int, w: int, temporal: int = 4) -> np.nd
 
 
 def check_inputs(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders: np.ndarray,
-                 masks: np.ndarray) -> tuple[int, int, int]:
+                 masks: np.ndarray, reference_image: np.ndarray | None = None,
+                 reference_plucker: np.ndarray | None = None) -> tuple[int, int, int]:
     """Shapes of one sampling call against each other and the model; returns ``(T, H, W)``."""
     cfg = runner.config
     st, ss = int(cfg["vae_scale_factor_temporal"]), int(cfg["vae_scale_factor_spatial"])
@@ -254,6 +266,20 @@ def check_inputs(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders
         raise SynthesisShapeError(f"renders must be uint8 [{T}, {H}, {W}, 3], got {renders.dtype} {renders.shape}")
     if masks.shape != (T, H, W):
         raise SynthesisShapeError(f"masks must be [{T}, {H}, {W}], got {masks.shape}")
+    if reference_image is not None:
+        ref = np.asarray(reference_image)
+        if ref.shape != (H, W, 3) or ref.dtype != np.uint8:
+            raise SynthesisShapeError(f"reference_image must be uint8 [{H}, {W}, 3] (the frame size), got "
+                                      f"{ref.dtype} {ref.shape}: resize it like the conditioning image")
+        if reference_plucker is None:
+            raise SynthesisShapeError("reference_image needs reference_plucker: its rays [1, H, W, 6] in the clip's "
+                                      "Plücker frame (cameras.clip_relative_rays with the trajectory)")
+    if reference_plucker is not None:
+        if reference_image is None:
+            raise SynthesisShapeError("reference_plucker given without reference_image")
+        if np.asarray(reference_plucker).shape not in ((H, W, 6), (1, H, W, 6)):
+            raise SynthesisShapeError(f"reference_plucker must be [1, {H}, {W}, 6], got "
+                                      f"{np.asarray(reference_plucker).shape}")
     if runner.fixed_num_frames is not None and T != runner.fixed_num_frames:
         raise SynthesisShapeError(
             f"got {T} frames but this synthesizer's VAE graphs were exported for num_frames="
@@ -295,20 +321,54 @@ def make_scheduler(cfg: SamplerConfig, scheduler_config: dict | None = None):
         use_flow_sigmas=True, flow_shift=float(cfg.flow_shift))
 
 
+def _first_frame_video(image: np.ndarray, T: int) -> np.ndarray:
+    """``[3, T, H, W]``: ``image`` as frame 0, the other frames zero (Wan I2V's condition video)."""
+    video = np.zeros((3, T, *np.asarray(image).shape[:2]), dtype=np.float32)
+    video[:, 0] = _to_video(np.asarray(image)[None])[:, 0]
+    return video
+
+
+def _vae_encode(runner: Runner, videos: list[np.ndarray]) -> np.ndarray:
+    """Encode ``[3, T, H, W]`` videos: one call when the VAE graph's batch is dynamic, else in pairs (a static
+    export's encoder takes batch 2; an odd last one is repeated)."""
+    if runner.config.get("dynamic_shapes", True):
+        return runner.vae_encode(np.stack(videos))
+    out = []
+    for i in range(0, len(videos), 2):
+        pair = videos[i:i + 2]
+        out.append(runner.vae_encode(np.stack(pair * (3 - len(pair))))[:len(pair)])
+    return np.concatenate(out)
+
+
 def prepare_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders: np.ndarray,
-                       masks: np.ndarray) -> dict[str, np.ndarray]:
-    """Everything the DiT sees besides the noisy latents and the text, for batch 1."""
+                       masks: np.ndarray, reference_image: np.ndarray | None = None,
+                       reference_plucker: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Everything the DiT sees besides the noisy latents and the text, for batch 1.
+
+    ``reference_image`` uint8 ``[H, W, 3]`` with ``reference_plucker [1, H, W, 6]`` (its rays in the clip's Plücker
+    frame): the extra reference frame, VAE-encoded as a one-frame video (the Wan VAE is causal, so latent frame 0
+    of a video whose frame 0 is the image is that one-frame encoding: the fixed-frame-count graph serves). Without
+    one, the conditioning image and the rays of the clip's first camera (``plucker[0]``).
+    """
     import torch
 
     from navcrafter.models.synthesis.camcontrol import pack_visibility_mask
 
-    T, H, W = check_inputs(runner, image, plucker, renders, masks)
+    T, H, W = check_inputs(runner, image, plucker, renders, masks, reference_image, reference_plucker)
     cfg = runner.config
     st = int(cfg["vae_scale_factor_temporal"])
-    condition = np.zeros((3, T, H, W), dtype=np.float32)
-    condition[:, 0] = _to_video(image[None])[:, 0]
-    latents = runner.vae_encode(np.stack([condition, _to_video(renders)]))  # [2, 16, F, h, w]
+    condition = _first_frame_video(image, T)
+    videos = [condition, _to_video(renders)]
+    if reference_image is not None:
+        videos.append(_first_frame_video(reference_image, T))
+    latents = _vae_encode(runner, videos)  # [2 or 3, 16, F, h, w]
     cond_lat, render_lat = latents[0:1], latents[1:2]
+    if reference_image is not None:
+        ref_lat = latents[2:3, :, :1]
+        ref_rays = np.asarray(reference_plucker, dtype=np.float32).reshape(1, H, W, 6)
+    else:
+        ref_lat = cond_lat[:, :, :1]
+        ref_rays = np.asarray(plucker, dtype=np.float32)[:1]
     F, h, w = cond_lat.shape[2:]
     hidden_cond = np.concatenate([i2v_mask(F, h, w, st)[None], cond_lat], axis=1)  # [1, 20, F, h, w]
     vis = pack_visibility_mask(torch.as_tensor(np.asarray(masks, dtype=np.float32))[None],
@@ -319,7 +379,9 @@ def prepare_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray, r
         raise SynthesisShapeError(f"render condition has {cond.shape[1]} channels, the DiT expects {expected}")
     clip = runner.encode_image_clip(clip_preprocess(image, cfg["image_encoder"]))
     plk = np.ascontiguousarray(np.asarray(plucker, dtype=np.float32).transpose(3, 0, 1, 2)[None])
+    ref_plk = np.ascontiguousarray(ref_rays.transpose(3, 0, 1, 2)[None])  # [1, 6, 1, H, W]
     return {"hidden_cond": hidden_cond, "cond": cond, "image_embeds": clip, "plucker": plk,
+            "image_reference": np.ascontiguousarray(ref_lat, dtype=np.float32), "image_reference_plucker": ref_plk,
             "latent_shape": np.array([F, h, w])}
 
 
@@ -333,17 +395,21 @@ def initial_noise(seed: int, channels: int, F: int, h: int, w: int) -> np.ndarra
 
 def sample_latents(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders: np.ndarray, masks: np.ndarray,
                    text_emb: np.ndarray, neg_text_emb: np.ndarray, cfg: SamplerConfig,
-                   conditions: dict[str, np.ndarray] | None = None, callback=None) -> np.ndarray:
+                   conditions: dict[str, np.ndarray] | None = None, callback=None,
+                   reference_image: np.ndarray | None = None,
+                   reference_plucker: np.ndarray | None = None) -> np.ndarray:
     """The denoised normalised latents ``[1, 16, F, h, w]`` (steps 1-6 of the module docstring).
 
     ``conditions`` may be passed in (``prepare_conditions``) to reuse the encoded inputs across seeds.
-    ``callback(step, timestep, latents)`` is called after every step.
+    ``callback(step, timestep, latents)`` is called after every step. ``reference_image`` /
+    ``reference_plucker``: the extra reference frame (``prepare_conditions``).
     """
     import torch
 
     mcfg = runner.config
     pos, neg = _text(text_emb, mcfg), _text(neg_text_emb, mcfg)
-    c = conditions if conditions is not None else prepare_conditions(runner, image, plucker, renders, masks)
+    c = conditions if conditions is not None else prepare_conditions(runner, image, plucker, renders, masks,
+                                                                     reference_image, reference_plucker)
     F, h, w = (int(v) for v in c["latent_shape"])
     channels = int(mcfg["latent_channels"])
     latents = torch.from_numpy(initial_noise(cfg.seed, channels, F, h, w))
@@ -352,6 +418,7 @@ def sample_latents(runner: Runner, image: np.ndarray, plucker: np.ndarray, rende
     text = np.stack([pos, neg])
     image_embeds, plucker2, cond2 = pair(c["image_embeds"]), pair(c["plucker"]), pair(c["cond"])
     hidden_cond2 = pair(c["hidden_cond"])
+    ref2, ref_plucker2 = pair(c["image_reference"]), pair(c["image_reference_plucker"])
     lora = np.asarray(cfg.lora_scale, dtype=np.float32)
 
     scheduler = make_scheduler(cfg, mcfg.get("scheduler"))
@@ -360,7 +427,7 @@ def sample_latents(runner: Runner, image: np.ndarray, plucker: np.ndarray, rende
         x = latents.numpy().astype(np.float32)
         hidden = np.concatenate([pair(x), hidden_cond2], axis=1)
         timestep = np.full((2,), float(t), dtype=np.float32)
-        pred = runner.dit(hidden, timestep, text, image_embeds, plucker2, cond2, lora)
+        pred = runner.dit(hidden, timestep, text, image_embeds, plucker2, cond2, lora, ref2, ref_plucker2)
         guided = pred[1:2] + cfg.guidance_scale * (pred[0:1] - pred[1:2])
         latents = scheduler.step(torch.from_numpy(guided), t, latents, return_dict=False)[0].float()
         if callback is not None:
@@ -376,8 +443,12 @@ def decode_video(runner: Runner, latents: np.ndarray) -> np.ndarray:
 
 
 def sample_video(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders: np.ndarray, masks: np.ndarray,
-                 text_emb: np.ndarray, neg_text_emb: np.ndarray, cfg: SamplerConfig) -> np.ndarray:
+                 text_emb: np.ndarray, neg_text_emb: np.ndarray, cfg: SamplerConfig,
+                 reference_image: np.ndarray | None = None, reference_plucker: np.ndarray | None = None
+                 ) -> np.ndarray:
     """Frames ``[T, H, W, 3]`` uint8 for ``image`` uint8 ``[H, W, 3]``, Plücker rays ``[T, H, W, 6]``, point-cloud
-    renders uint8 ``[T, H, W, 3]`` with visibility ``masks`` bool ``[T, H, W]`` and text embeddings ``[512, D]``."""
-    latents = sample_latents(runner, image, plucker, renders, masks, text_emb, neg_text_emb, cfg)
+    renders uint8 ``[T, H, W, 3]`` with visibility ``masks`` bool ``[T, H, W]`` and text embeddings ``[512, D]``;
+    optionally an extra reference frame (``reference_image`` ``[H, W, 3]``, its rays ``[1, H, W, 6]``)."""
+    latents = sample_latents(runner, image, plucker, renders, masks, text_emb, neg_text_emb, cfg,
+                             reference_image=reference_image, reference_plucker=reference_plucker)
     return decode_video(runner, latents)

@@ -33,6 +33,9 @@ def test_every_step_has_a_body_and_declares_what_it_reads():
     deps = lambda name, k=None: [s.group_path(kk) for s, kk in dependencies(STEPS[name], k, cfg)]  # noqa: E731
     assert deps("plan", 1) == ["iter_0/geometry", "iter_0/geometry"]  # the cloud after 0; no earlier plan
     assert deps("plan", 2) == ["iter_1/lift", "iter_1/plan"]
+    # the conditioning image: the working image, then the previous clip's last frame; the reference camera
+    assert deps("synthesize", 1) == ["input", "iter_1/plan", "iter_0/geometry", "input", "iter_0/geometry"]
+    assert deps("synthesize", 2) == ["input", "iter_2/plan", "iter_1/lift", "iter_1/synthesize", "iter_0/geometry"]
     assert deps("lift", 2) == ["input", "iter_0/geometry", "iter_2/plan", "iter_2/synthesize", "iter_1/lift"]
     assert deps("export") == ["input", "iter_0/geometry", "iter_1/plan", "iter_1/synthesize", "iter_1/lift",
                               "iter_2/plan", "iter_2/synthesize", "iter_2/lift", "gaussians"]  # no refine: not run

@@ -158,6 +158,100 @@ def test_plucker_matches_paper_formula_and_ray_direction():
         C.plucker_rays(T, K, 4, 5, "bogus")
 
 
+def _clip(rng, n=5, far=0.0):
+    """``n`` random poses around ``(far, 0, 0)``."""
+    return np.stack([random_pose(q / np.linalg.norm(q), np.array([far, 0.0, 0.0]) + rng.normal(size=3))
+                     for q in rng.normal(size=(n, 4))])
+
+
+def test_relative_poses_frame0_identity_and_recorded_scale():
+    rng = np.random.default_rng(3)
+    clip = _clip(rng)
+    rel, scale = C.relative_poses(clip)
+    np.testing.assert_allclose(rel[0], np.eye(4), atol=1e-12)
+    raw = np.einsum("ij,tjk->tik", C.invert_pose(clip[0]), clip)
+    assert scale == pytest.approx(np.linalg.norm(raw[:, :3, 3], axis=-1).max())
+    assert np.linalg.norm(rel[:, :3, 3], axis=-1).max() == pytest.approx(1.0)
+    np.testing.assert_allclose(rel[:, :3, :3], raw[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(rel[:, :3, 3] * scale, raw[:, :3, 3], atol=1e-12)
+    # a pure rotation (no translation) keeps scale 1
+    turn = np.stack([C.make_pose(C.axis_angle_to_matrix([0, 1, 0], a), [2.0, 0.0, 1.0]) for a in (0.0, 0.3)])
+    assert C.relative_poses(turn)[1] == 1.0
+    # an explicit origin and scale express other poses in the clip's frame
+    extra = _clip(rng, n=2)
+    got, s = C.relative_poses(extra, origin=clip[0], scale=scale)
+    assert s == scale
+    want = np.einsum("ij,tjk->tik", C.invert_pose(clip[0]), extra)
+    want[:, :3, 3] /= scale
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    with pytest.raises(ValueError, match="scale"):
+        C.relative_poses(clip, scale=0.0)
+
+
+def test_relative_is_the_default_and_the_true_line_of_the_relative_pose():
+    rng = np.random.default_rng(4)
+    clip = _clip(rng, far=10.0)
+    K = C.Intrinsics.from_fov(60, 8, 6).K
+    rel, _ = C.relative_poses(clip)
+    got = C.plucker_rays(clip, K, 6, 8)  # default convention
+    np.testing.assert_array_equal(got, C.plucker_rays(clip, K, 6, 8, "relative"))
+    np.testing.assert_allclose(got, C.plucker_rays(rel, K, 6, 8, "ray"), atol=1e-6)
+    m, d = got[..., :3].astype(np.float64), got[..., 3:].astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(m, np.cross(rel[:, None, None, :3, 3], d), atol=1e-5)
+    # frame 0 is the identity camera: zero moment, directions K^-1 [u, v, 1] normalised
+    assert np.abs(got[0, ..., :3]).max() == 0
+    # invariant to a rigid motion and a rescaling of the whole clip (world frame, units)
+    G = random_pose(np.array([0.3, -0.5, 0.7, 0.2]) / np.linalg.norm([0.3, -0.5, 0.7, 0.2]), [4.0, -7.0, 2.0])
+    moved = np.einsum("ij,tjk->tik", G, clip)
+    moved[:, :3, 3] *= 3.0
+    np.testing.assert_allclose(C.plucker_rays(moved, K, 6, 8), got, atol=1e-5)
+    assert np.abs(C.plucker_rays(moved, K, 6, 8, "paper") - C.plucker_rays(clip, K, 6, 8, "paper")).max() > 0.1
+    with pytest.raises(ValueError, match="origin/scale only apply"):
+        C.plucker_rays(clip, K, 6, 8, "ray", scale=2.0)
+
+
+def test_relative_embedding_sees_a_yaw_far_from_the_origin_that_the_paper_form_hides():
+    """The defect of the literal form: with |t| = 10 the direction channels d = normalise(RK^-1[u,v,1] + t) all point
+    along t, so their spread over the image collapses and a 10° yaw hardly moves them."""
+    K = C.Intrinsics.from_fov(60, 32, 24).K
+    start = C.make_pose(np.eye(3), [10.0, 0.0, 0.0])  # 10 units from the world origin, looking along +z
+    turned = C.make_pose(C.axis_angle_to_matrix([0, 1, 0], np.deg2rad(10)), [10.0, 0.0, 0.0])
+    clip = np.stack([start, turned])
+
+    def change(convention, channels=slice(None)):
+        e = C.plucker_rays(clip, K, 24, 32, convention).astype(np.float64)[..., channels]
+        return float(np.linalg.norm(e[1] - e[0], axis=-1).mean())
+
+    rel, paper = change("relative"), change("paper")
+    assert rel > 3 * paper  # the whole embedding
+    assert change("relative", slice(3, 6)) > 20 * change("paper", slice(3, 6))  # the direction channels
+    e = C.plucker_rays(clip, K, 24, 32, "relative").astype(np.float64)  # d turns by exactly the yaw, m stays 0
+    np.testing.assert_allclose(e[1, ..., 3:], e[0, ..., 3:] @ turned[:3, :3].T, atol=1e-6)
+    assert np.abs(e[..., :3]).max() == 0
+    spread = {c: C.plucker_rays(start, K, 24, 32, c)[..., 3:].reshape(-1, 3).std(0).sum() for c in ("relative",
+                                                                                                   "paper")}
+    assert spread["paper"] < 0.1 * spread["relative"]
+
+
+def test_clip_relative_rays_put_extra_poses_in_the_clip_frame():
+    rng = np.random.default_rng(5)
+    clip = _clip(rng, far=10.0)
+    K = C.Intrinsics.from_fov(60, 8, 6).K
+    for convention in ("relative", "ray", "paper"):
+        rays = C.plucker_rays(clip, K, 6, 8, convention)
+        # an extra pose equal to one of the clip's cameras gets that camera's rays
+        np.testing.assert_allclose(C.clip_relative_rays(clip, clip[3], K, 6, 8, convention), rays[3:4], atol=1e-6)
+    photo = random_pose(np.array([1.0, 0.0, 0.0, 0.0]), [20.0, 0.0, 0.0])  # outside the clip
+    rel, scale = C.relative_poses(clip)
+    want_pose = C.invert_pose(clip[0]) @ photo
+    want_pose[:3, 3] /= scale
+    got = C.clip_relative_rays(clip, photo[None], K, 6, 8)
+    np.testing.assert_allclose(got, C.plucker_rays(want_pose[None], K, 6, 8, "ray"), atol=1e-5)
+    # not its own one-pose clip (that would put it at the origin)
+    assert np.abs(got - C.plucker_rays(photo[None], K, 6, 8, "relative")).max() > 0.1
+
+
 def test_umeyama_recovers_similarity():
     rng = np.random.default_rng(1)
     src = rng.normal(size=(30, 3))

@@ -157,6 +157,29 @@ def test_synthesizer_renders_the_requested_poses():
     np.testing.assert_array_equal(frames[1], render(truth.scene, truth.gt_pose(T), truth.work_intrinsics).rgb)
 
 
+def test_synthesizer_checks_the_request_and_ignores_its_images():
+    from navcrafter.models.roles import SynthesisRequest
+
+    truth = _truth(scale=2.0)
+    synth = simulation_backend(truth, SimulationConfig()).synthesizer
+    T = np.eye(4)
+    T[:3, 3] = [0.2, 0.0, 0.4]
+    image = np.zeros((48, 64, 3), np.uint8)
+    req = SynthesisRequest(image, np.stack([T, np.eye(4)]), truth.work_intrinsics, np.zeros((0, 3), np.float32),
+                           np.zeros((0, 3), np.uint8), 0)
+    plain = synth.synthesize(req)
+    # a clip that starts elsewhere, with the input photo as reference: the same truth, whatever the pixels say
+    photo = render(truth.scene, truth.photo_c2w, truth.work_intrinsics).rgb
+    ref = SynthesisRequest(**{**vars(req), "image": np.full_like(image, 255), "reference_image": photo,
+                              "reference_c2w": np.eye(4)})
+    np.testing.assert_array_equal(synth.synthesize(ref), plain)
+    for bad, match in (({"reference_c2w": None}, "come together"), ({"reference_image": photo[:, :32]}, "like"),
+                       ({"reference_c2w": np.eye(3)}, r"\[4, 4\]"), ({"image": image[..., :2]}, "uint8"),
+                       ({"trajectory": np.eye(4)}, "trajectory")):
+        with pytest.raises(ValueError, match=match):
+            synth.synthesize(SynthesisRequest(**{**vars(ref), **bad}))
+
+
 def test_demo_collection_writes_photos_and_ground_truth(demo_photos):
     pngs = sorted(demo_photos.glob("*.png"))
     assert [p.stem for p in pngs] == ["room-0", "street-0", "tabletop-0"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
@@ -74,9 +75,12 @@ def test_zero_init_equals_base(tiny):
     base = _base_only(tiny)
     inp = cc.example_inputs(tiny, (2, 3, 6, 8), seed=3)
     assert inp["plucker"].abs().sum() > 0 and inp["cond"].abs().sum() > 0
+    assert inp["image_reference"].shape == (2, 16, 1, 6, 8)  # one extra reference frame
     ref = _base_out(base, inp)
     assert torch.equal(_out(tiny, inp), ref)
     assert torch.equal(_out(tiny, inp, plucker=None, cond=None), ref)
+    assert torch.equal(_out(tiny, cc.example_inputs(tiny, (2, 3, 6, 8), seed=3, reference_images=2)), ref)
+    assert torch.equal(_out(tiny, inp, image_reference=None, image_reference_plucker=None), ref)
     # training mode (random reference frames) is still the identity while untrained
     tiny.train()
     try:
@@ -94,6 +98,78 @@ def test_randomised_control_depends_on_plucker_cond_and_scale(tiny, trained):
     assert not torch.allclose(out, _out(trained, inp, plucker=inp["plucker"].flip(2)), atol=1e-5)
     assert not torch.allclose(out, _out(trained, inp, cond=torch.zeros_like(inp["cond"])), atol=1e-5)
     assert not torch.allclose(out, _out(trained, inp, lora_scale=torch.tensor(0.0)), atol=1e-5)
+
+
+def test_extra_reference_frames_join_the_reference_attention(tiny, trained):
+    inp = cc.example_inputs(trained, (1, 2, 4, 4), seed=12, reference_images=2)
+    out = _out(trained, inp)
+    none = _out(trained, inp, image_reference=None, image_reference_plucker=None)
+    assert not torch.allclose(out, none, atol=1e-5)
+    # every extra frame's latents and rays count
+    for key in ("image_reference", "image_reference_plucker"):
+        changed = inp[key].clone()
+        changed[:, :, 1] += 1.0
+        assert not torch.allclose(out, _out(trained, inp, **{key: changed}), atol=1e-6), key
+    # the order of the extra frames does not matter (same rope position, each with its own camera tokens)
+    flipped = {k: inp[k].flip(2) for k in ("image_reference", "image_reference_plucker")}
+    assert torch.allclose(out, _out(trained, inp, **flipped), atol=1e-5)
+    # only the reference branch sees them: a zero gate makes them irrelevant
+    gated = copy.deepcopy(trained)
+    with torch.no_grad():
+        for blk in gated.control.blocks:
+            blk.ref_gate.zero_()
+    assert torch.equal(_out(gated, inp), _out(gated, inp, image_reference=None, image_reference_plucker=None))
+    # errors name the input
+    with pytest.raises(ValueError, match="needs image_reference_plucker"):
+        _out(trained, inp, image_reference_plucker=None)
+    with pytest.raises(ValueError, match="image_reference_plucker must be"):
+        _out(trained, inp, image_reference_plucker=inp["image_reference_plucker"][:, :, :1])
+    with pytest.raises(ValueError, match="image_reference must be"):
+        _out(trained, inp, image_reference=inp["image_reference"][:, :, :, :2])
+    with pytest.raises(ValueError, match="without image_reference"):
+        _out(trained, inp, image_reference=None)
+
+
+def test_low_rank_projections(tiny):
+    dim = cc.TINY_I2V_CONFIG["num_attention_heads"] * cc.TINY_I2V_CONFIG["attention_head_dim"]
+    assert tiny.config.projection_rank == 64
+    blk = tiny.control.blocks[0]
+    for proj in (blk.pre_proj, blk.attn_proj):  # rank capped at the width; up zero, down random
+        assert proj.down.weight.shape == (dim, dim) and proj.up.weight.shape == (dim, dim)
+        assert not proj.up.weight.any() and not proj.up.bias.any() and proj.down.weight.abs().sum() > 0
+    small = cc.build_camera_wan(cc.TINY_I2V_CONFIG, cc.CameraControlConfig(
+        adapter_channels=16, lora_in_channels=8, lora_rank=4, projection_rank=5))
+    assert small.control.blocks[1].pre_proj.down.weight.shape == (5, dim)
+    assert small.control.blocks[1].attn_proj.up.weight.shape == (dim, 5)
+    full = cc.build_camera_wan(cc.TINY_I2V_CONFIG, cc.CameraControlConfig(
+        adapter_channels=16, lora_in_channels=8, lora_rank=4, projection_rank=0))
+    assert isinstance(full.control.blocks[0].pre_proj, torch.nn.Linear)
+    assert {"blocks.0.pre_proj.weight", "blocks.0.attn_proj.bias"} <= set(full.control.state_dict())
+    inp = cc.example_inputs(tiny, (1, 2, 4, 4), seed=13)
+    for model in (small, full):  # zero-initialised whatever the rank
+        assert torch.equal(_out(model, inp), _base_out(_base_only(model), inp))
+    with pytest.raises(ValueError, match="projection_rank"):
+        cc.CameraControlConfig(projection_rank=-1)
+
+
+def test_parameter_counts_on_meta_device():
+    import time
+
+    t0 = time.perf_counter()
+    tiny = cc.control_parameter_counts(cc.TINY_I2V_CONFIG, cc.tiny_camera_config())
+    model = cc.tiny_camera_wan()
+    assert tiny["base"] == sum(p.numel() for p in model.base.parameters())
+    assert tiny["control"] == sum(p.numel() for p in model.control.parameters()) == sum(tiny["parts"].values())
+    for preset in (cc.wan_1_3b_camera_config, cc.wan_14b_camera_config):
+        base_cfg, control_cfg = preset()
+        low = cc.control_parameter_counts(base_cfg, control_cfg)
+        full = cc.control_parameter_counts(base_cfg, dataclasses.replace(control_cfg, projection_rank=0))
+        dim = base_cfg["num_attention_heads"] * base_cfg["attention_head_dim"]
+        assert full["parts"]["projections"] == 2 * base_cfg["num_layers"] * (dim * dim + dim)
+        assert low["ratio"] <= 0.10 < full["ratio"], (preset.__name__, low["ratio"], full["ratio"])
+    assert cc.WAN_14B_I2V_CONFIG["num_attention_heads"] * cc.WAN_14B_I2V_CONFIG["attention_head_dim"] == 5120
+    assert 16e9 < full["base"] < 17e9 and full["parts"]["projections"] > 2e9  # Wan2.1-I2V-14B: 16.4 B
+    assert time.perf_counter() - t0 < 30
 
 
 def test_lora_scale_zero_equals_base(tiny):
@@ -165,6 +241,9 @@ def test_input_shape_errors(tiny):
 def test_config_roundtrip_and_masks():
     cfg = cc.CameraControlConfig(lora_rank=8, plucker_convention="paper", inference_reference_frames=[0])
     assert cc.CameraControlConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert cc.CameraControlConfig().plucker_convention == "relative"
+    legacy = {k: v for k, v in cc.CameraControlConfig().to_dict().items() if k != "projection_rank"}
+    assert cc.CameraControlConfig.from_dict(legacy).projection_rank == 0  # saved before low-rank projections
     with pytest.raises(ValueError, match="unknown"):
         cc.CameraControlConfig.from_dict({"lora_rnk": 3})
     with pytest.raises(ValueError, match="plucker_convention"):
@@ -198,6 +277,34 @@ def test_save_load_roundtrip(tiny, trained, tmp_path):
     assert torch.equal(_out(zero, inp), _base_out(_base_only(tiny), inp))
 
 
+@pytest.mark.parametrize("convention", ["paper", "ray"])
+def test_version_1_weights_load_full_rank_with_their_convention(tiny, tmp_path, convention):
+    """A format-version-1 save: full D x D projections, no projection_rank in its config, its own convention."""
+    v1_cfg = dataclasses.replace(cc.tiny_camera_config(), projection_rank=0, plucker_convention=convention)
+    old = cc.randomize_camera_control(cc.build_camera_wan(cc.TINY_I2V_CONFIG, v1_cfg, seed=0), seed=3)
+    cc.save_camera_control(old, tmp_path / "v1")
+    meta_path = tmp_path / "v1" / cc.CONTROL_CONFIG
+    meta = json.loads(meta_path.read_text())
+    assert meta["format_version"] == cc.CONTROL_FORMAT_VERSION == 2
+    meta["format_version"] = 1
+    del meta["config"]["projection_rank"]
+    meta_path.write_text(json.dumps(meta))
+    cfg = cc.read_camera_control_config(tmp_path / "v1")
+    assert (cfg.projection_rank, cfg.plucker_convention) == (0, convention)
+    _base_only(tiny).save_pretrained(tmp_path / "wan" / "transformer")
+    loaded = cc.CameraControlledWan.from_pretrained(tmp_path / "wan", tmp_path / "v1").eval()
+    assert loaded.config.plucker_convention == convention
+    inp = cc.example_inputs(old, (1, 2, 4, 4), seed=8)
+    assert torch.equal(_out(loaded, inp), _out(old, inp))
+    # into a low-rank model they do not fit, and the error says where
+    with pytest.raises(cc.CameraControlWeightsError, match=r"pre_proj"):
+        cc.load_camera_control(copy.deepcopy(tiny), tmp_path / "v1")
+    meta["format_version"] = 3
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(cc.CameraControlWeightsError, match="readable version"):
+        cc.read_camera_control_config(tmp_path / "v1")
+
+
 def test_load_mismatch_fails_clearly(tiny, trained, tmp_path):
     from safetensors.torch import load_file, save_file
 
@@ -216,16 +323,18 @@ def test_load_mismatch_fails_clearly(tiny, trained, tmp_path):
         cc.load_camera_control(copy.deepcopy(tiny), tmp_path)
 
 
-@pytest.mark.parametrize("shape", [(2, 2, 4, 4), (2, 3, 6, 8), (1, 3, 6, 8)])
-def test_onnx_matches_torch(exported, shape):
-    """One export, several frame counts (5 and 9 video frames), resolutions and batch sizes."""
+@pytest.mark.parametrize("shape,refs", [((2, 2, 4, 4), 2), ((2, 3, 6, 8), 1), ((1, 3, 6, 8), 3)])
+def test_onnx_matches_torch(exported, shape, refs):
+    """One export, several frame counts (5 and 9 video frames), resolutions, batch sizes and numbers of extra
+    reference frames."""
     from navcrafter.models.runtime.onnxio import create_session
 
     model, path, info = exported
     assert info.inputs == cc.DIT_INPUTS and info.outputs == ["noise_pred"]
     assert info.dynamic["plucker"][2] and info.dynamic["hidden_states"][2] and info.dynamic["hidden_states"][0]
+    assert info.dynamic["image_reference"][2] and info.dynamic["image_reference_plucker"][2]
     sess = create_session(path, ["CPUExecutionProvider"])
-    inp = cc.example_inputs(model, shape, seed=9)
+    inp = cc.example_inputs(model, shape, seed=9, reference_images=refs)
     got = sess.run(["noise_pred"], {k: v.numpy() for k, v in inp.items()})[0]
     want = _out(model, inp).numpy()
     assert got.shape == want.shape == (shape[0], 16, *shape[1:])

@@ -58,12 +58,13 @@ def test_manifest(tiny_export):
     assert c["dynamic_shapes"] is False  # tiny exports default to static graphs
     assert (c["latent_channels"], c["vae_scale_factor_temporal"], c["vae_scale_factor_spatial"]) == (16, 4, 8)
     assert c["patch_size"] == [1, 2, 2] and c["control"]["cond_channels"] == 20
-    assert c["plucker_convention"] in ("ray", "paper")
+    assert c["plucker_convention"] == c["control"]["plucker_convention"] == "relative"  # the control's own
     assert c["scheduler"]["prediction_type"] == "flow_prediction" and c["scheduler"]["flow_shift"] > 0
     assert "text_embeddings.npy" in m["files"]
     emb = np.load(out / "text_embeddings.npy")
     assert emb.shape == (2, 512, c["text_dim"]) and np.array_equal(emb, components.text_embeddings)
     assert m["graphs"]["dit"]["inputs"][:3] == ["hidden_states", "timestep", "encoder_hidden_states"]
+    assert m["graphs"]["dit"]["inputs"][-2:] == ["image_reference", "image_reference_plucker"]
 
 
 def test_onnx_matches_torch_and_seeds(tiny_export, ort_runner, inputs):
@@ -91,15 +92,52 @@ def test_onnx_matches_torch_and_seeds(tiny_export, ort_runner, inputs):
     camera = pl.sample_latents(ort_runner, **moved, text_emb=pos, neg_text_emb=neg, cfg=cfg)
     assert np.abs(camera - lat_ort).max() > 1e-4
 
+    # Without a reference the extra reference frame is the conditioning image at the first camera.
+    assert np.array_equal(conds["image_reference"], conds["hidden_cond"][:, 4:, :1])
+    assert np.array_equal(conds["image_reference_plucker"], conds["plucker"][:, :, :1])
+    explicit = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg,
+                                 reference_image=inputs["image"], reference_plucker=inputs["plucker"][:1])
+    assert np.abs(explicit - lat_ort).max() <= 1e-5  # the VAE is causal: the same latents, encoded apart
 
-def _request(seed: int = 7, frames: int = T) -> SynthesisRequest:
+
+def test_extra_reference_frame_torch_equals_onnx(tiny_export, ort_runner, inputs):
+    """The input photo as an extra reference: VAE-encoded (one frame), its rays next to the clip's."""
+    from navcrafter.models.synthesis import pipeline as pl
+
+    torch_runner = pl.TorchRunner(tiny_export[1])
+    pos, neg = ort_runner.text_embeddings()
+    cfg = pl.sampler_settings(SynthesisConfig(steps=2), seed=3)
+    rng = np.random.RandomState(1)
+    ref = {"reference_image": rng.randint(0, 256, (H, W, 3), dtype=np.uint8),
+           "reference_plucker": rng.standard_normal((1, H, W, 6)).astype(np.float32)}
+    conds = pl.prepare_conditions(ort_runner, **inputs, **ref)
+    assert conds["image_reference"].shape == (1, 16, 1, H // 8, W // 8)
+    assert conds["image_reference_plucker"].shape == (1, 6, 1, H, W)
+    lat_ort = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg, conditions=conds)
+    lat_torch = pl.sample_latents(torch_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg, **ref)
+    assert np.abs(lat_ort - lat_torch).max() <= 1e-3
+    plain = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg)
+    assert np.abs(lat_ort - plain).max() > 1e-4
+    other_rays = dict(ref, reference_plucker=-ref["reference_plucker"])
+    moved = pl.sample_latents(ort_runner, **inputs, text_emb=pos, neg_text_emb=neg, cfg=cfg, **other_rays)
+    assert np.abs(lat_ort - moved).max() > 1e-5
+    with pytest.raises(pl.SynthesisShapeError, match="needs reference_plucker"):
+        pl.prepare_conditions(ort_runner, **inputs, reference_image=ref["reference_image"])
+    with pytest.raises(pl.SynthesisShapeError, match="reference_image must be"):
+        pl.prepare_conditions(ort_runner, **inputs, reference_image=ref["reference_image"][:16],
+                              reference_plucker=ref["reference_plucker"])
+
+
+def _request(seed: int = 7, frames: int = T, start: float = 0.0, reference: bool = False) -> SynthesisRequest:
     rng = np.random.RandomState(seed)
     K = Intrinsics.from_fov(60.0, W, H)
     pts = (rng.rand(400, 3) * [2.0, 2.0, 1.0] + [-1.0, -1.0, 2.0]).astype(np.float32)
     cols = rng.randint(0, 256, (400, 3), dtype=np.uint8)
-    traj = np.stack([look_at([0.1 * i, 0.0, 0.0], [0.0, 0.0, 2.5]) for i in range(frames)])
+    traj = np.stack([look_at([start + 0.1 * i, 0.0, 0.0], [0.0, 0.0, 2.5]) for i in range(frames)])
+    extra = {"reference_image": rng.randint(0, 256, (H, W, 3), dtype=np.uint8),
+             "reference_c2w": np.eye(4)} if reference else {}
     return SynthesisRequest(image=rng.randint(0, 256, (H, W, 3), dtype=np.uint8), trajectory=traj, intrinsics=K,
-                            cloud_points=pts, cloud_colors=cols, seed=seed)
+                            cloud_points=pts, cloud_colors=cols, seed=seed, **extra)
 
 
 def test_onnx_synthesizer(tiny_export):
@@ -109,11 +147,56 @@ def test_onnx_synthesizer(tiny_export):
     synth = OnnxSynthesizer(tiny_export[0], config, providers=CPU)
     assert isinstance(synth, Synthesizer) and synth.backend == "onnx"
     request = _request()
-    plucker, renders, masks = synth.conditions(request)
+    plucker, renders, masks, ref_image, ref_rays = synth.conditions(request)
     assert plucker.shape == (T, H, W, 6) and renders.shape == (T, H, W, 3) and masks.any()
+    assert ref_image is None and ref_rays is None
     frames = synth.synthesize(request)
     assert frames.shape == (T, H, W, 3) and frames.dtype == np.uint8
     assert np.array_equal(frames, synth.synthesize(request))
+
+
+def test_onnx_synthesizer_extra_reference_in_the_clip_frame(tiny_export):
+    """A clip that starts away from the input camera: the photo's rays share the clip's origin and scale."""
+    from navcrafter.models.camera.cameras import plucker_rays, relative_poses
+    from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer
+
+    synth = OnnxSynthesizer(tiny_export[0], SynthesisConfig(num_frames=T, height=H, width=W, steps=2),
+                            providers=CPU)
+    assert synth.convention == "relative"
+    request = _request(start=0.5, reference=True)
+    plucker, _, _, ref_image, ref_rays = synth.conditions(request)
+    assert np.array_equal(ref_image, request.reference_image) and ref_rays.shape == (1, H, W, 6)
+    rel, scale = relative_poses(request.trajectory)
+    photo = np.linalg.inv(request.trajectory[0]) @ request.reference_c2w
+    photo[:3, 3] /= scale
+    np.testing.assert_allclose(ref_rays, plucker_rays(photo[None], request.intrinsics.K, H, W, "ray"), atol=1e-5)
+    assert np.abs(ref_rays[0, ..., :3]).max() > 0.1  # the photo is not at the clip's origin
+    np.testing.assert_allclose(plucker, plucker_rays(rel, request.intrinsics.K, H, W, "ray"), atol=1e-5)
+    with_ref = synth.synthesize(request)
+    without = synth.synthesize(_request(start=0.5))
+    assert with_ref.shape == (T, H, W, 3) and not np.array_equal(with_ref, without)
+    with pytest.raises(ValueError, match="come together"):
+        synth.synthesize(SynthesisRequest(**{**request.__dict__, "reference_c2w": None}))
+
+
+def test_onnx_synthesizer_refuses_a_convention_mismatch(tiny_export, tmp_path):
+    import json
+    import shutil
+
+    from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer, PluckerConventionError
+
+    config = dict(num_frames=T, height=H, width=W, steps=2)
+    assert OnnxSynthesizer(tiny_export[0], SynthesisConfig(**config, plucker_convention="relative"),
+                           providers=CPU).convention == "relative"
+    with pytest.raises(PluckerConventionError, match=r"plucker_convention='paper'.*trained with 'relative'"):
+        OnnxSynthesizer(tiny_export[0], SynthesisConfig(**config, plucker_convention="paper"), providers=CPU)
+    old = tmp_path / "old"
+    shutil.copytree(tiny_export[0], old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    del manifest["config"]["plucker_convention"]
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(PluckerConventionError, match=rf"{old}.*no plucker_convention.*re-export"):
+        OnnxSynthesizer(old, SynthesisConfig(**config), providers=CPU)
 
 
 def test_wrong_frame_count(tiny_export, ort_runner, inputs):

@@ -1,0 +1,134 @@
+"""Camera-control training (``navcrafter train-camera``): its configuration and what it stores.
+
+One config (``CameraTrainingConfig``) declares every parameter of a training run once; the flow
+(``flows/train_camera.py``), the tasks (``tasks/training/``) and the trainer (``models/synthesis/training.py``)
+read it and nothing else. Defaults are the paper's (Module I): 81-frame clips at 256², AdamW lr 1e-4 with
+weight decay 3e-2, bf16 on CUDA, rectified-flow loss with shifted σ, base DiT frozen.
+
+Stored (a training run is a folder, ``RUN``):
+
+* ``RUN/clips.zarr`` — the **clip store** (``CLIP_ARRAYS``, ``CLIP_ATTRS``): one Zarr group per clip
+  ``clips/<clip_id>`` holding what the trainer needs, precomputed once (VAE latents, CLIP image features, text
+  embeddings, the point-cloud render conditioning, cameras relative to frame 0). Each group is written by one
+  task and marked complete by its ``done`` attribute, written last: a killed precompute resumes by
+  skipping complete groups (one writer per group, no shared chunk).
+* ``RUN/checkpoints/step-XXXXXXXX/`` — training checkpoints (``CHECKPOINT_FILES``): the camera-control
+  weights in ``save_camera_control``'s layout, ``optimizer.safetensors`` (AdamW state), ``state.json`` (step,
+  RNG states, data position, loss history). ``RUN/checkpoints/latest`` names the newest complete one.
+* ``RUN/control/`` — the final control weights (``save_camera_control``), the input of
+  ``navcrafter models export-synthesizer --control RUN/control``; its config's ``extra`` records the
+  training data and steps.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+CLIP_STORE = "clips.zarr"
+CLIP_STORE_FORMAT = "navcrafter-training-clips"
+CLIP_STORE_VERSION = 1
+
+# name -> (dtype, shape in words). C = latent channels, F = latent frames, T = video frames.
+CLIP_ARRAYS: dict[str, tuple[str, str]] = {
+    "latents": ("float32", "[C, F, h, w] normalised VAE latents of the clip (the x0 of the flow loss)"),
+    "image_latents": ("float32", "[C, F, h, w] VAE latents of the I2V condition video (frame 0, then black)"),
+    "image_embeds": ("float32", "[L_img, image_dim] CLIP image features of frame 0"),
+    "text_embeds": ("float32", "[512, text_dim] text-encoder embeddings of the clip's caption ('' if none)"),
+    "c2w": ("float64", "[T, 4, 4] OpenCV camera-to-world relative to frame 0 (c2w[0] = I), dataset units"),
+    "K": ("float64", "[T, 3, 3] pixel intrinsics of the stored frames"),
+    # optional (config.data.render_condition): the paper's V(T, P_curr) for a cloud lifted from frame 0
+    "render_latents": ("float32", "[C, F, h, w] VAE latents of frame 0's points rendered along the clip"),
+    "visibility": ("uint8", "[T, H, W] 1 where those renders cover the pixel"),
+    # optional: an extra reference frame from the same sequence outside the clip (the input photo at inference)
+    "reference_latents": ("float32", "[C, 1, h, w] VAE latents of the extra reference frame"),
+    "reference_c2w": ("float64", "[4, 4] its camera-to-world relative to the clip's frame 0"),
+}
+CLIP_REQUIRED = ("latents", "image_latents", "image_embeds", "text_embeds", "c2w", "K")
+CLIP_ATTRS = ("source", "sequence", "start", "stride", "split", "height", "width", "num_frames", "done")
+
+CHECKPOINT_DIR = "checkpoints"
+CHECKPOINT_FILES = ("camera_control.safetensors", "camera_control.json", "optimizer.safetensors", "state.json")
+FINAL_CONTROL_DIR = "control"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DataSource(_Section):
+    """One dataset in its own format (readers: ``schemas/datasets``)."""
+
+    kind: Literal["re10k", "dl3dv"] = Field(description="RealEstate10K (camera .txt + frames) or DL3DV "
+                                                        "(transforms.json + images).")
+    root: str = Field(description="The dataset's folder.")
+    split: str | None = Field(None, description="RealEstate10K split folder ('train'/'test'); None: the root.")
+
+
+class TrainingDataConfig(_Section):
+    sources: tuple[DataSource, ...] = Field((), description="Datasets to draw clips from.")
+    num_frames: int = Field(81, ge=2, description="Frames per training clip (4k+1 for the Wan VAE).")
+    resolution: int = Field(256, ge=16, description="Square size frames are resized/cropped to.")
+    frame_stride: int = Field(1, ge=1, description="Take every n-th frame of a sequence.")
+    clips_per_source: int | None = Field(None, ge=1, description="Clips drawn per dataset; None: one per "
+                                                                  "sequence.")
+    validation_clips: int = Field(2, ge=0, description="Clips held out for validation (the last sequences).")
+    render_condition: bool = Field(True, description="Precompute the point-cloud render conditioning "
+                                                     "(needs depth of frame 0: the simulation engine writes it).")
+    extra_reference: bool = Field(True, description="Precompute an extra reference frame before the clip "
+                                                    "(the input photo of iterations k >= 2).")
+    prompt: str = Field("", description="Caption used for every clip (the datasets have none).")
+
+
+class OptimConfig(_Section):
+    learning_rate: float = Field(1e-4, gt=0)
+    weight_decay: float = Field(3e-2, ge=0)
+    betas: tuple[float, float] = (0.9, 0.999)
+    grad_clip: float | None = Field(1.0, gt=0, description="Global grad-norm clip; None: off.")
+    batch_size: int = Field(1, ge=1, description="Clips per step per process.")
+    warmup_steps: int = Field(0, ge=0)
+
+
+class CameraTrainingConfig(BaseModel):
+    """A camera-control training run (see the module docstring for what it writes)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    data: TrainingDataConfig = TrainingDataConfig()
+    optim: OptimConfig = OptimConfig()
+    steps: int = Field(10_000, ge=1)
+    seed: int = 0
+    checkpoint_every: int = Field(500, ge=1)
+    keep_checkpoints: int = Field(2, ge=1)
+    validate_every: int = Field(500, ge=1)
+    flow_shift: float = Field(3.0, gt=0, description="σ shift of the training timesteps "
+                                                     "(σ' = sσ / (1 + (s-1)σ), Wan's flow matching).")
+    text_dropout: float = Field(0.1, ge=0, le=1, description="Probability a clip's text is replaced by the "
+                                                             "empty prompt (for CFG).")
+    camera_dropout: float = Field(0.0, ge=0, le=1, description="Probability the camera is dropped "
+                                                               "(plucker = None).")
+    mixed_precision: Literal["bf16", "no"] = Field("bf16", description="bf16 autocast on CUDA (fp32 master "
+                                                                       "weights); CPU always runs fp32.")
+    gradient_checkpointing: bool = True
+    trainable: Literal["control", "base", "all"] = Field(
+        "control", description="'control': the paper (base frozen); 'base': only the base DiT (pretraining the "
+        "stand-in of a pretrained Wan for tiny benchmarks; the control stays zero); 'all': both.")
+    base: str | None = Field(None, description="Diffusers-format Wan2.1 I2V folder; None with random_base.")
+    random_base: Literal["tiny"] | None = Field(None, description="Build a random tiny base (tests).")
+    control: dict = Field(default_factory=dict, description="CameraControlConfig overrides.")
+    log_every: int = Field(10, ge=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraTrainingConfig:
+        if (self.data.num_frames - 1) % 4:
+            raise ValueError(f"data.num_frames must be 4k+1 (Wan VAE), got {self.data.num_frames}")
+        if self.base is not None and self.random_base is not None:
+            raise ValueError("give either base (a diffusers-format Wan2.1 I2V folder) or random_base, not both")
+        return self
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> CameraTrainingConfig:
+        return cls.model_validate(yaml.safe_load(Path(path).read_text()) or {})
