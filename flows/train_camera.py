@@ -114,13 +114,20 @@ def validate_task(run_dir: str) -> dict:
     result = training.validate(run_dir)
     state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())
     png = base64.b64encode(training.loss_curve_png(state["history"])).decode()
+    frames = base64.b64encode(training.sample_frames_png(run_dir)).decode()
+    history = [f"| {v['step']} | {v['loss_true_cameras']:.5f} | {v['loss_shuffled_cameras']:.5f} | "
+               f"{v['camera_gap']:+.5f} |" for v in state.get("validation", [])]
     md = "\n".join([
         f"# Camera-control training: {run_dir}",
-        f"![loss](data:image/png;base64,{png})",
+        f"![loss](data:image/png;base64,{png})", "",
+        "Validation clip: stored (top) and sampled with its cameras by the newest checkpoint (bottom):", "",
+        f"![frames](data:image/png;base64,{frames})",
         "", "| checkpoint | split | clips | loss, true cameras | loss, shuffled cameras | camera gap |",
         "|---|---|---|---|---|---|",
         f"| {result['checkpoint']} | {result['split']} | {result['clips']} | {result['loss_true_cameras']:.5f} | "
         f"{result['loss_shuffled_cameras']:.5f} | {result['camera_gap']:+.5f} |",
+        *(["", "| step | loss, true cameras | loss, shuffled cameras | camera gap |", "|---|---|---|---|", *history]
+          if history else []),
         "", "The camera-conditioning gap is the flow loss with another clip's cameras minus the loss with the "
         "clip's own: zero for a model that ignores the camera.",
     ])

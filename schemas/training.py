@@ -103,7 +103,10 @@ class CameraTrainingConfig(BaseModel):
     seed: int = 0
     checkpoint_every: int = Field(500, ge=1)
     keep_checkpoints: int = Field(2, ge=1)
-    validate_every: int = Field(500, ge=1)
+    validate_every: int = Field(500, ge=1, description="Steps between validations (camera gap on the "
+                                                       "validation clips).")
+    validation_sampling_steps: int = Field(20, ge=1, description="DPM-solver steps of the validation sample "
+                                                                 "shown in the run's artifact.")
     flow_shift: float = Field(3.0, gt=0, description="σ shift of the training timesteps "
                                                      "(σ' = sσ / (1 + (s-1)σ), Wan's flow matching).")
     text_dropout: float = Field(0.1, ge=0, le=1, description="Probability a clip's text is replaced by the "
@@ -113,6 +116,9 @@ class CameraTrainingConfig(BaseModel):
     mixed_precision: Literal["bf16", "no"] = Field("bf16", description="bf16 autocast on CUDA (fp32 master "
                                                                        "weights); CPU always runs fp32.")
     gradient_checkpointing: bool = True
+    parallel: Literal["ddp", "fsdp"] = Field("ddp", description="With several processes: 'ddp' (each holds the "
+                                                                "whole model) or 'fsdp' (torch FSDP2 shards the "
+                                                                "base blocks and the control, for 14B width).")
     trainable: Literal["control", "base", "all"] = Field(
         "control", description="'control': the paper (base frozen); 'base': only the base DiT (pretraining the "
         "stand-in of a pretrained Wan for tiny benchmarks; the control stays zero); 'all': both.")

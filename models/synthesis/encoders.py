@@ -163,6 +163,71 @@ class PixelShuffleEncoders:
         return np.zeros((TEXT_TOKENS, self.text_dim), dtype=np.float32)
 
 
+class PCAEncoders:
+    """A fitted linear autoencoder standing in for a VAE in CPU benchmarks: ``PixelShuffleEncoders``' exact patch
+    vectors (``3·t·s²`` values per latent position) projected onto their top ``channels`` principal components,
+    whitened (unit variance per channel, like the Wan VAE's normalised latents). Decoding maps back and
+    un-shuffles; it is the least-squares best linear reconstruction of that size, not exact: report its
+    reconstruction PSNR as the ceiling of anything decoded through it.
+
+    ``PCAEncoders.fit(latents, exact, channels)``: ``latents`` an iterable of ``exact.encode_video`` outputs
+    ``[3·t·s², F, h, w]`` (the training clips only). Image features and text are ``exact``'s.
+    """
+
+    def __init__(self, exact: PixelShuffleEncoders, mean: np.ndarray, basis: np.ndarray, scale: np.ndarray) -> None:
+        self.exact = exact
+        self.mean = np.asarray(mean, np.float64)  # [D]
+        self.basis = np.asarray(basis, np.float64)  # [C, D] orthonormal rows
+        self.scale = np.asarray(scale, np.float64)  # [C] standard deviation of each component
+        self.latent_channels = int(self.basis.shape[0])
+        self.vae_stride = exact.vae_stride
+        self.image_dim, self.text_dim = exact.image_dim, exact.text_dim
+        import hashlib
+
+        digest = hashlib.sha1(np.ascontiguousarray(self.basis, np.float32).tobytes()).hexdigest()[:12]
+        self.name = f"pca(channels={self.latent_channels}, basis={digest}) of {exact.name}"
+
+    @classmethod
+    def fit(cls, latents, exact: PixelShuffleEncoders, channels: int) -> PCAEncoders:
+        D = exact.latent_channels
+        if not 1 <= channels <= D:
+            raise ValueError(f"channels must be in 1..{D}, got {channels}")
+        n, s1, s2 = 0, np.zeros(D), np.zeros((D, D))
+        for z in latents:
+            x = np.asarray(z, np.float64).reshape(D, -1)
+            n += x.shape[1]
+            s1 += x.sum(1)
+            s2 += x @ x.T
+        if n < 2:
+            raise ValueError("PCAEncoders.fit needs latents of at least one clip")
+        mean = s1 / n
+        cov = s2 / n - np.outer(mean, mean)
+        vals, vecs = np.linalg.eigh(cov)
+        order = np.argsort(vals)[::-1][:channels]
+        return cls(exact, mean, vecs[:, order].T, np.sqrt(np.maximum(vals[order], 1e-12)))
+
+    def encode_video(self, video: np.ndarray) -> np.ndarray:
+        z = self.exact.encode_video(video)
+        D, F, h, w = z.shape
+        c = (self.basis @ (z.reshape(D, -1) - self.mean[:, None])) / self.scale[:, None]
+        return c.reshape(self.latent_channels, F, h, w).astype(np.float32)
+
+    def decode_video(self, latents: np.ndarray) -> np.ndarray:
+        c = np.asarray(latents, np.float64)
+        if c.ndim != 4 or c.shape[0] != self.latent_channels:
+            raise ValueError(f"PCAEncoders.decode_video: latents must be [{self.latent_channels}, F, h, w], "
+                             f"got {c.shape}")
+        C, F, h, w = c.shape
+        z = self.basis.T @ (c.reshape(C, -1) * self.scale[:, None]) + self.mean[:, None]
+        return self.exact.decode_video(z.reshape(-1, F, h, w).astype(np.float32))
+
+    def image_features(self, image: np.ndarray) -> np.ndarray:
+        return self.exact.image_features(image)
+
+    def text_embeddings(self, prompt: str) -> np.ndarray:
+        return self.exact.text_embeddings(prompt)
+
+
 # --------------------------------------------------------------------------------------------------
 # Wan2.1: VAE + CLIP (+ UMT5)
 # --------------------------------------------------------------------------------------------------

@@ -195,16 +195,29 @@ def _randomize_control(dit: nn.Module, seed: int, std: float = 0.05) -> None:
                 p.copy_(torch.randn(p.shape, generator=g) * std)
 
 
-def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFAULT_NEGATIVE_PROMPT
-                    ) -> SynthesisComponents:
-    """Tiny random modules for tests: camcontrol's tiny DiT, a tiny Wan VAE and CLIP, random text embeddings."""
+def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFAULT_NEGATIVE_PROMPT,
+                    control_dir: str | Path | None = None) -> SynthesisComponents:
+    """Tiny random modules for tests: camcontrol's tiny DiT, a tiny Wan VAE and CLIP, random text embeddings.
+
+    ``control_dir``: camera-control weights trained on this tiny base (``navcrafter train-camera`` with
+    ``random_base: tiny`` and the same ``seed``) replace the random control."""
     from diffusers import AutoencoderKLWan
     from transformers import CLIPVisionConfig, CLIPVisionModel
 
-    from navcrafter.models.synthesis.camcontrol import tiny_camera_wan
+    from navcrafter.models.synthesis.camcontrol import (
+        TINY_I2V_CONFIG,
+        build_camera_wan,
+        load_camera_control,
+        read_camera_control_config,
+        tiny_camera_wan,
+    )
 
-    dit = tiny_camera_wan(seed)
-    _randomize_control(dit, seed)
+    if control_dir is None:
+        dit = tiny_camera_wan(seed)
+        _randomize_control(dit, seed)
+    else:
+        dit = build_camera_wan(TINY_I2V_CONFIG, read_camera_control_config(control_dir), seed=seed)
+        load_camera_control(dit, control_dir)
     image_dim = dit.base.config.image_dim
     with torch.random.fork_rng():
         torch.manual_seed(seed + 2)
@@ -216,10 +229,18 @@ def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFA
         clip = CLIPVisionModel(clip_cfg).eval()
     rng = np.random.RandomState(seed + 4)
     text = rng.standard_normal((2, TEXT_TOKENS, dit.base.config.text_dim)).astype(np.float32)
-    return SynthesisComponents(
+    out = SynthesisComponents(
         dit=dit.eval(), vae=vae, image_encoder=clip, text_embeddings=text,
         image_preprocess=_preprocess_params(TINY_CLIP_IMAGE_SIZE, TINY_CLIP_IMAGE_SIZE, CLIP_MEAN, CLIP_STD),
         weights={"source": "random", "seed": int(seed)}, prompt=prompt, negative_prompt=negative_prompt)
+    if control_dir is not None:
+        from navcrafter.models.runtime.onnxio import sha256_file
+        from navcrafter.models.synthesis.camcontrol import CONTROL_CONFIG, CONTROL_WEIGHTS
+
+        control_dir = Path(control_dir)
+        out.weights["control"] = {"path": str(control_dir.resolve()), "files": {
+            name: sha256_file(control_dir / name) for name in (CONTROL_WEIGHTS, CONTROL_CONFIG)}}
+    return out
 
 
 def _preprocess_params(shortest_edge: int, crop: int, mean, std) -> dict[str, Any]:
@@ -443,9 +464,7 @@ def export_synthesizer(out_dir: str | Path, *, base_dir: str | Path | None = Non
     if tiny == (base_dir is not None):
         raise ValueError("export_synthesizer: pass exactly one of tiny=True or base_dir=...")
     if tiny:
-        if control_dir is not None:
-            raise ValueError("export_synthesizer: control_dir needs base_dir (tiny models are random)")
-        components = tiny_components(seed, prompt, negative_prompt)
+        components = tiny_components(seed, prompt, negative_prompt, control_dir=control_dir)
     else:
         components = load_components(base_dir, control_dir, prompt, negative_prompt)
     return export_components(components, out_dir, num_frames=num_frames, height=height, width=width,

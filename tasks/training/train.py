@@ -117,9 +117,14 @@ def null_text(run_dir: str | os.PathLike) -> np.ndarray | None:
 
 
 def train(run_dir: str | os.PathLike, *, rank: int = 0, world_size: int = 1, device: str = "cpu",
-          on_step: Callable | None = None, steps: int | None = None) -> dict[str, Any]:
-    """Train (resuming from the newest checkpoint of ``run_dir``) up to ``config.steps``; returns a summary."""
-    from navcrafter.models.synthesis.training import CameraTrainer, trainable_parameters
+          on_step: Callable | None = None, on_validate: Callable | None = None,
+          steps: int | None = None) -> dict[str, Any]:
+    """Train (resuming from the newest checkpoint of ``run_dir``) up to ``config.steps``; returns a summary.
+
+    Every ``validate_every`` steps rank 0 measures the camera-conditioning gap on the validation clips (when
+    there are at least 2), appends it to the run's validation history (saved with the checkpoints) and calls
+    ``on_validate(history)``."""
+    from navcrafter.models.synthesis.training import CameraTrainer, camera_gap, trainable_parameters
 
     config = load_run_config(run_dir)
     model = build_model(config, device)
@@ -127,7 +132,19 @@ def train(run_dir: str | os.PathLike, *, rank: int = 0, world_size: int = 1, dev
     trainer = CameraTrainer(model, clips, config, device=device, rank=rank, world_size=world_size,
                             null_text=null_text(run_dir) if config.text_dropout > 0 else None)
     resumed_at = trainer.state.step if trainer.resume(run_dir) else 0
-    state = trainer.train(run_dir, steps=steps, on_step=on_step)
+    held = open_clips(run_dir, "validation")
+    held = [held[i] for i in range(len(held))] if len(held) >= 2 and rank == 0 else []
+
+    def step_hook(log) -> None:
+        if on_step is not None:
+            on_step(log)
+        if held and log.step % config.validate_every == 0:
+            gap = camera_gap(model, held, config, device=device)
+            trainer.state.validation.append({"step": log.step, **gap})
+            if on_validate is not None:
+                on_validate(trainer.state.validation)
+
+    state = trainer.train(run_dir, steps=steps, on_step=step_hook)
     losses = [h["loss"] for h in state.history]
     return {"steps": state.step, "resumed_at": resumed_at, "train_clips": len(clips),
             "trainable_parameters": trainable_parameters(model, config),
@@ -163,10 +180,48 @@ def validate(run_dir: str | os.PathLike) -> dict[str, Any]:
     split = "validation"
     if len(clips) < 2:
         clips, split = open_clips(run_dir, "train"), "train"
-    result = {"checkpoint": ckpt.name, "split": split, "clips": len(clips),
-              **camera_gap(model, [clips[i] for i in range(len(clips))], config)}
+    held = [clips[i] for i in range(len(clips))]
+    result = {"checkpoint": ckpt.name, "split": split, "clips": len(clips), **camera_gap(model, held, config)}
     (Path(run_dir) / VALIDATION_FILE).write_text(json.dumps(result, indent=2))
     return result
+
+
+def sample_frames_png(run_dir: str | os.PathLike, index: int = 0, frames: int = 5) -> bytes:
+    """A PNG strip: the first validation clip as stored (decoded latents) over a clip sampled by the newest
+    checkpoint with that clip's cameras (``validation_sampling_steps`` DPM-solver steps, LoRA at inference
+    strength ``synthesis.lora_scale``, no CFG)."""
+    from PIL import Image
+
+    from navcrafter.models.synthesis.camcontrol import load_camera_control
+    from navcrafter.models.synthesis.training import clip_conditions, latest_checkpoint, sample_clip
+    from navcrafter.schemas.config import SynthesisConfig
+
+    config = load_run_config(run_dir)
+    ckpt = latest_checkpoint(run_dir)
+    if ckpt is None:
+        raise TrainingRunError(f"{run_dir}: no checkpoint to sample; train first")
+    model = build_model(config)
+    load_camera_control(model, ckpt)
+    _load_base_if_trained(model, ckpt)
+    clips = open_clips(run_dir, "validation")
+    if len(clips) == 0:
+        clips = open_clips(run_dir, "train")
+    clip = clips[index]
+    encoders = build_encoders(config)
+    z = sample_clip(model, clip_conditions(model, clip), seed=config.seed, steps=config.validation_sampling_steps,
+                    guidance_scale=1.0, lora_scale=SynthesisConfig().lora_scale, flow_shift=config.flow_shift)
+
+    def frames_of(latents) -> np.ndarray:
+        v = np.asarray(encoders.decode_video(np.asarray(latents, np.float32)))
+        return np.rint(np.clip((v + 1) * 127.5, 0, 255)).astype(np.uint8).transpose(1, 2, 3, 0)
+
+    rows = [frames_of(clip["latents"]), frames_of(z[0].numpy())]
+    T, H, W = rows[0].shape[:3]
+    pick = np.linspace(0, T - 1, min(frames, T)).round().astype(int)
+    strip = np.concatenate([np.concatenate([r[i] for i in pick], axis=1) for r in rows], axis=0)
+    buf = io.BytesIO()
+    Image.fromarray(strip).save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def _load_base_if_trained(model, ckpt: Path) -> None:
