@@ -236,14 +236,23 @@ def main(argv: list[str] | None = None) -> int:
     s_wrong, v_wrong = evaluate_sampling(model, eval_clips, truth, encoders, cameras="wrong", **kw)
     timings["evaluation_s"] = time.perf_counter() - t0
 
-    learned = (gap_trained["camera_gap"] > 0.05 * gap_trained["loss_true_cameras"]
-               and s_trained["psnr"] > s_untrained["psnr"] and s_trained["psnr"] > s_wrong["psnr"])
+    def paired(a: dict, b: dict) -> dict:
+        d = np.asarray(a["psnr_per_clip"]) - np.asarray(b["psnr_per_clip"])
+        return {"mean": float(d.mean()), "se": float(d.std(ddof=1) / np.sqrt(len(d))),
+                "clips_better": int((d > 0).sum()), "clips": len(d)}
+
+    gains = {"over_untrained": paired(s_trained, s_untrained), "over_wrong_cameras": paired(s_trained, s_wrong)}
+    # decided before the runs: the gap is "clearly positive" when it exceeds 2 standard errors over held-out clips
+    gap_clear = gap_trained["camera_gap"] > 2 * gap_trained["camera_gap_se"] > 0
+    learned = gap_clear and s_trained["psnr"] > s_untrained["psnr"] and s_trained["psnr"] > s_wrong["psnr"]
     results = {
         "trained": {**gap_trained, **s_trained},
         "untrained": {**gap_untrained, **s_untrained},
         "trained_wrong_cameras": s_wrong,
         "autoencoder_psnr": autoencoder_psnr,
         "camera_control_learned": bool(learned),
+        "camera_gap_clearly_positive": bool(gap_clear),
+        "trained_psnr_gain": gains,
         "setup": {
             "mode": "simulation data, exactly invertible fixed autoencoder, small DiT trained from scratch on CPU",
             "frames": FRAMES, "resolution": RES, "train_clips": len(train_clips), "heldout_clips": len(eval_clips),
@@ -275,7 +284,9 @@ def main(argv: list[str] | None = None) -> int:
 def markdown(r: dict) -> str:
     s = r["setup"]
     t, u, w = r["trained"], r["untrained"], r["trained_wrong_cameras"]
-    verdict = ("**Camera control was learned**: the trained control's camera gap is clearly positive and its PSNR "
+    g = r["trained_psnr_gain"]
+    verdict = ("**Camera control was learned**: the trained control's camera gap is clearly positive (more than 2 "
+               "standard errors) and its PSNR "
                "exceeds both the untrained control's and its own with wrong cameras." if r["camera_control_learned"]
                else "**Camera control was NOT shown to be learned** in this run: the trained gap is not clearly "
                     "positive or the trained PSNR does not exceed both others.")
@@ -289,13 +300,18 @@ def markdown(r: dict) -> str:
         "| | flow loss, true cameras | flow loss, shuffled cameras | camera gap | PSNR | SSIM |",
         "|---|---|---|---|---|---|",
         f"| trained control | {t['loss_true_cameras']:.4f} | {t['loss_shuffled_cameras']:.4f} | "
-        f"{t['camera_gap']:+.4f} | {t['psnr']:.2f} | {t['ssim']:.3f} |",
+        f"{t['camera_gap']:+.4f} ± {t['camera_gap_se']:.4f} | {t['psnr']:.2f} | {t['ssim']:.3f} |",
         f"| untrained control (zero-init) | {u['loss_true_cameras']:.4f} | {u['loss_shuffled_cameras']:.4f} | "
-        f"{u['camera_gap']:+.4f} | {u['psnr']:.2f} | {u['ssim']:.3f} |",
+        f"{u['camera_gap']:+.4f} ± {u['camera_gap_se']:.4f} | {u['psnr']:.2f} | {u['ssim']:.3f} |",
         f"| trained control, wrong cameras | | | | {w['psnr']:.2f} | {w['ssim']:.3f} |",
         "", f"Autoencoder (PCA of 4×4×4 patches to {LATENT_CHANNELS} channels, fitted on the training clips) "
         f"reconstruction PSNR on the held-out clips: **{r['autoencoder_psnr']:.2f} dB**, the ceiling of any decoded "
         "sample.", "",
+        "Gap: mean over held-out clips ± standard error. PSNR gain of the trained control (paired over held-out "
+        f"clips): {g['over_untrained']['mean']:+.2f} ± {g['over_untrained']['se']:.2f} dB over the untrained control "
+        f"(better on {g['over_untrained']['clips_better']}/{g['over_untrained']['clips']} clips), "
+        f"{g['over_wrong_cameras']['mean']:+.2f} ± {g['over_wrong_cameras']['se']:.2f} dB over itself with wrong "
+        f"cameras (better on {g['over_wrong_cameras']['clips_better']}/{g['over_wrong_cameras']['clips']}).", "",
         verdict, "",
         f"Trainable parameters: base {s['base_trainable_parameters']:,}, control {s['control_trainable_parameters']:,} "
         f"({100 * s['control_to_base_parameter_ratio']:.1f} % of the base). A control step takes "

@@ -23,6 +23,14 @@ process with batch ``world_size·b`` (up to float reduction order).
 **Checkpoints** (``schemas/training.py``): the control weights (``save_camera_control``), the AdamW state in
 ``optimizer.safetensors`` and ``state.json`` (step, data position, RNG states, loss history), written to a
 temporary folder and renamed, then ``latest`` is updated: a kill at any point leaves the previous complete one.
+
+**Several processes** (``world_size > 1``): ``config.parallel="ddp"`` wraps the model in
+``DistributedDataParallel``; ``"fsdp"`` shards it with FSDP2 (``distributed.shard_model``: one unit per base
+block, the control in the root unit), accumulates the micro-batches without communication
+(``set_requires_gradient_sync``), clips the global norm of the sharded gradients (``clip_grad_norm_`` over
+``DTensor`` s) and gathers the full control and AdamW state for the checkpoints: the files are the same as a
+single process writes (index-keyed optimizer state included), so either kind of run resumes the other's.
+``"fsdp"`` with one process is a plain single-process run (there is nothing to shard across).
 """
 
 from __future__ import annotations
@@ -195,8 +203,8 @@ def flow_loss(model: torch.nn.Module, inner: CameraControlledWan, c: dict[str, t
 # --------------------------------------------------------------------------------------------------
 # Optimiser state <-> safetensors
 # --------------------------------------------------------------------------------------------------
-def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    sd = opt.state_dict()
+def _optimizer_tensors(sd: dict[str, Any]) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """``optimizer.state_dict()`` (index-keyed) -> the tensors of ``optimizer.safetensors`` and the JSON rest."""
     tensors, scalars = {}, {}
     for idx, st in sd["state"].items():
         for k, v in st.items():
@@ -208,6 +216,11 @@ def _optimizer_tensors(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tens
 
 
 def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    opt.load_state_dict(_optimizer_state_dict(tensors, meta))
+
+
+def _optimizer_state_dict(tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> dict[str, Any]:
+    """The inverse of ``_optimizer_tensors``: an ``optimizer.state_dict()``."""
     state: dict[int, dict[str, Any]] = {}
     for key, v in tensors.items():
         _, idx, k = key.split(".", 2)
@@ -215,7 +228,7 @@ def _load_optimizer(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor]
     for key, v in meta["scalars"].items():
         idx, k = key.split(".", 1)
         state.setdefault(int(idx), {})[k] = torch.tensor(v, dtype=torch.float32) if k == "step" else v
-    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    return {"state": state, "param_groups": meta["param_groups"]}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -241,8 +254,10 @@ class CameraTrainer:
     """Trains ``model``'s camera control (or everything, ``config.trainable='all'``) on ``clips``.
 
     ``clips``: a sequence of stored clips (``tasks.training.clips.ClipDataset``: dicts of numpy arrays).
-    ``rank``/``world_size``: this process in a ``torch.distributed`` group (DDP wraps the model when
-    ``world_size > 1``). ``null_text``: the null prompt's embeddings ``[512, text_dim]`` (text dropout).
+    ``rank``/``world_size``: this process in a ``torch.distributed`` group; when ``world_size > 1`` DDP wraps the
+    model (``config.parallel="ddp"``) or FSDP2 shards it in place (``"fsdp"``: ``self.model`` is then the
+    sharded module, and every forward, ``save_checkpoint`` and ``load_checkpoint`` must run on all ranks).
+    ``null_text``: the null prompt's embeddings ``[512, text_dim]`` (text dropout).
     """
 
     def __init__(self, model: CameraControlledWan, clips: Sequence[dict[str, Any]], config: CameraTrainingConfig,
@@ -263,6 +278,14 @@ class CameraTrainer:
         self.params = params
         model.gradient_checkpointing = bool(config.gradient_checkpointing)
         model.train()
+        self.sharded = config.parallel == "fsdp" and self.world_size > 1
+        if self.sharded:
+            from navcrafter.models.synthesis.distributed import shard_model
+
+            shard_model(model, device=self.device)
+            # fully_shard replaced every parameter by a sharded DTensor: optimise those
+            params = trainable_parameter_list(model, config)
+            self.params = params
         self.opt = torch.optim.AdamW(params, lr=config.optim.learning_rate, betas=tuple(config.optim.betas),
                                      weight_decay=config.optim.weight_decay)
         self.autocast = config.mixed_precision == "bf16" and self.device.type == "cuda"
@@ -270,7 +293,7 @@ class CameraTrainer:
                           torch.as_tensor(np.asarray(null_text, np.float32))[None].to(self.device))
         self.state = TrainState()
         self.wrapped: torch.nn.Module = model
-        if world_size > 1:
+        if self.world_size > 1 and not self.sharded:
             from torch.nn.parallel import DistributedDataParallel
 
             self.wrapped = DistributedDataParallel(model, device_ids=None if self.device.type == "cpu"
@@ -305,21 +328,36 @@ class CameraTrainer:
         self.opt.zero_grad(set_to_none=True)
         indices = self.local_indices()
         total = 0.0
+        use = None
+        if self.sharded:
+            from navcrafter.models.synthesis.distributed import ParameterUse
+
+            use = ParameterUse(len(self.params), self.device)
         for j, index in enumerate(indices):
             c = clip_conditions(self.model, self.clips[self.clip_of(index)], self.device)
             last = j == len(indices) - 1
-            ctx = self.wrapped.no_sync() if (self.world_size > 1 and not last) else _nullcontext()
+            ctx = _nullcontext()
+            if self.sharded:  # FSDP2's no_sync: keep the unsharded gradients, reduce-scatter after the last
+                self.wrapped.set_requires_gradient_sync(last)
+            elif self.world_size > 1 and not last:
+                ctx = self.wrapped.no_sync()
             with ctx:
                 loss = flow_loss(self.wrapped, self.model, c, sample_generator(self.config.seed, index),
                                  self.config, null_text=self.null_text, autocast=self.autocast)
-                (loss / len(indices)).backward()
+                objective = loss / len(indices)
+                if use is not None:  # same gradient set on every rank (distributed.ParameterUse)
+                    objective = objective + use.touch(loss, trainable_parameter_list(self.model, self.config))
+                objective.backward()
             total += float(loss.detach())
+        if use is not None:
+            use.drop_unused(self.params)
         if self.config.optim.grad_clip is not None:
+            # over sharded DTensor gradients (fsdp) the norm is the global one, as in a single process
             torch.nn.utils.clip_grad_norm_(self.params, self.config.optim.grad_clip)
         self.opt.step()
         mean = total / len(indices)
         if self.world_size > 1:
-            t = torch.tensor([mean], dtype=torch.float64)
+            t = torch.tensor([mean], dtype=torch.float64, device=self.device)
             torch.distributed.all_reduce(t)
             mean = float(t) / self.world_size
         self.state.step = step + 1
@@ -330,22 +368,39 @@ class CameraTrainer:
 
     # ---- checkpoints --------------------------------------------------------------------------------
     def save_checkpoint(self, run_dir: str | os.PathLike) -> Path:
-        """Write ``run_dir/checkpoints/step-XXXXXXXX`` atomically and point ``latest`` at it (rank 0 only)."""
+        """Write ``run_dir/checkpoints/step-XXXXXXXX`` atomically and point ``latest`` at it (rank 0 writes; with
+        fsdp every rank must call it: the full state is gathered first)."""
         from safetensors.torch import save_file
 
         root = Path(run_dir) / CHECKPOINT_DIR
         name = f"step-{self.state.step:08d}"
         final = root / name
+        train_base = self.config.trainable in ("base", "all")
+        if self.sharded:
+            from navcrafter.models.synthesis.distributed import (
+                full_module_state,
+                full_optimizer_state,
+                save_control_state,
+            )
+
+            full_control = full_module_state(self.model.control)
+            full_base = full_module_state(self.model.base) if train_base else {}
+            opt_state = full_optimizer_state(self.opt)
         if self.rank != 0:
             return final
         tmp = root / (name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        if self.config.trainable in ("base", "all"):
-            base_state = {k: v.detach().contiguous().cpu() for k, v in self.model.base.state_dict().items()}
+        if train_base:
+            base_state = (full_base if self.sharded else
+                          {k: v.detach().contiguous().cpu() for k, v in self.model.base.state_dict().items()})
             save_file(base_state, str(tmp / "base.safetensors"))
-        save_camera_control(self.model, tmp)
-        tensors, meta = _optimizer_tensors(self.opt)
+        if self.sharded:
+            save_control_state(self.model, full_control, tmp)
+        else:
+            save_camera_control(self.model, tmp)
+            opt_state = self.opt.state_dict()
+        tensors, meta = _optimizer_tensors(opt_state)
         save_file(tensors, str(tmp / OPTIMIZER_FILE))
         state = {"step": self.state.step, "data_position": self.state.position, "world_size": self.world_size,
                  "optimizer": meta,
@@ -362,23 +417,64 @@ class CameraTrainer:
         return final
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Load a checkpoint written by any run (one process, DDP or FSDP). With fsdp every rank must call it:
+        rank 0 reads the files and sends every rank its shards."""
         from safetensors.torch import load_file
 
         path = Path(path)
-        state = json.loads((path / STATE_FILE).read_text())
-        if (path / "base.safetensors").is_file():
-            base = load_file(str(path / "base.safetensors"))
-            self.model.base.load_state_dict(base, strict=True)
-        load_camera_control(self.model, path)
-        _load_optimizer(self.opt, load_file(str(path / OPTIMIZER_FILE)), state["optimizer"])
+        if self.sharded:
+            state = self._load_sharded(path)
+        else:
+            state = json.loads((path / STATE_FILE).read_text())
+            if (path / "base.safetensors").is_file():
+                base = load_file(str(path / "base.safetensors"))
+                self.model.base.load_state_dict(base, strict=True)
+            load_camera_control(self.model, path)
+            _load_optimizer(self.opt, load_file(str(path / OPTIMIZER_FILE)), state["optimizer"])
         torch.set_rng_state(torch.tensor(state["torch_rng"], dtype=torch.uint8))
         self.state = TrainState(step=int(state["step"]), position=int(state["data_position"]),
                                 history=list(state["history"]), validation=list(state.get("validation", [])))
         self.model.train()
 
+    def _load_sharded(self, path: Path) -> dict[str, Any]:
+        from safetensors.torch import load_file
+
+        from navcrafter.models.synthesis.camcontrol import CameraControlConfig
+        from navcrafter.models.synthesis.distributed import (
+            apply_control_config,
+            load_full_module_state,
+            load_full_optimizer_state,
+            rank0_only,
+            read_control_state,
+        )
+
+        full: dict[str, Any] = {}  # rank 0's full tensors
+
+        def read() -> tuple[dict[str, Any], bool, dict[str, Any]]:
+            state = json.loads((path / STATE_FILE).read_text())
+            has_base = (path / "base.safetensors").is_file()
+            if has_base:
+                full["base"] = load_file(str(path / "base.safetensors"))
+            full["control"], control_config = read_control_state(self.model, path)
+            full["optimizer"] = _optimizer_state_dict(load_file(str(path / OPTIMIZER_FILE)), state["optimizer"])
+            return state, has_base, control_config.to_dict()
+
+        state, has_base, control_config = rank0_only(read)  # a bad file raises on every rank
+        if has_base:
+            load_full_module_state(self.model.base, full.get("base", {}))
+        load_full_module_state(self.model.control, full.get("control", {}))
+        apply_control_config(self.model, CameraControlConfig.from_dict(control_config))
+        load_full_optimizer_state(self.opt, full.get("optimizer", {}))
+        return state
+
     def resume(self, run_dir: str | os.PathLike) -> bool:
         """Load the newest complete checkpoint of ``run_dir``; False when there is none."""
-        latest = latest_checkpoint(run_dir)
+        if self.sharded:  # rank 0 reads the files (the other ranks need not see them)
+            from navcrafter.models.synthesis.distributed import rank0_only
+
+            latest = rank0_only(lambda: latest_checkpoint(run_dir))
+        else:
+            latest = latest_checkpoint(run_dir)
         if latest is None:
             return False
         self.load_checkpoint(latest)
@@ -425,12 +521,16 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
 @torch.no_grad()
 def evaluation_loss(model: CameraControlledWan, clips: Sequence[dict[str, Any]], config: CameraTrainingConfig,
                     *, cameras: str = "true", sigmas: Sequence[float] = (0.2, 0.4, 0.6, 0.8), seed: int = 0,
-                    device: str | torch.device = "cpu") -> float:
-    """Mean flow loss over ``clips`` × ``sigmas`` with fixed noise (seeded per clip and σ).
+                    device: str | torch.device = "cpu", per_clip: bool = False) -> float | list[float]:
+    """Mean flow loss over ``clips`` × ``sigmas`` with fixed noise (seeded per clip and σ); ``per_clip``: the
+    mean of each clip instead.
 
     ``cameras``: ``"true"``; ``"shuffled"`` (clip ``i`` gets the cameras of clip ``i+1 mod n``: a
     derangement, so no clip keeps its own); ``"none"``. The camera-conditioning gap is
     ``loss(shuffled) - loss(true)``: zero for a model that ignores the camera.
+
+    With a model sharded by an fsdp trainer every rank must call it with the same clips (each forward gathers
+    the shards): called on rank 0 alone it waits forever for the other ranks.
     """
     was = model.training
     model.eval()
@@ -438,7 +538,7 @@ def evaluation_loss(model: CameraControlledWan, clips: Sequence[dict[str, Any]],
     if cameras == "shuffled" and n < 2:
         raise ValueError("shuffled cameras need at least 2 clips")
     conds = [clip_conditions(model, c, device) for c in clips]
-    total, count = 0.0, 0
+    losses: list[float] = []
     for i, c in enumerate(conds):
         c = dict(c)
         mode = "true"
@@ -450,20 +550,26 @@ def evaluation_loss(model: CameraControlledWan, clips: Sequence[dict[str, Any]],
             mode = "given"
         elif cameras == "none":
             mode = "none"
+        clip_total = 0.0
         for j, s in enumerate(sigmas):
             g = torch.Generator().manual_seed(_seed(seed, 3, i, j))
             model.seed_reference_frames(_seed(seed, 4, i))
-            total += float(flow_loss(model, model, c, g, config, camera=mode, sigma=float(s)))
-            count += 1
+            clip_total += float(flow_loss(model, model, c, g, config, camera=mode, sigma=float(s)))
+        losses.append(clip_total / len(sigmas))
     model.train(was)
-    return total / max(count, 1)
+    return losses if per_clip else float(np.mean(losses)) if losses else 0.0
 
 
 def camera_gap(model: CameraControlledWan, clips: Sequence[dict[str, Any]], config: CameraTrainingConfig,
-               **kw: Any) -> dict[str, float]:
-    true = evaluation_loss(model, clips, config, cameras="true", **kw)
-    shuffled = evaluation_loss(model, clips, config, cameras="shuffled", **kw)
-    return {"loss_true_cameras": true, "loss_shuffled_cameras": shuffled, "camera_gap": shuffled - true}
+               **kw: Any) -> dict[str, Any]:
+    """Flow loss with the clips' own cameras and with shuffled ones (``evaluation_loss``), their difference (the
+    camera-conditioning gap), its per-clip values and its standard error over clips."""
+    true = evaluation_loss(model, clips, config, cameras="true", per_clip=True, **kw)
+    shuffled = evaluation_loss(model, clips, config, cameras="shuffled", per_clip=True, **kw)
+    gaps = np.asarray(shuffled) - np.asarray(true)
+    se = float(gaps.std(ddof=1) / np.sqrt(len(gaps))) if len(gaps) > 1 else float("nan")
+    return {"loss_true_cameras": float(np.mean(true)), "loss_shuffled_cameras": float(np.mean(shuffled)),
+            "camera_gap": float(gaps.mean()), "camera_gap_se": se, "camera_gap_per_clip": gaps.tolist()}
 
 
 def trainable_parameter_list(model: CameraControlledWan, config: CameraTrainingConfig) -> list[torch.nn.Parameter]:

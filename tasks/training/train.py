@@ -133,7 +133,9 @@ def train(run_dir: str | os.PathLike, *, rank: int = 0, world_size: int = 1, dev
                             null_text=null_text(run_dir) if config.text_dropout > 0 else None)
     resumed_at = trainer.state.step if trainer.resume(run_dir) else 0
     held = open_clips(run_dir, "validation")
-    held = [held[i] for i in range(len(held))] if len(held) >= 2 and rank == 0 else []
+    # FSDP: every rank takes part in every forward (the shards are gathered collectively), so all validate
+    everyone = config.parallel == "fsdp" and world_size > 1
+    held = [held[i] for i in range(len(held))] if len(held) >= 2 and (rank == 0 or everyone) else []
 
     def step_hook(log) -> None:
         if on_step is not None:
@@ -141,7 +143,7 @@ def train(run_dir: str | os.PathLike, *, rank: int = 0, world_size: int = 1, dev
         if held and log.step % config.validate_every == 0:
             gap = camera_gap(model, held, config, device=device)
             trainer.state.validation.append({"step": log.step, **gap})
-            if on_validate is not None:
+            if on_validate is not None and rank == 0:
                 on_validate(trainer.state.validation)
 
     state = trainer.train(run_dir, steps=steps, on_step=step_hook)

@@ -28,6 +28,7 @@ EXPECTED = {  # deployment -> (entrypoint, pool kind)
     "explore-collection": ("flows/explore.py:explore_collection", "cpu"),
     "explore-scene": ("flows/explore.py:explore_scene", "gpu"),
     "evaluate-store": ("flows/evaluate.py:evaluate_store", "cpu"),
+    "train-camera": ("flows/train_camera.py:train_camera", "gpu"),
 }
 
 
@@ -133,7 +134,12 @@ def test_deployment_parameters_fit_the_flow_signatures(deployments, loaded_flows
         missing = {p: "x" * 64 for p in flow.parameters.required if p not in params}
         assert set(missing) <= {"scene_id", "run_id"}, f"{name}: required {set(missing)} have no default"
         validated = flow.validate_parameters({**params, **missing})
-        if "config" in params:
+        if "config" in params and name == "train-camera":
+            from navcrafter.schemas.training import CameraTrainingConfig
+
+            assert isinstance(validated["config"], CameraTrainingConfig)
+            assert validated["config"].data.sources and validated["config"].base
+        elif "config" in params:
             from navcrafter.schemas.config import RunConfig
 
             assert isinstance(validated["config"], RunConfig)
@@ -165,6 +171,8 @@ def test_store_parameter_is_the_compose_bucket(deployments, compose):
     script = " ".join(init["command"]) if isinstance(init["command"], list) else init["command"]
     buckets = set(re.findall(r"mc mb (?:--ignore-existing )?\w+/([\w.-]+)", script))
     for name, d in deployments.items():
+        if "store" not in d["parameters"]:  # train-camera: a run folder on the GPU node, no store
+            continue
         store = urlparse(d["parameters"]["store"])
         assert store.scheme == "s3" and store.netloc in buckets, f"{name}: store bucket is not created"
 
