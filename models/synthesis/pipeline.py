@@ -132,7 +132,7 @@ class TorchRunner:
 
     def _run(self, fn, *args) -> np.ndarray:
         with self.torch.no_grad():
-            return fn(*(self._t(a) for a in args)).float().cpu().numpy()
+            return fn(*(None if a is None else self._t(a) for a in args)).float().cpu().numpy()
 
     def encode_image_clip(self, pixel_values: np.ndarray) -> np.ndarray:
         return self._run(self._clip, pixel_values)
@@ -371,12 +371,14 @@ def prepare_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray, r
         ref_rays = np.asarray(plucker, dtype=np.float32)[:1]
     F, h, w = cond_lat.shape[2:]
     hidden_cond = np.concatenate([i2v_mask(F, h, w, st)[None], cond_lat], axis=1)  # [1, 20, F, h, w]
-    vis = pack_visibility_mask(torch.as_tensor(np.asarray(masks, dtype=np.float32))[None],
-                               (st, int(cfg["vae_scale_factor_spatial"]), int(cfg["vae_scale_factor_spatial"])))
-    cond = np.concatenate([render_lat, vis.numpy().astype(np.float32)], axis=1)  # [1, 20, F, h, w]
     expected = int(cfg["control"]["cond_channels"])
-    if cond.shape[1] != expected:
-        raise SynthesisShapeError(f"render condition has {cond.shape[1]} channels, the DiT expects {expected}")
+    cond = None  # a control trained without render conditioning (cond_channels = 0) has no such input
+    if expected:
+        vis = pack_visibility_mask(torch.as_tensor(np.asarray(masks, dtype=np.float32))[None],
+                                   (st, int(cfg["vae_scale_factor_spatial"]), int(cfg["vae_scale_factor_spatial"])))
+        cond = np.concatenate([render_lat, vis.numpy().astype(np.float32)], axis=1)  # [1, 20, F, h, w]
+        if cond.shape[1] != expected:
+            raise SynthesisShapeError(f"render condition has {cond.shape[1]} channels, the DiT expects {expected}")
     clip = runner.encode_image_clip(clip_preprocess(image, cfg["image_encoder"]))
     plk = np.ascontiguousarray(np.asarray(plucker, dtype=np.float32).transpose(3, 0, 1, 2)[None])
     ref_plk = np.ascontiguousarray(ref_rays.transpose(3, 0, 1, 2)[None])  # [1, 6, 1, H, W]
@@ -416,7 +418,8 @@ def sample_latents(runner: Runner, image: np.ndarray, plucker: np.ndarray, rende
 
     pair = lambda a: np.concatenate([a, a], axis=0)  # noqa: E731  (CFG pair: same conditions both rows)
     text = np.stack([pos, neg])
-    image_embeds, plucker2, cond2 = pair(c["image_embeds"]), pair(c["plucker"]), pair(c["cond"])
+    image_embeds, plucker2 = pair(c["image_embeds"]), pair(c["plucker"])
+    cond2 = None if c["cond"] is None else pair(c["cond"])
     hidden_cond2 = pair(c["hidden_cond"])
     ref2, ref_plucker2 = pair(c["image_reference"]), pair(c["image_reference_plucker"])
     lora = np.asarray(cfg.lora_scale, dtype=np.float32)

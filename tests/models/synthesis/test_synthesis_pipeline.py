@@ -262,3 +262,32 @@ def test_sampler_settings_come_from_the_run_config_alone():
     assert s.flow_shift == WAN_FLOW_SHIFT
     assert sampler_settings(SynthesisConfig(), 0, {"flow_shift": 5.0}).flow_shift == 5.0  # the model's own
     assert sampler_settings(SynthesisConfig(flow_shift=7.0), 0, {"flow_shift": 5.0}).flow_shift == 7.0  # the run's
+
+
+def test_a_control_trained_without_render_conditioning_samples(tmp_path, inputs):
+    """cond_channels = 0 (camera-control training on real datasets, which have no depth for the render
+    conditioning): the sampler passes no render condition, and the trained weights load into the tiny base."""
+    import dataclasses
+
+    from navcrafter.models.synthesis import pipeline as pl
+    from navcrafter.models.synthesis.camcontrol import (
+        TINY_I2V_CONFIG,
+        build_camera_wan,
+        randomize_camera_control,
+        save_camera_control,
+        tiny_camera_config,
+    )
+    from navcrafter.models.synthesis.onnx_export import tiny_components
+
+    model = build_camera_wan(TINY_I2V_CONFIG, dataclasses.replace(tiny_camera_config(), cond_channels=0), seed=0)
+    save_camera_control(randomize_camera_control(model, seed=1), tmp_path / "control")
+    components = tiny_components(seed=0, control_dir=tmp_path / "control")
+    assert components.dit.control.cond_embedding is None
+    assert components.weights["control"]["path"] == str((tmp_path / "control").resolve())
+    runner = pl.TorchRunner(components, T, H, W)
+    conds = pl.prepare_conditions(runner, **inputs)
+    assert conds["cond"] is None
+    pos, neg = components.text_embeddings
+    lat = pl.sample_latents(runner, **inputs, text_emb=pos, neg_text_emb=neg,
+                            cfg=pl.sampler_settings(SynthesisConfig(steps=2), seed=3), conditions=conds)
+    assert lat.shape == (1, 16, 2, H // 8, W // 8) and np.isfinite(lat).all()
