@@ -68,9 +68,9 @@ PSNR_CAP = 100.0  # dB, for a frame reproduced exactly (MSE 0)
 
 SIZES = {  # sequences per training dataset, held-out sequences, frames per sequence, clips per source, steps
     "quick": dict(train_sequences=12, eval_sequences=8, sequence_frames=33, clips_per_source=48,
-                  base_steps=500, control_steps=700),
-    "full": dict(train_sequences=24, eval_sequences=12, sequence_frames=41, clips_per_source=96,
-                 base_steps=1500, control_steps=2500),
+                  base_steps=1500, control_steps=1500),
+    "full": dict(train_sequences=48, eval_sequences=16, sequence_frames=41, clips_per_source=96,
+                 base_steps=3000, control_steps=3000),
 }
 
 
@@ -151,15 +151,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--seed", type=int, default=0, help="training data and model seed (development range: 0-9)")
-    ap.add_argument("--eval-seed", type=int, default=1000, help="seed of the held-out scenes and trajectories")
+    ap.add_argument("--seed", type=int, default=10, help="training data and model seed (the sizes and learning "
+                                                          "rates were tuned on seeds 0-9)")
+    ap.add_argument("--eval-seed", type=int, default=2000, help="seed of the held-out scenes and trajectories (tuned "
+                                                                "on 1000-1009; reported on others)")
     ap.add_argument("--sampling-steps", type=int, default=SynthesisConfig().steps)
     ap.add_argument("--base-steps", type=int, help="override the size's base steps")
     ap.add_argument("--control-steps", type=int, help="override the size's control steps")
     ap.add_argument("--full-rank", action=argparse.BooleanOptionalAction, default=None,
                     help="also train the control with full D x D projections (default: on without --quick)")
-    ap.add_argument("--base-lr", type=float, default=5e-4)
-    ap.add_argument("--control-lr", type=float, default=5e-4)
+    ap.add_argument("--base-lr", type=float, default=1e-3)
+    ap.add_argument("--control-lr", type=float, default=1e-3)
     args = ap.parse_args(argv)
     size = dict(SIZES["quick" if args.quick else "full"])
     if args.full_rank is None:
@@ -317,7 +319,9 @@ def markdown(r: dict) -> str:
         f"{s['mode']}. {s['frames']} frames at {s['resolution']}², {s['train_clips']} training clips "
         f"({', '.join(s['train_sources'])} formats), {s['heldout_clips']} held-out clips from other scenes and "
         f"trajectories (eval seed {s['eval_seed']}). Base {s['base_steps']} steps, control {s['control_steps']} steps "
-        f"(base frozen), AdamW, batch 1; sampling: DPM-solver {s['sampling_steps']} steps, LoRA "
+        f"(base frozen), AdamW lr {s['base_lr']:g} / {s['control_lr']:g} (the paper's 1e-4 is for a pretrained 14B "
+        f"model; these small models train from scratch in few steps), weight decay 3e-2, batch 1; "
+        f"sampling: DPM-solver {s['sampling_steps']} steps, LoRA "
         f"{s['lora_scale_inference']}, no CFG (no text).", "",
         "| | flow loss, true cameras | flow loss, shuffled cameras | camera gap | PSNR | SSIM |",
         "|---|---|---|---|---|---|",
