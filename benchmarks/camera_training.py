@@ -50,6 +50,7 @@ from navcrafter.models.metrics.image import psnr, ssim
 from navcrafter.models.simulation.datasets import write_dataset
 from navcrafter.models.synthesis.camcontrol import CameraControlConfig, build_camera_wan
 from navcrafter.models.synthesis.encoders import PCAEncoders, PixelShuffleEncoders
+from navcrafter.models.synthesis.pipeline import video_to_frames
 from navcrafter.models.synthesis.training import (
     CameraTrainer,
     camera_gap,
@@ -102,11 +103,6 @@ def precompute(store: Path, config: CameraTrainingConfig, encoders) -> ClipDatas
     return ClipDataset(store)
 
 
-def to_uint8(video: np.ndarray) -> np.ndarray:
-    """``[3, T, H, W]`` in [-1, 1] -> uint8 ``[T, H, W, 3]``."""
-    return np.rint(np.clip((video + 1.0) * 127.5, 0, 255)).astype(np.uint8).transpose(1, 2, 3, 0)
-
-
 def frame_scores(pred: np.ndarray, true: np.ndarray) -> tuple[float, float]:
     """Mean PSNR / SSIM over frames 1.. (frame 0 is the given image)."""
     p, t = pred[1:].astype(np.float32) / 255.0, true[1:].astype(np.float32) / 255.0
@@ -125,7 +121,7 @@ def evaluate_sampling(model, clips: list[dict], truth: list[np.ndarray], encoder
         if cameras == "wrong":
             c["plucker"] = conds[(i + 1) % n]["plucker"]
         z = sample_clip(model, c, seed=seed + i, steps=steps, guidance_scale=1.0, lora_scale=lora, flow_shift=shift)
-        video = to_uint8(encoders.decode_video(z[0].numpy()))
+        video = video_to_frames(encoders.decode_video(z[0].numpy()))
         p, s = frame_scores(video, true)
         ps.append(p)
         ss.append(s)
@@ -204,10 +200,10 @@ def main(argv: list[str] | None = None) -> int:
     eval_store = precompute(out / "heldout-clips.zarr", eval_cfg, encoders)
     eval_clips = [eval_store[i] for i in range(len(eval_store))]
     exact_eval = precompute(out / "heldout-exact.zarr", eval_cfg, exact)
-    truth = [to_uint8(exact.decode_video(np.asarray(exact_eval[i]["latents"]))) for i in range(len(exact_eval))]
+    truth = [video_to_frames(exact.decode_video(np.asarray(exact_eval[i]["latents"]))) for i in range(len(exact_eval))]
     timings["data_s"] = time.perf_counter() - t0
 
-    ae = [frame_scores(to_uint8(encoders.decode_video(np.asarray(c["latents"]))), t)[0]
+    ae = [frame_scores(video_to_frames(encoders.decode_video(np.asarray(c["latents"]))), t)[0]
           for c, t in zip(eval_clips, truth)]
     autoencoder_psnr = float(np.mean(ae))
 

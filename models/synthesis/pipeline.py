@@ -438,11 +438,15 @@ def sample_latents(runner: Runner, image: np.ndarray, plucker: np.ndarray, rende
     return latents.numpy().astype(np.float32)
 
 
+def video_to_frames(video: np.ndarray) -> np.ndarray:
+    """A decoded video float ``[3, T, H, W]`` in [-1, 1] -> uint8 frames ``[T, H, W, 3]`` (``_to_video``'s inverse)."""
+    video = np.clip((np.asarray(video) + 1.0) * 127.5, 0.0, 255.0)
+    return np.rint(video).astype(np.uint8).transpose(1, 2, 3, 0).copy()
+
+
 def decode_video(runner: Runner, latents: np.ndarray) -> np.ndarray:
     """Normalised latents ``[1, 16, F, h, w]`` -> uint8 frames ``[T, H, W, 3]``."""
-    video = runner.vae_decode(np.asarray(latents, dtype=np.float32))[0]  # [3, T, H, W] in [-1, 1]
-    video = np.clip((video + 1.0) * 127.5, 0.0, 255.0)
-    return np.rint(video).astype(np.uint8).transpose(1, 2, 3, 0).copy()
+    return video_to_frames(runner.vae_decode(np.asarray(latents, dtype=np.float32))[0])
 
 
 def sample_video(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders: np.ndarray, masks: np.ndarray,

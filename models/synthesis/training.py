@@ -35,6 +35,7 @@ single process writes (index-keyed optimizer state included), so either kind of 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -55,6 +56,7 @@ from navcrafter.models.synthesis.camcontrol import (
     plucker_to_tensor,
     save_camera_control,
 )
+from navcrafter.models.synthesis.pipeline import i2v_mask
 from navcrafter.schemas.training import CHECKPOINT_DIR, CameraTrainingConfig
 
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -96,12 +98,6 @@ def shift_sigma(u: torch.Tensor | float, shift: float) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------------
 # Model inputs of one clip
 # --------------------------------------------------------------------------------------------------
-def _i2v_mask(num_latent_frames: int, h: int, w: int, temporal: int) -> np.ndarray:
-    from navcrafter.models.synthesis.pipeline import i2v_mask
-
-    return i2v_mask(num_latent_frames, h, w, temporal)
-
-
 def clip_conditions(model: CameraControlledWan, clip: dict[str, Any], device: torch.device | str = "cpu",
                     ) -> dict[str, torch.Tensor | None]:
     """Everything the DiT sees of a stored clip besides the noisy latents, as batch-1 tensors.
@@ -125,7 +121,7 @@ def clip_conditions(model: CameraControlledWan, clip: dict[str, Any], device: to
     H, W = h * sh, w * sw
     if (T - 1) // st + 1 != Fl:
         raise TrainingDataError(f"clip {name}: {T} cameras but {Fl} latent frames (temporal stride {st})")
-    mask = _i2v_mask(Fl, h, w, st)
+    mask = i2v_mask(Fl, h, w, st)
     hidden_cond = np.concatenate([mask, np.asarray(clip["image_latents"], dtype=np.float32)], axis=0)
     rays = plucker_rays(c2w, K, H, W, convention=cfg.plucker_convention)
     out: dict[str, torch.Tensor | None] = {
@@ -144,7 +140,7 @@ def clip_conditions(model: CameraControlledWan, clip: dict[str, Any], device: to
         out["cond"] = make_render_condition(torch.as_tensor(np.asarray(clip["render_latents"], np.float32))[None],
                                             torch.as_tensor(np.asarray(clip["visibility"], np.float32))[None],
                                             cfg.vae_stride)
-    if "reference_latents" in clip and _accepts(model, "image_reference"):
+    if "reference_latents" in clip:
         from navcrafter.models.camera.cameras import clip_relative_rays
 
         out["image_reference"] = torch.as_tensor(np.asarray(clip["reference_latents"], np.float32))[None]
@@ -152,12 +148,6 @@ def clip_conditions(model: CameraControlledWan, clip: dict[str, Any], device: to
                                       convention=cfg.plucker_convention)
         out["image_reference_plucker"] = plucker_to_tensor(ref_rays)
     return {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
-
-
-def _accepts(model: CameraControlledWan, name: str) -> bool:
-    import inspect
-
-    return name in inspect.signature(model.forward).parameters
 
 
 def flow_loss(model: torch.nn.Module, inner: CameraControlledWan, c: dict[str, torch.Tensor | None],
@@ -336,7 +326,7 @@ class CameraTrainer:
         for j, index in enumerate(indices):
             c = clip_conditions(self.model, self.clips[self.clip_of(index)], self.device)
             last = j == len(indices) - 1
-            ctx = _nullcontext()
+            ctx = contextlib.nullcontext()
             if self.sharded:  # FSDP2's no_sync: keep the unsharded gradients, reduce-scatter after the last
                 self.wrapped.set_requires_gradient_sync(last)
             elif self.world_size > 1 and not last:
@@ -498,14 +488,6 @@ class CameraTrainer:
         return self.state
 
 
-class _nullcontext:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     root = Path(run_dir) / CHECKPOINT_DIR
     marker = root / LATEST
@@ -557,7 +539,9 @@ def evaluation_loss(model: CameraControlledWan, clips: Sequence[dict[str, Any]],
             clip_total += float(flow_loss(model, model, c, g, config, camera=mode, sigma=float(s)))
         losses.append(clip_total / len(sigmas))
     model.train(was)
-    return losses if per_clip else float(np.mean(losses)) if losses else 0.0
+    if per_clip:
+        return losses
+    return float(np.mean(losses)) if losses else 0.0
 
 
 def camera_gap(model: CameraControlledWan, clips: Sequence[dict[str, Any]], config: CameraTrainingConfig,

@@ -166,18 +166,10 @@ def launch(run_dir: str | os.PathLike, nproc: int, *, timeout: float | None = No
 
 def validate(run_dir: str | os.PathLike) -> dict[str, Any]:
     """The camera-conditioning gap of the newest checkpoint on the validation clips (train clips when there
-    are none), written to ``RUN/validation.json``; also appended to the run's history."""
-    from navcrafter.models.synthesis.training import camera_gap, latest_checkpoint
+    are fewer than 2), written to ``RUN/validation.json``."""
+    from navcrafter.models.synthesis.training import camera_gap
 
-    config = load_run_config(run_dir)
-    model = build_model(config)
-    ckpt = latest_checkpoint(run_dir)
-    if ckpt is None:
-        raise TrainingRunError(f"{run_dir}: no checkpoint to validate; train first")
-    from navcrafter.models.synthesis.camcontrol import load_camera_control
-
-    load_camera_control(model, ckpt)
-    _load_base_if_trained(model, ckpt)
+    config, ckpt, model = checkpoint_model(run_dir, "validate")
     clips = open_clips(run_dir, "validation")
     split = "validation"
     if len(clips) < 2:
@@ -194,17 +186,11 @@ def sample_frames_png(run_dir: str | os.PathLike, index: int = 0, frames: int = 
     strength ``synthesis.lora_scale``, no CFG)."""
     from PIL import Image
 
-    from navcrafter.models.synthesis.camcontrol import load_camera_control
-    from navcrafter.models.synthesis.training import clip_conditions, latest_checkpoint, sample_clip
+    from navcrafter.models.synthesis.pipeline import video_to_frames
+    from navcrafter.models.synthesis.training import clip_conditions, sample_clip
     from navcrafter.schemas.config import SynthesisConfig
 
-    config = load_run_config(run_dir)
-    ckpt = latest_checkpoint(run_dir)
-    if ckpt is None:
-        raise TrainingRunError(f"{run_dir}: no checkpoint to sample; train first")
-    model = build_model(config)
-    load_camera_control(model, ckpt)
-    _load_base_if_trained(model, ckpt)
+    config, _, model = checkpoint_model(run_dir, "sample")
     clips = open_clips(run_dir, "validation")
     if len(clips) == 0:
         clips = open_clips(run_dir, "train")
@@ -213,11 +199,8 @@ def sample_frames_png(run_dir: str | os.PathLike, index: int = 0, frames: int = 
     z = sample_clip(model, clip_conditions(model, clip), seed=config.seed, steps=config.validation_sampling_steps,
                     guidance_scale=1.0, lora_scale=SynthesisConfig().lora_scale, flow_shift=config.flow_shift)
 
-    def frames_of(latents) -> np.ndarray:
-        v = np.asarray(encoders.decode_video(np.asarray(latents, np.float32)))
-        return np.rint(np.clip((v + 1) * 127.5, 0, 255)).astype(np.uint8).transpose(1, 2, 3, 0)
-
-    rows = [frames_of(clip["latents"]), frames_of(z[0].numpy())]
+    rows = [video_to_frames(encoders.decode_video(np.asarray(latents, np.float32)))
+            for latents in (clip["latents"], z[0].numpy())]
     T, H, W = rows[0].shape[:3]
     pick = np.linspace(0, T - 1, min(frames, T)).round().astype(int)
     strip = np.concatenate([np.concatenate([r[i] for i in pick], axis=1) for r in rows], axis=0)
@@ -226,25 +209,32 @@ def sample_frames_png(run_dir: str | os.PathLike, index: int = 0, frames: int = 
     return buf.getvalue()
 
 
-def _load_base_if_trained(model, ckpt: Path) -> None:
-    if (ckpt / "base.safetensors").is_file():
+def checkpoint_model(run_dir: str | os.PathLike, what: str, *, with_base: bool = True):
+    """``(config, checkpoint folder, model)`` of the run's newest checkpoint: the control weights loaded, and the
+    base too when the run trained it and ``with_base``; ``what`` names the caller's action in the error."""
+    from navcrafter.models.synthesis.camcontrol import load_camera_control
+    from navcrafter.models.synthesis.training import latest_checkpoint
+
+    config = load_run_config(run_dir)
+    ckpt = latest_checkpoint(run_dir)
+    if ckpt is None:
+        raise TrainingRunError(f"{run_dir}: no checkpoint to {what}; train first")
+    model = build_model(config)
+    load_camera_control(model, ckpt)
+    if with_base and (ckpt / "base.safetensors").is_file():
         from safetensors.torch import load_file
 
         model.base.load_state_dict(load_file(str(ckpt / "base.safetensors")), strict=True)
+    return config, ckpt, model
 
 
 def export_control(run_dir: str | os.PathLike) -> Path:
     """``RUN/control``: the newest checkpoint's control weights, their config's ``extra`` recording the
     training data and steps (what ``export-synthesizer --control`` copies into the manifest)."""
-    from navcrafter.models.synthesis.camcontrol import load_camera_control, save_camera_control
-    from navcrafter.models.synthesis.training import STATE_FILE, latest_checkpoint
+    from navcrafter.models.synthesis.camcontrol import save_camera_control
+    from navcrafter.models.synthesis.training import STATE_FILE
 
-    config = load_run_config(run_dir)
-    ckpt = latest_checkpoint(run_dir)
-    if ckpt is None:
-        raise TrainingRunError(f"{run_dir}: no checkpoint to export; train first")
-    model = build_model(config)
-    load_camera_control(model, ckpt)
+    config, ckpt, model = checkpoint_model(run_dir, "export", with_base=False)  # only the control is written
     state = json.loads((ckpt / STATE_FILE).read_text())
     model.config.extra = {**model.config.extra, "training": {
         "steps": state["step"], "samples": state["data_position"],
@@ -255,8 +245,7 @@ def export_control(run_dir: str | os.PathLike) -> Path:
     return save_camera_control(model, Path(run_dir) / FINAL_CONTROL_DIR)
 
 
-def loss_curve_png(history: list[dict[str, float]], validation: list[dict[str, float]] | None = None,
-                   size: tuple[int, int] = (480, 240)) -> bytes:
+def loss_curve_png(history: list[dict[str, float]], size: tuple[int, int] = (480, 240)) -> bytes:
     """A PNG of the training loss (grey: per step; black: running mean) — PIL only."""
     from PIL import Image, ImageDraw
 
