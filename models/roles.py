@@ -3,9 +3,11 @@
 Each backend (``simulation``, ``onnx``) provides objects satisfying these protocols. Tasks only talk
 to the protocols, so a backend can be swapped by configuration.
 
-``hint_c2w`` arguments carry the world poses at which frames were *requested* (the planned
-trajectory). Learned backends ignore them: a real geometry model estimates cameras from pixels. The
-simulation backend uses them as its ground truth, since its synthesizer renders exactly those poses.
+``hint_*`` arguments carry the simulation's hidden truth of the frames: ``hint_c2w`` the world poses at which
+they were really taken (the synthesize step's stored truth, which differs from the requested trajectory when the
+video model drifts), ``hint_depth`` the depth of what they show (hallucinated content included). Learned
+backends ignore them: a real geometry model estimates cameras and depth from pixels. The simulated roles need
+them, since their outputs are the truth corrupted like a model's.
 """
 
 from __future__ import annotations
@@ -68,7 +70,8 @@ class Geometry(Protocol):
     backend: str
 
     def predict(self, frames: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
-                hint_intrinsics: Intrinsics | None = None) -> GeometryPrediction:
+                hint_intrinsics: Intrinsics | None = None,
+                hint_depth: list[np.ndarray | None] | None = None) -> GeometryPrediction:
         """Cameras, depth and confidence for frames ``[S, H, W, 3]`` uint8."""
 
 
@@ -77,7 +80,7 @@ class MonoDepth(Protocol):
     backend: str
 
     def predict(self, image: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
-                hint_intrinsics: Intrinsics | None = None) -> MonoDepthPrediction:
+                hint_intrinsics: Intrinsics | None = None, hint_depth: np.ndarray | None = None) -> MonoDepthPrediction:
         """Relative inverse depth and sky mask of one image ``[H, W, 3]`` uint8."""
 
 

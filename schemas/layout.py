@@ -210,7 +210,8 @@ PLAN = StepSpec(
     attrs=("strategy", "chosen"),
     iterative=True,
     extra={"topdown.png": "file: top-down plot of cloud, candidates and trajectories"},
-    body="plan:plan", models=MODEL_ROLES,
+    # version 2: the search space is the quarter sphere about o, and iteration k starts at the estimated last camera
+    body="plan:plan", models=MODEL_ROLES, version=2,
     reads=(Read("cloud", at="k-1"), Read("plan", at="k-1", otherwise="geometry")),
     keyed_by=(Key("plan", "plan"), Key("frames", ("synthesis.num_frames", "synthesis.height", "synthesis.width")),
               Key("point_size", "lift.voxel_size")),
@@ -220,7 +221,16 @@ SYNTHESIZE = StepSpec(
     "synthesize", "iter_{k}/synthesize",
     "The video clip synthesized along the trajectory of iteration k, conditioned on the view at its first camera "
     "(the working image, then the last frame of clip k-1) with the input photo as an extra reference from k = 2.",
-    arrays=(ArraySpec("frames", "uint8", ("T", "H", "W", 3), (1, "H", "W", 3), "RGB frames"),),
+    arrays=(ArraySpec("frames", "uint8", ("T", "H", "W", 3), (1, "H", "W", 3), "RGB frames"),
+            # the simulation's hidden truth of the clip, never read by a step that stands for a real model's
+            # input (only the simulated roles and the ground-truth metrics read it)
+            ArraySpec("true_c2w", "float64", ("T", 4, 4), ("T", 4, 4), "simulation only: world c2w at which each "
+                      "frame was really taken (the requested path plus the video model's drift)", optional=True),
+            ArraySpec("true_depth", "float32", ("T", "H", "W"), (1, "H", "W"), "simulation only: z-depth (world "
+                      "units) of what each frame shows, hallucinated content included; 0 = sky", optional=True),
+            ArraySpec("true_quality", "float32", ("T",), ("T",), "simulation only: per frame, the fraction of "
+                      "pixels that show the true scene (1) rather than hallucinated or corrupted content",
+                      optional=True)),
     iterative=True,
     body="synthesize:synthesize", gpu=True, models=MODEL_ROLES,
     # the conditioning image: the last frame of clip k-1, for k = 1 the working image (ingest); the reference
@@ -243,7 +253,7 @@ LIFT = StepSpec(
     ),
     attrs=("scale", "n_new_points", "n_points"),
     iterative=True,
-    body="lift:lift", gpu=True, models=MODEL_ROLES,
+    body="lift:lift", gpu=True, models=MODEL_ROLES, version=2,  # 2: a bit-reproducible ICP of our own
     reads=(Read("ingest"), Read("geometry"), Read("plan", at="k"), Read("synthesize", at="k"), Read("cloud", at="k-1")),
     keyed_by=(Key("lift", "lift"), _SIM),
 )
@@ -334,7 +344,8 @@ EVALUATE = StepSpec(
     "Scene metrics (tasks/scene_metrics.py), kept so that a rerun does not recompute them; also appended "
     "to the metrics table.",
     attrs=("metrics", "iterations"),
-    body="scene_metrics:evaluate", stage="report", version=2,  # 2: attrs record the iterations
+    # version 2: attrs record the iterations; 3: true-path, per-iteration and close-frame metrics
+    body="scene_metrics:evaluate", stage="report", version=3,
     reads=(Read("export"),),  # the export's key covers every step before it
     keyed_by=(Key("backend", "backend"), Key("plan", "plan"), Key("iterations", "iterations")),
 )

@@ -283,6 +283,12 @@ class SceneStore:
         self.require_complete(step, k)
         return self._open(step.group_path(k))[name].oindex[list(rows)]
 
+    def has(self, step: StepSpec, k: int | None, name: str) -> bool:
+        """Whether a complete step wrote the (optional) array ``name``."""
+        step.array(name)
+        self.require_complete(step, k)
+        return name in self._open(step.group_path(k))
+
     def read_all(self, step: StepSpec, k: int | None = None) -> dict[str, np.ndarray]:
         self.require_complete(step, k)
         g = self._open(step.group_path(k))

@@ -1,8 +1,9 @@
 """Fit: geometry-aware 3D Gaussian Splatting from the scene's cloud and frames (paper, Sec. III-D).
 
-* **Frames and cameras.** Every synthesized frame of iterations 1..N at the camera it was synthesized for:
-  the planned pose (``iter_k/plan`` trajectory) and intrinsics. The synthesizer is camera-controlled, so
-  these are its cameras; the lift step's poses are the geometry model's re-estimates of a subset. Frame 0 of
+* **Frames and cameras.** Every synthesized frame of iterations 1..N at its *estimated* camera, as the paper
+  fits on the geometry model's cameras (``readers.camera_path(cameras="estimated")``: the lift step's aligned
+  poses, interpolated as a correction of the plan between the frames it lifted), with the planned intrinsics. A
+  video model does not follow the requested cameras exactly, so the plan is not the frames' camera. Frame 0 of
   clip k >= 2 repeats the last frame of clip k-1 (same pose) and is left out, so no held-out camera also
   appears in training. Every ``fit.holdout_every``-th frame of that sequence (0, n, 2n, ...) is held out; of
   the others every ``fit.train_stride``-th is trained on (1: all).
@@ -56,13 +57,13 @@ from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.layout import LIFT, SYNTHESIZE
 from navcrafter.tasks.common import logger
 from navcrafter.tasks.progress import TrainingProgress
-from navcrafter.tasks.readers import camera_path
+from navcrafter.tasks.readers import camera_path, frame_truth
 from navcrafter.tasks.steps import StepContext
 
 
 def fit(ctx: StepContext) -> dict:
     cfg, N, scene, seed = ctx.config.fit, ctx.config.iterations, ctx.scene, ctx.seed
-    path = camera_path(scene, ctx.config).distinct()
+    path = camera_path(scene, ctx.config, cameras="estimated").distinct()
     refs, c2w, K_full = path.refs, path.c2w, path.K
     frames = {k: scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)}
     H, W = frames[1].shape[1:3]
@@ -95,7 +96,8 @@ def fit(ctx: StepContext) -> dict:
         else:
             continue
         img = frames[ref[0]][ref[1]]
-        mono = ctx.backend.mono_depth.predict(img, seed=seed + int(f), hint_c2w=c2w[f][None])
+        true_c2w, true_depth = frame_truth(scene, ref[0], [ref[1]])  # hints of the simulated role only
+        mono = ctx.backend.mono_depth.predict(img, seed=seed + int(f), hint_c2w=true_c2w, hint_depth=true_depth[0])
         try:
             cal = calibrate_depth(mono.inv_depth, d_v, valid, mono.sky)
         except CalibrationError as exc:

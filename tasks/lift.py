@@ -12,6 +12,7 @@ import numpy as np
 
 from navcrafter.models.reconstruction.lifting import lift_prediction, pose_deviation, select_views
 from navcrafter.schemas.layout import GEOMETRY, INGEST, PLAN, SYNTHESIZE
+from navcrafter.tasks.readers import frame_truth
 from navcrafter.tasks.steps import StepContext
 
 
@@ -23,8 +24,10 @@ def lift(ctx: StepContext) -> dict:
     frames = scene.read(SYNTHESIZE, k, "frames")
     views = select_views(len(frames), cfg.max_views)
     images = np.concatenate([work[None], frames[views]])
-    hint = np.concatenate([np.eye(4)[None], trajectory[views]])
-    pred = ctx.backend.geometry.predict(images, seed=ctx.seed, hint_c2w=hint)
+    # hints of the simulated geometry (ignored by learned models): where the frames really are, what they show
+    true_c2w, true_depth = frame_truth(scene, k, views)
+    hint = np.concatenate([np.eye(4)[None], true_c2w])
+    pred = ctx.backend.geometry.predict(images, seed=ctx.seed, hint_c2w=hint, hint_depth=[None, *true_depth])
     out = lift_prediction(frames[views], pred, geo["depth"], geo["confidence"], ctx.cloud(k - 1),
                           confidence_threshold=cfg.confidence_threshold, pixel_stride=cfg.pixel_stride,
                           max_depth=cfg.max_depth, voxel_size=cfg.voxel_size, icp=cfg.icp,

@@ -9,13 +9,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from navcrafter.models.camera.cameras import Intrinsics
+from navcrafter.models.camera.cameras import Intrinsics, interpolate_poses, invert_pose
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
 from navcrafter.models.planning.planners import scene_centre
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import FIT, GEOMETRY, PLAN, REFINE, SYNTHESIZE, StepSpec
+from navcrafter.schemas.layout import FIT, GEOMETRY, LIFT, PLAN, REFINE, SYNTHESIZE, StepSpec
 from navcrafter.schemas.store import SceneStore
 
 
@@ -61,21 +61,69 @@ class CameraPath:
         return Intrinsics.from_matrix(self.K[f], self.width, self.height)
 
 
-def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = None) -> CameraPath:
+def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = None,
+                cameras: str = "planned") -> CameraPath:
     """Every frame of clips 1..``iterations`` (default ``config.iterations``; with the repeated first frames,
-    which ``.distinct()`` drops), at the synthesis size."""
+    which ``.distinct()`` drops), at the synthesis size.
+
+    ``cameras``: ``"planned"``, the poses the frames were requested at (the plan steps' trajectories);
+    ``"estimated"``, the geometry model's cameras (the paper fits 3DGS on these): the lift step's aligned pose on
+    the frames it ran the geometry model on, and on the others the planned pose corrected by the estimate's
+    deviation from the plan, interpolated between the nearest estimated frames (frame 0 of a clip is where the
+    previous clip's estimate ended, or the input camera, so its deviation is zero)."""
+    if cameras not in ("planned", "estimated"):
+        raise ValueError(f"cameras must be 'planned' or 'estimated', got {cameras!r}")
     iterations = config.iterations if iterations is None else iterations
     ks, idx, c2w, K = [], [], [], []
     for k in range(1, iterations + 1):
         traj, Kk = scene.read(PLAN, k, "trajectory"), scene.read(PLAN, k, "K")
+        traj = np.asarray(traj, dtype=np.float64)
+        if cameras == "estimated":
+            traj = estimated_clip_cameras(traj, scene.read(LIFT, k, "view_index"), scene.read(LIFT, k, "c2w"))
         ks += [k] * len(traj)
         idx += list(range(len(traj)))
-        c2w.append(np.asarray(traj, dtype=np.float64))
+        c2w.append(traj)
         K.append(np.repeat(np.asarray(Kk, dtype=np.float64)[None], len(traj), axis=0))
     height, width = config.synthesis.height, config.synthesis.width
     return CameraPath(np.asarray(ks, dtype=np.int64), np.asarray(idx, dtype=np.int64),
                       np.concatenate(c2w) if c2w else np.zeros((0, 4, 4)),
                       np.concatenate(K) if K else np.zeros((0, 3, 3)), int(width), int(height))
+
+
+def estimated_clip_cameras(planned: np.ndarray, view_index: np.ndarray, estimated: np.ndarray) -> np.ndarray:
+    """Cameras of every frame of a clip from the estimates of some (see ``camera_path``): the correction
+    ``E_i = est_i @ inv(plan_i)`` is known at frame 0 (identity) and at the estimated frames, and interpolated in
+    between (rotation by SLERP, translation linearly), then applied to the plan."""
+    T = len(planned)
+    known = {0: np.eye(4)}
+    for j, i in enumerate(np.asarray(view_index)):
+        known[int(i)] = np.asarray(estimated[j], dtype=np.float64) @ invert_pose(planned[int(i)])
+    at = sorted(known)
+    out = np.empty_like(planned)
+    for i in range(T):
+        if i in known:
+            out[i] = known[i] @ planned[i]
+            continue
+        hi = next((a for a in at if a > i), None)
+        lo = max(a for a in at if a < i)
+        if hi is None:
+            corr = known[lo]
+        else:
+            corr = interpolate_poses(known[lo], known[hi], hi - lo + 1)[i - lo]
+        out[i] = corr @ planned[i]
+    return out
+
+
+def frame_truth(scene: SceneStore, k: int, frames: np.ndarray) -> tuple[np.ndarray, list[np.ndarray | None]]:
+    """The simulation's hidden truth of frames of clip k (the synthesize step's ``true_c2w`` / ``true_depth``):
+    the hints of the simulated Geometry and MonoDepth roles, which learned backends ignore. A store written
+    before the truth was kept gives the planned poses and no depth."""
+    frames = np.asarray(frames, dtype=np.int64)
+    if scene.has(SYNTHESIZE, k, "true_c2w"):
+        c2w = scene.read(SYNTHESIZE, k, "true_c2w")[frames]
+        depth = scene.read_rows(SYNTHESIZE, k, "true_depth", frames)
+        return c2w, list(depth)
+    return scene.read(PLAN, k, "trajectory")[frames], [None] * len(frames)
 
 
 def input_pose(scene: SceneStore) -> np.ndarray:
@@ -84,8 +132,17 @@ def input_pose(scene: SceneStore) -> np.ndarray:
 
 
 def current_pose(scene: SceneStore, k: int) -> np.ndarray:
-    """Where iteration k starts: the input camera, then the last pose of the previous trajectory."""
-    return np.eye(4) if k == 1 else scene.read(PLAN, k - 1, "trajectory")[-1]
+    """Where iteration k starts: the input camera, then the geometry model's estimate of the camera of clip
+    k-1's last frame (``iter_{k-1}/lift``, which always lifts the last frame): the next clip is conditioned on that
+    frame, so its motion is planned from where the frame is believed to be, not from where it was requested."""
+    if k == 1:
+        return np.eye(4)
+    T = len(scene.read(PLAN, k - 1, "trajectory"))
+    views = np.asarray(scene.read(LIFT, k - 1, "view_index"))
+    last = np.flatnonzero(views == T - 1)
+    if len(last) == 0:
+        raise ValueError(f"iter_{k - 1}/lift did not lift the clip's last frame ({T - 1}); cannot start iteration {k}")
+    return np.asarray(scene.read(LIFT, k - 1, "c2w")[int(last[0])], dtype=np.float64)
 
 
 def stored_scene_centre(scene: SceneStore, config: RunConfig) -> np.ndarray:

@@ -9,8 +9,21 @@ unit is the metre (rooms are 5-7 m across, table-tops 6 m rooms with 0.1-0.2 m o
 * ``noise_ratio``: fraction of reconstructed points farther than 2 cm from every true surface;
 * ``fscore``: harmonic mean of precision (1 - noise ratio) and coverage;
 * ``collisions``: trajectory samples (every frame of every iteration) closer than ``r_safe`` to a
-  true surface or inside an object; ``collision_rate`` is their fraction;
-* distances of points to the true surfaces (median, mean, p90) and the median camera error.
+  true surface or inside an object; ``collision_rate`` is their fraction. Measured on the true camera
+  path (``true_c2w`` of each clip's synthesize step: where the simulated video model really took each
+  frame); a clip stored without it (older stores) counts at its planned trajectory;
+* ``coverage_iter_<k>`` (k = 0..N): coverage of the cloud after iteration k (0: the initial cloud), with
+  the reference points of ``coverage``; ``new_surface_iter_<k>`` (k = 1..N): coverage_iter_k minus
+  coverage_iter_(k-1);
+* ``close_frames``: fraction of all frames of all clips (at their true cameras) dominated by a surface
+  nearer than 2 r_safe: more than half of the pixels of a depth render (64 px on the longer side) hit a
+  true surface at z-depth below 2 r_safe; ``close_frames_last_third``: the same over the last third of the
+  frames of the whole path (a video that ends staring at a wall);
+* ``true_quality_mean``: mean over all frames of the simulation's ``true_quality`` (fraction of each
+  frame's pixels that show the true scene), when stored;
+* distances of points to the true surfaces (median, mean, p90) and ``camera_median_err_m``: the median
+  distance of the lifted camera centres to the true ones (``true_c2w``; the requested ones for a clip
+  stored without it).
 """
 
 from __future__ import annotations
@@ -18,18 +31,21 @@ from __future__ import annotations
 import numpy as np
 
 from navcrafter.models.metrics.cloud import (
-    UNITS,
+    close_frame_mask,
+    close_frame_metrics,
+    coverage_fraction,
     coverage_metrics,
     surface_distance_stats,
     trajectory_collisions,
+    unit,
 )
 from navcrafter.models.planning.planners import search_space
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, LIFT, PLAN
+from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, SYNTHESIZE
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import load_cloud, simulation_truth
-from navcrafter.tasks.readers import camera_path, stored_scene_centre
+from navcrafter.tasks.readers import stored_scene_centre
 from navcrafter.tasks.steps import StepContext
 
 
@@ -41,7 +57,7 @@ def evaluate(ctx: StepContext) -> dict:
     now = utcnow()
     ctx.scene.store.tables.write(
         "metrics", [{"scene_id": ctx.scene_id, "run_id": ctx.run_id, "name": k, "value": v,
-                     "unit": UNITS.get(k), "backend": config.backend, "created_at": now}
+                     "unit": unit(k), "backend": config.backend, "created_at": now}
                     for k, v in metrics.items()], part=f"scene-{ctx.scene_id}-{ctx.writer.exec_id}")
     return {"metrics": metrics, "iterations": config.iterations}
 
@@ -50,6 +66,25 @@ def evaluate_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str
     """Run (or read back) the evaluate step of a finished scene: its metrics."""
     attrs = steps.run_attrs(store_uri, scene_id, "evaluate", config, run_id)
     return {k: float(v) for k, v in attrs["metrics"].items()}
+
+
+def true_array(scene, k: int, name: str) -> np.ndarray | None:
+    """An optional simulation-only array of clip ``k``'s synthesize step (``true_c2w``, ``true_depth``,
+    ``true_quality``), or ``None`` when the store has none (older stores, other backends)."""
+    return scene.read(SYNTHESIZE, k, name) if scene.has(SYNTHESIZE, k, name) else None
+
+
+def true_clip_cameras(scene, k: int) -> np.ndarray:
+    """World c2w ``[T, 4, 4]`` of every frame of clip ``k`` where it was really taken (``true_c2w``), the
+    planned trajectory for a clip stored without it."""
+    c2w = true_array(scene, k, "true_c2w")
+    return np.asarray(scene.read(PLAN, k, "trajectory") if c2w is None else c2w, dtype=np.float64)
+
+
+def true_camera_path(scene, config: RunConfig) -> np.ndarray:
+    """``true_clip_cameras`` of clips 1..N, concatenated."""
+    parts = [true_clip_cameras(scene, k) for k in range(1, config.iterations + 1)]
+    return np.concatenate(parts) if parts else np.zeros((0, 4, 4))
 
 
 def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
@@ -61,6 +96,10 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
 
     plan_attrs = [scene.status(PLAN, k).attrs for k in range(1, config.iterations + 1)]
     metrics["plan_seconds"] = float(sum(a.get("seconds", 0.0) for a in plan_attrs))
+    quality = [q for q in (true_array(scene, k, "true_quality") for k in range(1, config.iterations + 1))
+               if q is not None]
+    if quality and sum(len(q) for q in quality):
+        metrics["true_quality_mean"] = float(np.concatenate(quality).astype(np.float64).mean())
     truth = simulation_truth(scene) if config.backend == "simulation" else None
     if truth is not None:
         points_gt = truth.gt_points(cloud.points)
@@ -69,16 +108,26 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
         centre = stored_scene_centre(scene, config)
         d0 = float(np.linalg.norm(centre))
         r_safe_m = config.plan.safe_radius / truth.world_scale
-        reference = reference_points(truth, centre, d0, search_space(config.plan),
-                                     max(1, config.iterations), r_safe_m)
+        reference = reference_points(truth, centre, d0, search_space(config.plan), r_safe_m)
         metrics.update(coverage_metrics(points_gt, reference, dist))
-        path = camera_path(scene, config)
+        previous = None
+        for k in range(config.iterations + 1):
+            cov = metrics["coverage"] if k == config.iterations else \
+                coverage_fraction(truth.gt_points(load_cloud(scene, k).points), reference)
+            metrics[f"coverage_iter_{k}"] = cov
+            if previous is not None:
+                metrics[f"new_surface_iter_{k}"] = cov - previous
+            previous = cov
         if config.iterations:
-            metrics.update(trajectory_collisions(truth, path.c2w, r_safe_m))
+            true_path = true_camera_path(scene, config)
+            metrics.update(trajectory_collisions(truth, true_path, r_safe_m))
+            K = truth.intrinsics_for(config.synthesis.height, config.synthesis.width)
+            close = close_frame_mask(truth.scene, truth.gt_pose(true_path), K, 2 * r_safe_m)
+            metrics.update(close_frame_metrics(close))
         errs = []
         for k in range(1, config.iterations + 1):
             est = scene.read(LIFT, k, "c2w")[:, :3, 3]
-            req = path.clip(k).c2w[scene.read(LIFT, k, "view_index")][:, :3, 3]
+            req = true_clip_cameras(scene, k)[scene.read(LIFT, k, "view_index")][:, :3, 3]
             errs.append(np.linalg.norm(est - req, axis=1) / truth.world_scale)
         if errs:
             metrics["camera_median_err_m"] = float(np.median(np.concatenate(errs)))

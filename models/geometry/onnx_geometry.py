@@ -46,7 +46,7 @@ class OnnxGeometry:
         return self.runner.run("geometry", {"images": images})
 
     def predict(self, frames: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
-                hint_intrinsics: Intrinsics | None = None) -> GeometryPrediction:
+                hint_intrinsics: Intrinsics | None = None, hint_depth=None) -> GeometryPrediction:
         frames = np.asarray(frames)
         images, tr = proc.preprocess_frames(frames, self.img_size, self.patch_size, self.mode)
         out = self.run_raw(images)

@@ -70,7 +70,7 @@ class OnnxMonoDepth:
                            out["normal"][0] if "normal" in out else None, size=image.shape[:2])
 
     def predict(self, image: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
-                hint_intrinsics: Intrinsics | None = None) -> MonoDepthPrediction:
+                hint_intrinsics: Intrinsics | None = None, hint_depth=None) -> MonoDepthPrediction:
         """Inverse depth (0 where invalid) and sky/invalid mask of one image; deterministic (``seed`` unused)."""
         result = self.infer(image)
         return MonoDepthPrediction(inv_depth=result.inv_depth.astype(np.float32), sky=~result.valid)

@@ -3,14 +3,15 @@ ViewCrafter-style baseline, behind one interface.
 
 One iteration of the collision-aware planner:
 
-1. **Candidates.** ``K`` poses sampled in the search space ``S`` around the current camera
-   (``SearchSpace``): positions ``p_cur + r * dir(azimuth, elevation)``, ``r`` in ``radius * d0``
-   (``d0`` = distance from the input camera to the scene centre ``o``), azimuth measured from the
-   horizontal direction to ``o``, elevation from the horizon (world up = -y). The default is the
-   quarter sphere in front of the camera (azimuth +-90 deg, elevation +-30 deg). Samples are
-   stratified (a Halton sequence with a seeded random shift). Every candidate looks at ``o``.
-   Candidates are drawn K at a time until K of them pass ``G`` (at most ``max_resample`` extra
-   draws): F chooses among K collision-free candidates; colliding draws are kept with empty masks.
+1. **Candidates.** ``K`` poses sampled in the search space ``S`` (``SearchSpace``), ViewCrafter's quarter
+   sphere about the scene centre ``o`` facing the reference view: positions ``o + r * dir(azimuth, elevation)``,
+   ``r`` in ``radius * d0`` (``d0`` = distance from the input camera to ``o``), azimuth measured from the
+   horizontal direction from ``o`` to the input camera, elevation from the horizon (world up = -y); defaults
+   azimuth +-90 deg, elevation +-30 deg, r in 0.6-1.0 d0. Samples are stratified (a Halton sequence with a seeded
+   random shift); every candidate looks at ``o``. A candidate that ``G`` rejects is moved to the nearest position
+   ``G`` passes (``repair_candidate``: along its ray towards ``o``, then backed off along the arc from the current
+   camera); with ``max_resample > 0`` (default 0: the
+   baseline's budget of K) more rounds of K are drawn until K pass. Those that still collide get empty masks.
 2. **Collision detector G** (``CollisionDetector``): a position collides when it lies within
    ``r_safe`` of an observed surface (the cloud, by KD-tree; the earlier views' depth maps as
    meshes, which have no holes where a surface was seen at a grazing angle; and the ground plane,
@@ -45,8 +46,9 @@ One iteration of the collision-aware planner:
    collision-free path, the next-best candidate is tried; if none works the camera stays put (a
    static clip) and the result says so.
 
-The baseline (``ViewCrafterPlanner``) scores the same candidates with the same ``F`` but has no
-collision detector, interpolates positions on a straight line and never optimises.
+The baseline (``ViewCrafterPlanner``) is ViewCrafter's next-best view: the same K candidates (same sampler and
+seed), its utility (the empty area of the candidate's render, ``occlusion_utility``), the same spherical
+interpolation about ``o``, and no collision detector or optimisation.
 """
 
 from __future__ import annotations
@@ -72,15 +74,16 @@ MAX_ELEVATION_DEG = 85.0  # look-at is degenerate straight above or below the ce
 # --------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SearchSpace:
-    """Candidate positions ``p_cur + r * dir(azimuth, elevation)`` around the current camera.
+    """The search space S: positions ``o + r * dir(azimuth, elevation)`` on spheres about the scene centre ``o``.
 
-    Azimuth is measured in the horizontal plane from the current camera's horizontal direction to
-    ``o`` (positive to the camera's right), elevation from that plane (positive up). The default,
-    azimuth +-90 deg and elevation +-30 deg, is a quarter of the sphere's area: the half in front of
-    the camera, within 30 deg of the horizon. ``radius`` is in units of ``d0``.
+    Azimuth is measured in the horizontal plane from the direction from ``o`` to the input camera (the reference
+    view; positive to its right), elevation from that plane (positive up), ``r`` in units of ``d0`` (the input
+    camera's distance to ``o``). The default, azimuth +-90 deg, elevation +-30 deg, r in 0.6-1.0 d0, is
+    ViewCrafter's quarter sphere facing the reference view (a quarter of the sphere's area), with the radius
+    allowed to shrink towards ``o`` (ViewCrafter moves by ``d_r``, -0.2 by default). Every candidate looks at ``o``.
     """
 
-    radius: tuple[float, float] = (0.15, 0.4)
+    radius: tuple[float, float] = (0.6, 1.0)
     azimuth_deg: tuple[float, float] = (-90.0, 90.0)
     elevation_deg: tuple[float, float] = (-30.0, 30.0)
 
@@ -99,27 +102,27 @@ def scene_centre(depth: np.ndarray, confidence: np.ndarray, quantile: float) -> 
     return np.array([0.0, 0.0, float(np.quantile(d, quantile))])
 
 
-def search_frame(current: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Orthonormal (forward, right, up) at the current camera: forward is the horizontal direction
-    to ``o`` (the camera's own horizontal viewing direction if ``o`` is straight above or below)."""
+def search_frame(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal (back, right, up) of S: ``back`` is the horizontal direction from ``o`` to the input camera
+    (the world origin; the input camera's own horizontal viewing direction reversed if ``o`` is straight above or
+    below it), ``right`` the input camera's right."""
     up = WORLD_UP
-    f = np.asarray(centre, dtype=np.float64) - current[:3, 3]
-    f = f - (f @ up) * up
+    f = np.asarray(centre, dtype=np.float64)
+    f = f - (f @ up) * up  # horizontal direction from the camera to o
     if np.linalg.norm(f) < 1e-9:
-        f = current[:3, 2] - (current[:3, 2] @ up) * up
+        f = np.array([0.0, 0.0, 1.0]) - (np.array([0.0, 0.0, 1.0]) @ up) * up
     f = f / np.linalg.norm(f)
     right = np.cross(-up, f)  # OpenCV: x = y x z with y = down
-    return f, right, up
+    return -f, right, up
 
 
-def space_positions(current: np.ndarray, centre: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
-                    radius: np.ndarray) -> np.ndarray:
-    """Positions ``[..., 3]`` at ``radius`` from the current camera in the directions (radians) of the
+def space_positions(centre: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Positions ``[..., 3]`` of S at ``radius`` (world units) from ``o`` in the directions (radians) of the
     search frame (see ``SearchSpace``)."""
-    f, right, up = search_frame(current, centre)
-    dirs = (np.cos(elevation) * np.cos(azimuth))[..., None] * f + \
+    back, right, up = search_frame(centre)
+    dirs = (np.cos(elevation) * np.cos(azimuth))[..., None] * back + \
         (np.cos(elevation) * np.sin(azimuth))[..., None] * right + np.sin(elevation)[..., None] * up
-    return current[:3, 3] + np.asarray(radius)[..., None] * dirs
+    return np.asarray(centre, dtype=np.float64) + np.asarray(radius)[..., None] * dirs
 
 
 def look_at_centre(position: np.ndarray, centre: np.ndarray, forward: np.ndarray) -> np.ndarray:
@@ -132,7 +135,7 @@ def look_at_centre(position: np.ndarray, centre: np.ndarray, forward: np.ndarray
     return look_at(position, centre, up=WORLD_UP)
 
 
-def sample_candidates(current: np.ndarray, centre: np.ndarray, d0: float, space: SearchSpace, count: int,
+def sample_candidates(centre: np.ndarray, d0: float, space: SearchSpace, count: int,
                       rng: np.random.Generator) -> np.ndarray:
     """``count`` candidate poses ``[count, 4, 4]`` in the search space, all looking at ``centre``.
 
@@ -144,8 +147,29 @@ def sample_candidates(current: np.ndarray, centre: np.ndarray, d0: float, space:
     s0, s1 = np.sin(np.deg2rad(space.elevation_deg))  # uniform in area: sample sin(elevation)
     el = np.arcsin(np.clip(s0 + u[:, 1] * (s1 - s0), -1, 1))
     r = d0 * (space.radius[0] + u[:, 2] * (space.radius[1] - space.radius[0]))
-    forward = search_frame(current, centre)[0]
-    return np.stack([look_at_centre(p, centre, forward) for p in space_positions(current, centre, az, el, r)])
+    forward = -search_frame(centre)[0]
+    return np.stack([look_at_centre(p, centre, forward) for p in space_positions(centre, az, el, r)])
+
+
+def repair_candidate(candidate: np.ndarray, current: np.ndarray, centre: np.ndarray, d0: float, space: SearchSpace,
+                     detector: CollisionDetector, grid_deg: float = 10.0, radii: int = 3) -> np.ndarray | None:
+    """A colliding candidate moved to the nearest position of S that ``G`` passes (a grid over S every
+    ``grid_deg`` in azimuth and elevation at ``radii`` radii, and the arc from the current camera to the
+    candidate, whose start was seen free), still looking at ``o``; None if none passes."""
+    c = np.asarray(centre, dtype=np.float64)
+    az = np.deg2rad(np.arange(space.azimuth_deg[0], space.azimuth_deg[1] + 1e-9, grid_deg))
+    el = np.deg2rad(np.arange(space.elevation_deg[0], space.elevation_deg[1] + 1e-9, grid_deg))
+    r = d0 * np.linspace(space.radius[0], space.radius[1], radii)
+    A, E, R = np.meshgrid(az, el, r, indexing="ij")
+    tries = np.concatenate([space_positions(c, A, E, R).reshape(-1, 3),
+                            interpolate_poses(current, candidate, 21, centre=c)[1:-1, :3, 3]])
+    free = ~detector.collides(tries)
+    if not free.any():
+        return None
+    tries = tries[free]
+    best = tries[int(np.argmin(np.linalg.norm(tries - candidate[:3, 3], axis=1)))]
+    forward = candidate[:3, 2] - (candidate[:3, 2] @ WORLD_UP) * WORLD_UP
+    return look_at_centre(best, c, forward / max(np.linalg.norm(forward), 1e-9))
 
 
 def _halton(n: int, base: int) -> np.ndarray:
@@ -184,10 +208,11 @@ class CollisionDetector:
 
     def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView], thin: bool = True,
                  unknown_is_free: bool = False, surfaces: bool = True,
-                 ground: tuple[np.ndarray, float] | None = None) -> None:
+                 ground: tuple[np.ndarray, float] | None = None, follow_error: float = 0.0) -> None:
         if r_safe <= 0:
             raise ValueError("r_safe must be positive")
         self.r_safe = float(r_safe)
+        self.follow_error = float(follow_error)
         self.unknown_is_free = unknown_is_free
         pts = thin_points(cloud_points, r_safe / 8) if thin else np.asarray(cloud_points, dtype=np.float64)
         self.points = pts
@@ -249,8 +274,17 @@ class CollisionDetector:
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return (self.clearance(x) < self.r_safe) | ~self.seen_free(x)
 
+    def path_clearance(self, positions: np.ndarray) -> np.ndarray:
+        """The clearance each sample of a path needs: ``r_safe`` plus ``follow_error`` times the distance travelled
+        from the path's start (a video model follows the requested cameras with an error that grows along the
+        clip)."""
+        x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x, axis=0), axis=1))])
+        return self.r_safe + self.follow_error * travelled
+
     def trajectory_collides(self, trajectory: np.ndarray) -> bool:
-        return bool(self.collides(trajectory[:, :3, 3]).any())
+        x = trajectory[:, :3, 3]
+        return bool(((self.clearance(x) < self.path_clearance(x)) | ~self.seen_free(x)).any())
 
 
 def estimate_ground(points: np.ndarray, camera: np.ndarray, rng: np.random.Generator, tolerance: float,
@@ -389,7 +423,7 @@ class OptimisationResult:
 
 def trajectory_cost(x: np.ndarray, detector: CollisionDetector, smoothness: float) -> float:
     d = detector.clearance(x)
-    return float(np.maximum(0.0, detector.r_safe - d).sum() + smoothness * (np.diff(x, axis=0) ** 2).sum())
+    return float(np.maximum(0.0, detector.path_clearance(x) - d).sum() + smoothness * (np.diff(x, axis=0) ** 2).sum())
 
 
 def _spline_basis(num_out: int, num_knots: int) -> np.ndarray:
@@ -426,7 +460,9 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
     D = np.diff(np.eye(T), axis=0) @ A  # differences of dense positions
     DtD = D.T @ D
     weight = T / S
-    r = detector.r_safe * (1.0 + margin)
+    # the hinge's radius at each sample: the clearance G demands there (growing with the distance travelled along
+    # the initial path), plus the margin
+    r = (1.0 + margin) * np.interp(np.linspace(0, 1, S), np.linspace(0, 1, T), detector.path_clearance(x0))
     tree, pts = detector.tree, detector.points
     ends = np.zeros((M, 3))
     ends[0], ends[-1] = x0[0], x0[-1]
@@ -443,16 +479,16 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
         xs = B @ k
         gx = np.zeros_like(xs)
         if tree is not None:
-            d, idx = tree.query(xs, k=1, distance_upper_bound=r)
-            close = np.isfinite(d)
+            d, idx = tree.query(xs, k=1, distance_upper_bound=float(r.max()))
+            close = np.isfinite(d) & (d < r)
             if close.any():
-                cost += weight * float((r - d[close]).sum())
+                cost += weight * float((r[close] - d[close]).sum())
                 gx[close] -= (xs[close] - pts[idx[close]]) / np.maximum(d[close], 1e-9)[:, None]
         if detector.ground is not None:  # the ground plane: height h = n . x + c, hinge on r - h
             n, c = detector.ground
             h = xs @ n + c
             low = h < r
-            cost += weight * float((r - h[low]).sum())
+            cost += weight * float((r[low] - h[low]).sum())
             gx[low] -= n
         return cost, (g + weight * (B.T @ gx))[1:-1].ravel()
 
@@ -464,7 +500,7 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
     side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else np.array([1.0, 0, 0])
     up = np.cross(side, along)
     bump = np.sin(np.pi * s_k)[:, None]
-    scale = max(np.linalg.norm(chord) / 2, 2 * r)
+    scale = max(np.linalg.norm(chord) / 2, 2 * float(r.max()))
     ring = [np.cos(a) * up + np.sin(a) * side for a in np.deg2rad(np.arange(0, 360, 45))]
     levels = [[base]] + [[base + a * scale * bump * n for n in ring] for a in (0.25, 0.5, 1.0, 2.0)]
     least_bad: OptimisationResult | None = None
@@ -558,14 +594,21 @@ class CollisionAwarePlanner:
         points = planning_cloud(state, cfg.safe_radius)
         ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
         detector = CollisionDetector(points, cfg.safe_radius, state.views, thin=False,
-                                     unknown_is_free=cfg.unknown_space == "free", ground=ground)
+                                     unknown_is_free=cfg.unknown_space == "free", ground=ground,
+                                     follow_error=cfg.follow_error)
         t_tree = time.perf_counter()
-        # draw K candidates at a time until K of them pass G (colliding draws keep an empty mask)
+        # draw K candidates at a time (the baseline draws the same), a colliding one pulled towards o until G
+        # passes it; again, at most max_resample times, until K pass (those that still collide keep an empty mask)
         cands, collides = [], []
         while len(cands) <= cfg.max_resample:
-            c = sample_candidates(state.current, state.centre, state.d0, search_space(cfg), cfg.num_candidates, rng)
+            c = candidate_rounds(state, cfg, rng, 1)
+            hit = detector.collides(c[:, :3, 3])
+            for j in np.flatnonzero(hit):
+                moved = repair_candidate(c[j], state.current, state.centre, state.d0, search_space(cfg), detector)
+                if moved is not None:
+                    c[j], hit[j] = moved, False
             cands.append(c)
-            collides.append(detector.collides(c[:, :3, 3]))
+            collides.append(hit)
             if sum(int((~x).sum()) for x in collides) >= cfg.num_candidates:
                 break
         rounds = len(cands)
@@ -598,8 +641,23 @@ class CollisionAwarePlanner:
                           collision_free=True, fallback=fallback, rounds=rounds, timings=timings)
 
 
+def candidate_rounds(state: PlanningState, cfg: PlanConfig, rng: np.random.Generator, rounds: int) -> np.ndarray:
+    """``rounds`` draws of K candidates in S (``sample_candidates``), concatenated."""
+    return np.concatenate([sample_candidates(state.centre, state.d0, search_space(cfg), cfg.num_candidates, rng)
+                           for _ in range(rounds)])
+
+
+def occlusion_utility(mask: np.ndarray) -> float:
+    """ViewCrafter's utility of a candidate: the area its point-cloud render leaves empty (the occlusion mask)."""
+    return 1.0 - float(np.mean(mask))
+
+
 class ViewCrafterPlanner:
-    """Baseline: utility-only next-best view, straight-line interpolation, no collision handling."""
+    """Baseline: ViewCrafter's next-best view as its paper and code describe it: K candidates drawn from the same
+    search space S (the quarter sphere about ``o``) by the same sampler and seed as ours (with the default
+    ``max_resample = 0`` both score exactly K), the one whose render leaves the largest area empty
+    (``occlusion_utility``; ViewCrafter takes the candidate of smallest rendered mask), a spherical interpolation
+    about ``o`` (ViewCrafter's ``generate_traj_specified``), no collision check and no optimisation."""
 
     name = "viewcrafter"
 
@@ -609,15 +667,18 @@ class ViewCrafterPlanner:
     def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
         cfg = self.config
         t0 = time.perf_counter()
-        cands = sample_candidates(state.current, state.centre, state.d0, search_space(cfg), cfg.num_candidates, rng)
-        none = np.zeros(len(cands), dtype=bool)
-        masks, scores = _masks_and_scores(state, planning_cloud(state), cands, none, cfg.anchor_fraction)
+        cands = candidate_rounds(state, cfg, rng, 1)
+        points = planning_cloud(state)
+        masks = np.stack([render_points(points, c2w, state.K, state.height, state.width, state.point_size).mask
+                          for c2w in cands])
+        scores = np.array([occlusion_utility(m) for m in masks])
         t_score = time.perf_counter()
         i = int(np.argmax(scores))
-        traj = interpolate_poses(state.current, cands[i], state.num_frames)
+        traj = spherical_interpolate(state.current, cands[i], state.num_frames, state.centre)
         t_end = time.perf_counter()
         timings = {"detector_s": 0.0, "candidates_s": t_score - t0, "trajectory_s": t_end - t_score,
                    "total_s": t_end - t0}
+        none = np.zeros(len(cands), dtype=bool)
         return PlanResult(traj, traj, cands, scores, none, masks, i, timings=timings)
 
 

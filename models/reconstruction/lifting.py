@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from navcrafter.models.camera.cameras import invert_pose, rotation_angle_deg
+from navcrafter.models.camera.cameras import axis_angle_to_matrix, invert_pose, rotation_angle_deg
 from navcrafter.models.reconstruction.pointcloud import Cloud, views_to_cloud, voxel_fuse
 from navcrafter.models.roles import GeometryPrediction
 
@@ -95,30 +95,84 @@ def _o3d_cloud(points: np.ndarray, normals: bool, radius: float):
     return pc
 
 
+@dataclass
+class _Registration:
+    transformation: np.ndarray
+    fitness: float
+    inlier_rmse: float
+
+
+class _Target:
+    """An ICP target: points with normals and a KD-tree (scipy's: queries are deterministic)."""
+
+    def __init__(self, cloud) -> None:
+        from scipy.spatial import cKDTree
+
+        self.points = np.asarray(cloud.points, dtype=np.float64)
+        self.normals = np.asarray(cloud.normals, dtype=np.float64)
+        self.tree = cKDTree(self.points)
+
+    def match(self, pts: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+        d, idx = self.tree.query(pts, k=1, distance_upper_bound=max_distance)
+        ok = np.isfinite(d)
+        return ok, idx[ok]
+
+
+def _evaluate(source: np.ndarray, target: _Target, max_distance: float, T: np.ndarray) -> _Registration:
+    pts = np.einsum("kj,ij->ki", source, T[:3, :3]) + T[:3, 3]
+    ok, idx = target.match(pts, max_distance)
+    if not ok.any():
+        return _Registration(T, 0.0, 0.0)
+    d2 = np.einsum("ij,ij->i", pts[ok] - target.points[idx], pts[ok] - target.points[idx])
+    return _Registration(T, float(ok.mean()), float(np.sqrt(np.sum(d2) / len(d2))))
+
+
+def icp_point_to_plane(source: np.ndarray, target: _Target, max_distance: float, max_iteration: int = 30,
+                       tolerance: float = 1e-6) -> _Registration:
+    """Rigid point-to-plane ICP (linearised, Gauss-Newton), written out so that its result is bit-reproducible:
+    Open3D's ``registration_icp`` sums its normal equations in parallel, in an order that changes from run to
+    run, which would break exact resumes. Sums here are sequential (``einsum``, no BLAS)."""
+    T = np.eye(4)
+    for _ in range(max_iteration):
+        pts = np.einsum("kj,ij->ki", source, T[:3, :3]) + T[:3, 3]
+        ok, idx = target.match(pts, max_distance)
+        if ok.sum() < 6:
+            break
+        p, q, n = pts[ok], target.points[idx], target.normals[idx]
+        A = np.concatenate([np.cross(p, n), n], axis=1)
+        b = np.einsum("ij,ij->i", q - p, n)
+        x = np.linalg.solve(np.einsum("ni,nj->ij", A, A) + 1e-12 * np.eye(6), np.einsum("ni,n->i", A, b))
+        step = np.eye(4)
+        angle = float(np.linalg.norm(x[:3]))
+        step[:3, :3] = axis_angle_to_matrix(x[:3] / angle, angle) if angle > 0 else np.eye(3)
+        step[:3, 3] = x[3:]
+        T = np.einsum("ij,jk->ik", step, T)
+        if np.linalg.norm(x) < tolerance:
+            break
+    return _evaluate(source, target, max_distance, T)
+
+
 def refine_view(points: np.ndarray, target, max_distance: float, *, min_fitness: float = 0.3,
                 max_rotation_deg: float = 5.0, max_translation: float | None = None,
                 min_gain: float = 0.85) -> tuple[np.ndarray, ViewRefinement]:
-    """Rigid ICP (point-to-plane) of one view's world points onto ``target`` (an Open3D cloud with normals).
+    """Rigid ICP (point-to-plane, ``icp_point_to_plane``) of one view's world points onto ``target`` (an Open3D
+    cloud with normals).
 
     Returns the correction ``T`` (world → world, applied on the left of the view's pose) and what was
     decided. The correction is the identity unless the view overlaps the target with at least
     ``min_fitness``, the correction is within ``max_rotation_deg`` / ``max_translation`` and the residual
     drops below ``min_gain`` times its value before (so depth noise alone does not move a camera).
     """
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
     if len(points) < 50:
         return np.eye(4), ViewRefinement(False, reason="too few points")
-    source = _o3d_cloud(points, normals=False, radius=max_distance)
-    before = reg.evaluate_registration(source, target, max_distance, np.eye(4))
+    target = target if isinstance(target, _Target) else _Target(target)
+    source = np.asarray(points, dtype=np.float64)
+    before = _evaluate(source, target, max_distance, np.eye(4))
     if before.fitness < min_fitness:
         return np.eye(4), ViewRefinement(False, fitness=before.fitness, rmse_before=before.inlier_rmse,
                                          reason="little overlap with the scene cloud")
-    result = reg.registration_icp(source, target, max_distance, np.eye(4),
-                                  reg.TransformationEstimationPointToPlane(),
-                                  reg.ICPConvergenceCriteria(max_iteration=30))
-    T = np.asarray(result.transformation)
+    result = icp_point_to_plane(source, target, max_distance)
+    T = result.transformation
     rot = float(rotation_angle_deg(T[:3, :3], np.eye(3)))
     trans = float(np.linalg.norm(T[:3, 3]))
     info = ViewRefinement(False, fitness=result.fitness, rmse_before=before.inlier_rmse,
@@ -157,7 +211,7 @@ def lift_prediction(frames: np.ndarray, pred: GeometryPrediction, ref_depth: np.
     if icp and len(existing) >= 50:
         ref_valid = (ref_depth > 0) & (ref_conf >= confidence_threshold)
         distance = icp_distance * float(np.median(ref_depth[ref_valid]))
-        target = _o3d_cloud(existing.points, normals=True, radius=max(3 * voxel_size, distance))
+        target = _Target(_o3d_cloud(existing.points, normals=True, radius=max(3 * voxel_size, distance)))
         for i in range(len(frames)):
             view = views_to_cloud(frames[i:i + 1], depth[i:i + 1], conf[i:i + 1], c2w[i:i + 1], K[i:i + 1],
                                   confidence_threshold, max(pixel_stride, 2), max_depth)

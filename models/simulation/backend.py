@@ -3,14 +3,32 @@
 It exists so that the whole product runs, and is measured against ground truth, where no model
 weights are present. Everything it produces is labelled ``backend: simulation``.
 
-* **Synthesizer** renders the true scene along the requested trajectory (a perfect video model). It checks the
-  request's images (shapes, the reference frame given with its camera) but never looks at their pixels: its frame
-  0 is the truth at ``trajectory[0]``, which is what the conditioning image shows (the working image, or the
-  previous clip's last frame, a render at the same pose); the reference (input photo) adds nothing to the truth.
-* **Geometry** returns the true depth and relative cameras of the requested views, corrupted like a
-  feed-forward model's output: an arbitrary global scale per call, per-pixel depth noise, pose
-  jitter, optional focal error, low confidence at depth discontinuities, nothing on the sky.
-  Results are in the first view's frame (``c2w[0] = I``), as VGGT returns them.
+Two presets (``simulation.preset``, ``schemas.config.SimulationConfig``):
+
+``honest`` (default): the roles fail the way real models fail, so that what the paper's methods exist to fix
+is there to be fixed (error sizes from published measurements, cited in the config):
+
+* **Synthesizer** (``simulate``): frame 0 is the conditioning image itself (as Wan I2V reproduces it). The video
+  follows the requested motion *relative to where its conditioning image was really taken* (``ClipStart``), with
+  a drift growing over the clip (``drift_rot_deg``, ``drift_trans``). Content the current cloud does not show
+  is hallucinated: pixels whose true surface is farther than ``anchor_tolerance_m`` from the cloud come from a
+  per-clip variant of the scene (objects moved, textures re-drawn: ``variant_scene``). Frames whose true camera
+  is within ``corrupt_clearance_m`` of a surface (or inside an object) are corrupted: smeared towards a blob,
+  their depth distorted. It returns, besides the frames, their hidden truth (``SimulatedClip``: true cameras,
+  the depth of what each frame shows, the fraction of true pixels), which the synthesize step stores for the
+  simulated roles and the ground-truth metrics only.
+* **Geometry** estimates from the frames: the true cameras of the frames (``hint_c2w``, the stored truth, never
+  the request) and the depth of what they show (``hint_depth``), corrupted like a feed-forward model's output:
+  an arbitrary global scale per call, a smooth per-view depth error and per-pixel noise, rotation and
+  translation errors (absolute and relative to the distance from the first view), optional focal error, low
+  confidence at depth discontinuities, nothing on the sky. Results are in the first view's frame
+  (``c2w[0] = I``), as VGGT returns them.
+
+``perfect``: the synthesizer renders the true scene exactly at the requested poses (a perfect video model, also
+inside objects), and geometry returns the true depth and cameras with the scale, depth noise and pose jitter only.
+
+In both:
+
 * **MonoDepth** returns affine-invariant inverse depth (unknown scale and shift) and the sky mask.
 * **Refiner** moves a render of the fitted Gaussians a fraction ``refine_strength`` of the way to the true
   view at that camera and adds pixel noise (``refine_noise``): a diffusion refiner that repairs most, not
@@ -28,8 +46,9 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
 
-from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, invert_pose
+from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, invert_pose, unproject_depth
 from navcrafter.models.roles import (
     Backend,
     GeometryPrediction,
@@ -37,7 +56,8 @@ from navcrafter.models.roles import (
     SynthesisRequest,
 )
 from navcrafter.models.simulation.render import render
-from navcrafter.models.simulation.scenes import GENERATOR_VERSION, SimScene, generate_scene
+from navcrafter.models.simulation.scenes import GENERATOR_VERSION, KINDS, SceneObject, SimScene, generate_scene
+from navcrafter.models.simulation.textures import Material
 from navcrafter.schemas.config import SimulationConfig
 
 BACKEND = "simulation"
@@ -127,16 +147,202 @@ class _SimulationRole:
         self.truth, self.config = truth, config
 
 
+@dataclass(frozen=True)
+class ClipStart:
+    """Hidden truth of a clip's conditioning image: the world c2w where it was really taken, the depth (world
+    units, 0 = sky) of what it shows (None: the true scene's), and its fraction of true pixels."""
+
+    c2w: np.ndarray
+    depth: np.ndarray | None = None
+    quality: float = 1.0
+
+
+@dataclass
+class SimulatedClip:
+    """A simulated clip and its hidden truth (world frame and units)."""
+
+    frames: np.ndarray  # [T, H, W, 3] uint8
+    true_c2w: np.ndarray  # [T, 4, 4] where each frame was really taken
+    true_depth: np.ndarray  # [T, H, W] float32 z-depth of what each frame shows; 0 = sky
+    true_quality: np.ndarray  # [T] float32 fraction of pixels showing the true scene
+
+
+STRUCTURAL = ("floor", "ceiling", "wall_", "ground", "sidewalk", "building", "rug", "picture")
+
+
+def _structural(name: str) -> bool:
+    return any(name.startswith(p) for p in STRUCTURAL)
+
+
+@functools.lru_cache(maxsize=6)
+def variant_scene(kind: str, seed: int, variant: int, shift_m: float) -> SimScene:
+    """A plausible but different version of the scene ``(kind, seed)``: what a video model draws where it has
+    nothing to copy. Walls, floors, ground and buildings stay where they are; the other objects, grouped where
+    they touch (a table with its legs and what stands on it), move horizontally by up to ``shift_m``; every
+    material is re-drawn (colours within 0.2, a new texture seed)."""
+    base = cached_scene(kind, seed)
+    rng = np.random.default_rng([int(seed), KINDS.index(kind), int(variant), 17])
+    objs = base.objects
+    boxes = [(np.asarray(o.mesh.get_min_bound()), np.asarray(o.mesh.get_max_bound())) for o in objs]
+    parent = list(range(len(objs)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    movable = [i for i, o in enumerate(objs) if not _structural(o.name)]
+    for a in movable:
+        for b in movable:
+            if a < b and np.all(boxes[a][0] - 0.05 <= boxes[b][1]) and np.all(boxes[b][0] - 0.05 <= boxes[a][1]):
+                parent[root(a)] = root(b)
+    shifts: dict[int, np.ndarray] = {}
+    objects = []
+    for i, o in enumerate(objs):
+        mesh = o.mesh
+        if i in movable and shift_m > 0:
+            g = root(i)
+            if g not in shifts:
+                ang, rad = rng.uniform(0, 2 * np.pi), shift_m * np.sqrt(rng.random())
+                shifts[g] = np.array([np.cos(ang) * rad, np.sin(ang) * rad, 0.0])
+            mesh = o3d.geometry.TriangleMesh(o.mesh)
+            mesh.translate(shifts[g])
+        objects.append(SceneObject(o.name, mesh, o.material))
+    materials = []
+    for m in base.materials:
+        ja, jb = rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.2, 0.2, 3)
+        materials.append(Material(m.pattern, tuple(float(x) for x in np.clip(np.asarray(m.color_a) + ja, 0, 1)),
+                                  tuple(float(x) for x in np.clip(np.asarray(m.color_b) + jb, 0, 1)), m.scale,
+                                  int(rng.integers(1 << 30))))
+    return SimScene(base.kind, base.seed, objects, materials, base.light, base.sky, base.camera_c2w,
+                    base.camera_fov_x_deg)
+
+
 class SimulationSynthesizer(_SimulationRole):
 
     def synthesize(self, request: SynthesisRequest) -> np.ndarray:
+        """The frames of ``simulate`` for a clip whose conditioning image was taken at the requested start."""
+        return self.simulate(request).frames
+
+    def simulate(self, request: SynthesisRequest, start: ClipStart | None = None) -> SimulatedClip:
+        """The clip and its hidden truth. ``start``: where the conditioning image was really taken and what it
+        shows (the previous clip's last frame's truth); None: at the requested start, showing the true scene."""
         H, W = _check_request(request)
-        K = self.truth.intrinsics_for(H, W)
-        poses = self.truth.gt_pose(request.trajectory)
-        frames = np.empty((len(poses), H, W, 3), dtype=np.uint8)
-        for i, c2w in enumerate(poses):
-            frames[i] = render(self.truth.scene, c2w, K, supersample=self.config.supersample).rgb
-        return frames
+        cfg, truth = self.config, self.truth
+        K = truth.intrinsics_for(H, W)
+        req = np.asarray(request.trajectory, dtype=np.float64)
+        T = len(req)
+        if not cfg.honest:
+            true_c2w = req.copy()
+            frames = np.empty((T, H, W, 3), dtype=np.uint8)
+            depth = np.empty((T, H, W), dtype=np.float32)
+            for i, c2w in enumerate(truth.gt_pose(true_c2w)):
+                r = render(truth.scene, c2w, K, supersample=cfg.supersample)
+                frames[i], depth[i] = r.rgb, r.depth * truth._scale()
+            return SimulatedClip(frames, true_c2w, depth, np.ones(T, dtype=np.float32))
+        rng = _rng(request.seed)
+        start = start if start is not None else ClipStart(req[0])
+        true_c2w = _drifted(np.asarray(start.c2w, dtype=np.float64) @ (invert_pose(req[0]) @ req), cfg, rng)
+        true_c2w[0] = start.c2w  # frame 0 is the conditioning image
+        poses_gt = truth.gt_pose(true_c2w)
+        w = truth._scale()
+        tree = _cloud_tree(truth, request.cloud_points)
+        variant = (variant_scene(truth.scene.kind, truth.scene.seed, int(rng.integers(1 << 31)), cfg.variant_shift_m)
+                   if cfg.hallucinate else None)
+        frames = np.empty((T, H, W, 3), dtype=np.uint8)
+        depth = np.empty((T, H, W), dtype=np.float32)
+        quality = np.empty(T, dtype=np.float32)
+        frames[0] = request.image
+        depth[0] = (start.depth if start.depth is not None
+                    else render(truth.scene, poses_gt[0], K, colour=False).depth * w)
+        quality[0] = start.quality
+        clear = truth.scene.distance(poses_gt[1:, :3, 3])
+        rc, _ = truth.scene.raycasting()
+        inside = rc.compute_occupancy(o3d.core.Tensor(poses_gt[1:, :3, 3].astype(np.float32))).numpy() > 0
+        for i in range(1, T):
+            r = render(truth.scene, poses_gt[i], K, supersample=cfg.supersample)
+            rgb, d = r.rgb.astype(np.float64), r.depth.astype(np.float64)
+            true_px = np.ones((H, W), dtype=bool)
+            if variant is not None:
+                true_px = ~r.hit | _anchored(tree, r.depth, r.hit, poses_gt[i], K, cfg.anchor_tolerance_m)
+                if not true_px.all():
+                    v = render(variant, poses_gt[i], K, supersample=cfg.supersample)
+                    rgb[~true_px] = v.rgb[~true_px]
+                    d[~true_px] = v.depth[~true_px]
+            severity = 1.0 if inside[i - 1] else (
+                float(np.clip(1.0 - clear[i - 1] / cfg.corrupt_clearance_m, 0.0, 1.0)) if cfg.corrupt_clearance_m
+                else 0.0)
+            if severity > 0:
+                rgb, d = _corrupt(rgb, d, severity, rng)
+            frames[i] = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
+            depth[i] = d * w
+            quality[i] = float(true_px.mean()) * (1.0 - severity)
+        return SimulatedClip(frames, true_c2w, depth, quality)
+
+
+def _drifted(poses: np.ndarray, cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    """``poses`` with a camera-following error growing linearly from 0 (frame 0) to its end size: a rotation
+    about a random axis (in the camera frame) and a displacement in a random direction, of half-normal sizes
+    with means ``drift_rot_deg`` and ``drift_trans`` x the path length."""
+    T = len(poses)
+    out = poses.copy()
+    if T < 2:
+        return out
+    half_normal = np.sqrt(np.pi / 2)  # |N(0, 1)| has mean sqrt(2 / pi)
+    axis = rng.normal(size=3)
+    angle = np.deg2rad(cfg.drift_rot_deg) * abs(rng.normal()) * half_normal
+    direction = rng.normal(size=3)
+    direction /= max(np.linalg.norm(direction), 1e-12)
+    length = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+    shift = cfg.drift_trans * length * abs(rng.normal()) * half_normal
+    for i in range(1, T):
+        f = i / (T - 1)
+        out[i, :3, :3] = poses[i, :3, :3] @ axis_angle_to_matrix(axis, angle * f)
+        out[i, :3, 3] = poses[i, :3, 3] + direction * shift * f
+    return out
+
+
+def _cloud_tree(truth: SimulationTruth, cloud_points: np.ndarray):
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(cloud_points, dtype=np.float64).reshape(-1, 3)
+    return cKDTree(truth.gt_points(pts)) if len(pts) else None
+
+
+def _anchored(tree, depth: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: Intrinsics,
+              tolerance: float) -> np.ndarray:
+    """Pixels whose true surface point lies within ``tolerance`` (m) of the cloud (ground-truth frame)."""
+    out = np.zeros(hit.shape, dtype=bool)
+    if tree is None or not hit.any():
+        return out
+    pts, _ = unproject_depth(depth.astype(np.float64), c2w_gt, K.K, mask=hit)
+    d, _ = tree.query(pts, k=1, distance_upper_bound=tolerance, workers=-1)
+    out[hit] = np.isfinite(d)
+    return out
+
+
+def _smooth_field(rng: np.random.Generator, H: int, W: int, cells: int = 4) -> np.ndarray:
+    """A smooth random field [H, W] of unit standard deviation at its ``cells x cells`` knots (bilinear)."""
+    g = rng.normal(size=(cells + 1, cells + 1))
+    ys, xs = np.linspace(0, cells, H), np.linspace(0, cells, W)
+    rows = np.stack([np.interp(xs, np.arange(cells + 1), g[j]) for j in range(cells + 1)])  # [cells+1, W]
+    return np.stack([np.interp(ys, np.arange(cells + 1), rows[:, x]) for x in range(W)], axis=1)
+
+
+def _corrupt(rgb: np.ndarray, depth: np.ndarray, severity: float,
+             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A frame from too close: smeared towards an 8 x 8 blob of its colours with noise, depth distorted."""
+    H, W, _ = rgb.shape
+    ys, xs = (np.arange(H) * 8) // H, (np.arange(W) * 8) // W
+    coarse = np.zeros((8, 8, 3))
+    np.add.at(coarse, (ys[:, None], xs[None, :]), rgb)
+    counts = np.zeros((8, 8))
+    np.add.at(counts, (ys[:, None], xs[None, :]), 1.0)
+    blob = (coarse / np.maximum(counts, 1)[..., None])[ys[:, None], xs[None, :]]
+    out = (1 - severity) * rgb + severity * (blob + rng.normal(0.0, 25.0, rgb.shape))
+    d = depth * np.clip(1.0 + severity * 0.5 * _smooth_field(rng, H, W), 0.2, None)
+    return out, d
 
 
 def _check_request(request: SynthesisRequest) -> tuple[int, int]:
@@ -165,9 +371,14 @@ def _check_request(request: SynthesisRequest) -> tuple[int, int]:
 class SimulationGeometry(_SimulationRole):
 
     def predict(self, frames: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
-                hint_intrinsics: Intrinsics | None = None) -> GeometryPrediction:
+                hint_intrinsics: Intrinsics | None = None,
+                hint_depth: list[np.ndarray | None] | None = None) -> GeometryPrediction:
+        """``hint_c2w``: the frames' true world cameras (the stored truth of the synthesize step, or the input
+        camera); ``hint_depth``: per frame the depth (world units) of what it shows, None to use the true scene's."""
         S, H, W = frames.shape[:3]
         hint = _require_hint(hint_c2w, S)
+        if hint_depth is not None and len(hint_depth) != S:
+            raise ValueError(f"hint_depth has {len(hint_depth)} entries for {S} frames")
         cfg, rng = self.config, _rng(seed)
         scale = float(np.exp(rng.normal(0.0, cfg.scale_sigma)))  # this call's units per metre
         # relative poses to view 0, in metres, then in this call's units
@@ -181,15 +392,25 @@ class SimulationGeometry(_SimulationRole):
         c2w = np.empty((S, 4, 4))
         Ks = np.empty((S, 3, 3))
         for i in range(S):
-            r = render(self.truth.scene, gt[i], K_true, colour=False)
-            d = r.depth.astype(np.float64) * scale * (1.0 + rng.normal(0.0, cfg.depth_noise, (H, W)))
-            depth[i] = np.where(r.hit, d, 0.0)
-            conf[i] = np.where(r.hit, np.where(_discontinuity(r.depth, r.hit), cfg.edge_confidence, 1.0), 0.0)
+            shown = None if hint_depth is None else hint_depth[i]
+            if shown is None:
+                d_m = render(self.truth.scene, gt[i], K_true, colour=False).depth.astype(np.float64)
+            else:
+                d_m = np.asarray(shown, dtype=np.float64) / self.truth._scale()
+            hit = d_m > 0
+            err = 1.0 + rng.normal(0.0, cfg.depth_noise, (H, W))
+            if cfg.honest and cfg.depth_lowfreq > 0:
+                err *= np.clip(1.0 + cfg.depth_lowfreq * _smooth_field(rng, H, W), 0.5, None)
+            depth[i] = np.where(hit, d_m * scale * err, 0.0)
+            conf[i] = np.where(hit, np.where(_discontinuity(d_m, hit), cfg.edge_confidence, 1.0), 0.0)
             pose = rel[i].copy()
             if i > 0:
                 axis = rng.normal(size=3)
                 pose[:3, :3] = axis_angle_to_matrix(axis, np.deg2rad(rng.normal(0, cfg.pose_rot_deg))) @ pose[:3, :3]
-                pose[:3, 3] += rng.normal(0.0, cfg.pose_trans * scale, 3)
+                sigma = cfg.pose_trans * scale
+                if cfg.honest:
+                    sigma = np.hypot(sigma, cfg.pose_trans_rel * np.linalg.norm(rel[i, :3, 3]))
+                pose[:3, 3] += rng.normal(0.0, sigma, 3)
             c2w[i] = pose
             f = 1.0 + rng.normal(0.0, cfg.focal_noise)
             Ks[i] = K_true.K
@@ -220,18 +441,28 @@ def _discontinuity(depth: np.ndarray, hit: np.ndarray, rel: float = 0.05) -> np.
 class SimulationMonoDepth(_SimulationRole):
 
     def predict(self, image: np.ndarray, *, seed: int, hint_c2w: np.ndarray | None = None,
-                hint_intrinsics: Intrinsics | None = None) -> MonoDepthPrediction:
+                hint_intrinsics: Intrinsics | None = None,
+                hint_depth: np.ndarray | None = None) -> MonoDepthPrediction:
+        """``hint_c2w``: the image's true world camera; ``hint_depth``: the depth (world units) of what it shows
+        (None: the true scene's)."""
         H, W = image.shape[:2]
         hint = _require_hint(hint_c2w, 1)
         gt = self.truth.gt_pose_or_photo(hint)[0]
-        r = render(self.truth.scene, gt, self.truth.intrinsics_for(H, W), colour=False)
+        if hint_depth is None:
+            r = render(self.truth.scene, gt, self.truth.intrinsics_for(H, W), colour=False)
+            d_m, hit = r.depth.astype(np.float64), r.hit
+        else:
+            d_m = np.asarray(hint_depth, dtype=np.float64) / self.truth._scale()
+            hit = d_m > 0
         rng = _rng(seed)
-        inv = np.where(r.hit, 1.0 / np.maximum(r.depth, 1e-6), 0.0)
+        inv = np.where(hit, 1.0 / np.maximum(d_m, 1e-6), 0.0)
         a = float(np.exp(rng.normal(0.0, 1.0)))
-        b = float(rng.uniform(0.0, 0.2)) * a * float(np.median(inv[r.hit])) if r.hit.any() else 0.0
+        b = float(rng.uniform(0.0, 0.2)) * a * float(np.median(inv[hit])) if hit.any() else 0.0
         noisy = inv * (1.0 + rng.normal(0.0, 2 * self.config.depth_noise, inv.shape))
-        rel = np.where(r.hit, a * noisy + b, 0.0).astype(np.float32)
-        return MonoDepthPrediction(inv_depth=rel, sky=~r.hit if self.truth.scene.sky else np.zeros_like(r.hit))
+        if self.config.honest and self.config.depth_lowfreq > 0:
+            noisy *= np.clip(1.0 + self.config.depth_lowfreq * _smooth_field(rng, H, W), 0.5, None)
+        rel = np.where(hit, a * noisy + b, 0.0).astype(np.float32)
+        return MonoDepthPrediction(inv_depth=rel, sky=~hit if self.truth.scene.sky else np.zeros_like(hit))
 
 
 class SimulationRefiner(_SimulationRole):

@@ -3,9 +3,9 @@
 Coverage needs "all the surface there was to see". A generated scene has surfaces no explorer can
 see (the outside of the room's walls, the inside of closed objects), so the reference is the part of
 the true surfaces visible from the space the planner may explore: the input camera plus a grid of
-viewpoints around it, within the planner's search space repeated ``reach`` times outwards (``reach``
-iterations of motion), kept only where a camera could stand (free space, at least ``clearance`` from
-any surface, not inside an object), each looking at the scene centre. Points are sampled from depth
+viewpoints over the planner's search space S (the quarter sphere about the scene centre), kept only where a
+camera could stand (free space, at least ``clearance`` from any surface, not inside an object), each looking at
+the scene centre. Points are sampled from depth
 renders of those views and thinned to ``spacing`` (metres).
 """
 
@@ -22,14 +22,14 @@ from navcrafter.models.simulation.render import render
 
 
 def reachable_viewpoints(truth: SimulationTruth, centre_world: np.ndarray, d0_world: float, space: SearchSpace,
-                         reach: int, clearance_m: float, azimuths: int = 9, elevations: int = 3,
+                         clearance_m: float, azimuths: int = 9, elevations: int = 3,
                          radii: int = 3) -> np.ndarray:
     """World camera poses of the reference grid (input camera first)."""
     az = np.deg2rad(np.linspace(*space.azimuth_deg, azimuths))
     el = np.deg2rad(np.linspace(*space.elevation_deg, elevations))
-    r = d0_world * np.linspace(space.radius[0], space.radius[1] * reach, radii * reach)
+    r = d0_world * np.linspace(space.radius[0], space.radius[1], radii)
     A, E, R = np.meshgrid(az, el, r, indexing="ij")
-    pos = space_positions(np.eye(4), centre_world, A, E, R).reshape(-1, 3)
+    pos = space_positions(centre_world, A, E, R).reshape(-1, 3)
     gt = truth.gt_points(pos)
     rc, _ = truth.scene.raycasting()
     inside = rc.compute_occupancy(o3d.core.Tensor(gt.astype(np.float32))).numpy() > 0
@@ -43,9 +43,9 @@ def reachable_viewpoints(truth: SimulationTruth, centre_world: np.ndarray, d0_wo
 
 
 def reference_points(truth: SimulationTruth, centre_world: np.ndarray, d0_world: float, space: SearchSpace,
-                     reach: int, clearance_m: float, spacing_m: float = 0.01, resolution: int = 128) -> np.ndarray:
+                     clearance_m: float, spacing_m: float = 0.01, resolution: int = 128) -> np.ndarray:
     """Reference surface points ``[M, 3]`` in the ground-truth frame (metres)."""
-    poses = reachable_viewpoints(truth, centre_world, d0_world, space, reach, clearance_m)
+    poses = reachable_viewpoints(truth, centre_world, d0_world, space, clearance_m)
     K0 = truth.work_intrinsics
     K = K0.resize(resolution, resolution) if (K0.width, K0.height) != (resolution, resolution) else K0
     K = Intrinsics.from_matrix(K.K, K.width, K.height)

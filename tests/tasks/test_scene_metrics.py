@@ -48,9 +48,10 @@ def test_every_finished_scene_gets_every_table(evaluated, full_run):
         assert by[(sid, "V", "synthesize")]["value"] > 0
         parts = [by[(sid, "V", n)]["value"] for n in ("geometry", "plan", "synthesize", "lift", "export", "evaluate")]
         assert by[(sid, "V", "total")]["value"] == pytest.approx(sum(parts))
-        # III: the simulated synthesizer renders the truth, so stored frames equal the reference renders
-        assert by[(sid, "III", "PSNR")]["value"] == 100.0 and "capped" in by[(sid, "III", "PSNR")]["note"]
-        assert by[(sid, "III", "SSIM")]["value"] == pytest.approx(1.0)
+        # III: the honest simulated video model drifts from the requested cameras and hallucinates what the cloud
+        # does not show, so its frames differ from the truth at those cameras (the perfect preset gives 100 dB)
+        assert 5.0 < by[(sid, "III", "PSNR")]["value"] < 60.0
+        assert 0.0 < by[(sid, "III", "SSIM")]["value"] < 0.99
         # IV: COLMAP ran on every clip; tiny 64x64 clips may not register, which must then be said
         reg = by[(sid, "IV", "registered")]
         assert reg["status"] == "ok" and 0 <= reg["value"] <= 1 and "registered by COLMAP" in reg["note"]
@@ -154,3 +155,149 @@ def test_cli_evaluate_refuses_a_store_without_finished_scenes(tmp_path):
 def test_evaluate_help():
     res = CliRunner().invoke(app, ["evaluate", "--help"])
     assert res.exit_code == 0 and "Tables III-VII" in res.output.replace("\n", " ")
+
+
+# --------------------------------------------------------------------------------------------------
+# Scene metrics (tasks/scene_metrics.compute_metrics): true camera path, per iteration, close frames
+# --------------------------------------------------------------------------------------------------
+def _wall_scene(distance: float):
+    """A 10 m x 10 m wall 0.1 m thick, its face ``distance`` m in front of a camera at the origin looking
+    along +z (OpenCV identity pose)."""
+    import open3d as o3d
+
+    from navcrafter.models.simulation.scenes import Light, SceneObject, SimScene
+
+    box = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 0.1)
+    box.translate((-5.0, -5.0, distance))
+    return SimScene("wall", 0, [SceneObject("wall", box, 0)], [], Light("point", (0.0, 0.0, 0.0)), False,
+                    np.eye(4), 60.0)
+
+
+def test_close_frames_count_cameras_facing_a_near_surface():
+    from navcrafter.models.camera.cameras import Intrinsics
+    from navcrafter.models.metrics.cloud import close_frame_mask, close_frame_metrics
+
+    scene = _wall_scene(2.0)  # wall face at z = 2 m
+    K = Intrinsics.from_fov(60.0, 256, 192)  # rendered at 64x48
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    poses[0, 2, 3] = 1.8  # 0.2 m in front of the wall, facing it: close
+    poses[1, 2, 3] = 0.0  # 2 m away: not close
+    poses[2, 2, 3] = 1.8  # 0.2 m from the wall but looking away from it (180 deg about y): not close
+    poses[2, :3, :3] = np.diag([-1.0, 1.0, -1.0])
+    poses[3, 2, 3] = 1.55  # 0.45 m: closer than 2 r_safe = 0.5 m, close
+    assert close_frame_mask(scene, poses, K, near_m=0.5).tolist() == [True, False, False, True]
+    assert close_frame_mask(scene, poses, K, near_m=0.4).tolist() == [True, False, False, False]
+    # a camera looking along the wall sees it on (nearly) half of its pixels: not "dominated"
+    side = np.eye(4)
+    side[:3, :3] = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # looks along +x
+    side[2, 3] = 1.9
+    assert close_frame_mask(scene, side[None], K, near_m=0.5).tolist() == [False]
+
+    m = close_frame_metrics(np.array([False, False, False, True, False, True]))
+    assert m == {"close_frames": pytest.approx(2 / 6), "close_frames_last_third": 0.5}
+    m = close_frame_metrics(np.array([True] * 3 + [False] * 4))  # last third: the last ceil(7/3) = 3 frames
+    assert m == {"close_frames": pytest.approx(3 / 7), "close_frames_last_third": 0.0}
+    assert close_frame_metrics(np.zeros(0, dtype=bool)) == {"close_frames": 0.0, "close_frames_last_third": 0.0}
+
+
+def test_every_scene_metric_has_a_unit():
+    from navcrafter.models.metrics.cloud import unit
+
+    for name in ("coverage", "close_frames", "close_frames_last_third", "true_quality_mean", "coverage_iter_0",
+                 "coverage_iter_12", "new_surface_iter_3", "collisions"):
+        assert unit(name) is not None, name
+    assert unit("collisions") == "count" and unit("coverage_iter_3") == "fraction"
+    assert unit("no_such_metric") is None and unit("coverage_iter_x") is None
+
+
+def _done_scenes(full_run) -> list[str]:
+    return sorted(r.scene_id for r in full_run[1].scenes if r.status == "done")
+
+
+@pytest.mark.system
+def test_per_iteration_coverage_adds_up_to_the_final_coverage(full_run):
+    from navcrafter.tasks.scene_metrics import compute_metrics
+
+    store, _ = full_run
+    gained = []
+    for sid in _done_scenes(full_run):
+        m = compute_metrics(Store(str(store)).scene(sid), TINY)
+        n = TINY.iterations
+        assert {f"coverage_iter_{k}" for k in range(n + 1)} <= set(m)
+        assert {f"new_surface_iter_{k}" for k in range(1, n + 1)} <= set(m) and "new_surface_iter_0" not in m
+        assert m[f"coverage_iter_{n}"] == m["coverage"]
+        for k in range(n + 1):
+            assert 0.0 <= m[f"coverage_iter_{k}"] <= 1.0
+        for k in range(1, n + 1):
+            assert m[f"new_surface_iter_{k}"] == pytest.approx(m[f"coverage_iter_{k}"] - m[f"coverage_iter_{k - 1}"])
+        assert m["coverage_iter_0"] + sum(m[f"new_surface_iter_{k}"] for k in range(1, n + 1)) == \
+            pytest.approx(m["coverage"])
+        assert 0.0 <= m["close_frames"] <= 1.0 and 0.0 <= m["close_frames_last_third"] <= 1.0
+        gained.append(m["coverage"] - m["coverage_iter_0"])
+    assert max(gained) > 0  # exploring adds surface somewhere
+
+
+def _set_true_arrays(store, sid: str, arrays_per_clip: dict[int, dict[str, np.ndarray]]) -> None:
+    from navcrafter.schemas.layout import scene_group
+
+    for k, arrays in arrays_per_clip.items():
+        g = zarr.open_group(str(store / scene_group(sid) / SYNTHESIZE.group_path(k)), mode="r+")
+        for name, value in arrays.items():
+            if value is None:
+                if name in g:
+                    del g[name]
+            else:
+                g.create_array(name, data=value, overwrite=True)
+
+
+@pytest.mark.system
+def test_collisions_and_close_frames_are_measured_at_the_true_cameras(full_run, tmp_path):
+    """The metrics follow ``true_c2w`` where the synthesize step stored it, the planned path otherwise."""
+    from navcrafter.models.metrics.cloud import trajectory_collisions
+    from navcrafter.models.simulation.render import render
+    from navcrafter.schemas.layout import PLAN
+    from navcrafter.tasks.common import simulation_truth
+    from navcrafter.tasks.scene_metrics import compute_metrics
+
+    sid = _done_scenes(full_run)[0]
+    store = tmp_path / "store"
+    shutil.copytree(full_run[0], store)
+    scene = Store(str(store)).scene(sid)
+    truth = simulation_truth(scene)
+    n = TINY.iterations
+    planned = {k: scene.read(PLAN, k, "trajectory") for k in range(1, n + 1)}
+    r_safe_m = TINY.plan.safe_radius / truth.world_scale
+
+    # old stores: no true arrays, the planned path is measured
+    _set_true_arrays(store, sid, {k: {"true_c2w": None, "true_quality": None, "true_depth": None}
+                                  for k in planned})
+    m = compute_metrics(scene, TINY)
+    expect = trajectory_collisions(truth, np.concatenate(list(planned.values())), r_safe_m)
+    assert m["collisions"] == expect["collisions"] and m["collision_rate"] == expect["collision_rate"]
+    assert "true_quality_mean" not in m
+
+    # the video model "really" took every frame 5 cm in front of the surface the input camera looks at,
+    # facing it: every frame collides and is dominated by a near surface
+    K = truth.intrinsics_for(64, 64)
+    centre_depth = render(truth.scene, truth.photo_c2w, K, colour=False).depth[32, 32]
+    assert centre_depth > 0
+    near = truth.photo_c2w.copy()
+    near[:3, 3] += near[:3, 2] * (centre_depth - 0.05)  # along the optical axis (a unit vector)
+    world = np.eye(4)
+    world[:3, :3] = truth.photo_c2w[:3, :3].T @ near[:3, :3]
+    world[:3, 3] = truth.world_points(near[None, :3, 3])[0]
+    np.testing.assert_allclose(truth.gt_pose(world[None])[0], near, atol=1e-9)
+    fake = {k: np.repeat(world[None], len(t), axis=0) for k, t in planned.items()}
+    _set_true_arrays(store, sid, {k: {"true_c2w": fake[k], "true_quality": np.full(len(t), 0.25, np.float32)}
+                                  for k, t in planned.items()})
+    m = compute_metrics(scene, TINY)
+    total = sum(len(t) for t in planned.values())
+    assert m["collisions"] == total and m["collision_rate"] == 1.0
+    assert m["close_frames"] == 1.0 and m["close_frames_last_third"] == 1.0
+    assert m["true_quality_mean"] == pytest.approx(0.25)
+
+    # only the last clip was taken there: the last third of the path is the (tiny preset's) last clip
+    _set_true_arrays(store, sid, {k: {"true_c2w": planned[k]} for k in range(1, n)})
+    m = compute_metrics(scene, TINY)
+    assert m["collisions"] >= len(planned[n]) and m["close_frames_last_third"] == 1.0
+    assert m["close_frames"] < 1.0

@@ -29,9 +29,9 @@ def requests(monkeypatch) -> list:
     seen = []
 
     class Recording(sim_backend.SimulationSynthesizer):
-        def synthesize(self, request):
+        def simulate(self, request, start=None):
             seen.append(copy.deepcopy(request))
-            return super().synthesize(request)
+            return super().simulate(request, start)
 
     monkeypatch.setattr(sim_backend, "SimulationSynthesizer", Recording)
     return seen
@@ -41,7 +41,7 @@ FIRST = [("geometry", None), ("plan", 1), ("synthesize", 1), ("lift", 1)]
 
 
 def test_clip_2_is_conditioned_on_clip_1s_last_frame_with_the_photo_as_reference(demo_photos, tmp_path, requests):
-    from navcrafter.schemas.layout import GEOMETRY, INGEST, PLAN, SYNTHESIZE
+    from navcrafter.schemas.layout import GEOMETRY, INGEST, LIFT, PLAN, SYNTHESIZE
     from navcrafter.schemas.store import Store
 
     store = str(tmp_path / "store")
@@ -53,12 +53,16 @@ def test_clip_2_is_conditioned_on_clip_1s_last_frame_with_the_photo_as_reference
     np.testing.assert_array_equal(first.image, work)  # clip 1: the input view
     assert first.reference_image is None and first.reference_c2w is None
     np.testing.assert_array_equal(second.image, clip1[-1])  # clip 2: the view at its first camera
-    np.testing.assert_array_equal(second.trajectory[0], scene.read(PLAN, 1, "trajectory")[-1])
+    # clip 2 starts where clip 1's last frame is estimated to be (the lift always lifts it)
+    lift1 = scene.read_all(LIFT, 1)
+    np.testing.assert_array_equal(second.trajectory[0], lift1["c2w"][list(lift1["view_index"]).index(len(clip1) - 1)])
+    assert not np.allclose(second.trajectory[0], scene.read(PLAN, 1, "trajectory")[-1])  # not where it was asked
     np.testing.assert_array_equal(second.reference_image, work)
     np.testing.assert_array_equal(second.reference_c2w, scene.read(GEOMETRY, None, "c2w"))
     np.testing.assert_array_equal(second.reference_c2w, np.eye(4))
-    # a perfect synthesizer reproduces its conditioning image as frame 0
+    # the synthesizer reproduces its conditioning image as frame 0, and its hidden truth continues from there
     np.testing.assert_array_equal(scene.read(SYNTHESIZE, 2, "frames")[0], clip1[-1])
+    np.testing.assert_array_equal(scene.read(SYNTHESIZE, 2, "true_c2w")[0], scene.read(SYNTHESIZE, 1, "true_c2w")[-1])
 
 
 def test_a_plan_that_does_not_start_where_the_last_clip_ended_fails_the_synthesize_step(demo_photos, tmp_path):
@@ -83,5 +87,5 @@ def test_a_plan_that_does_not_start_where_the_last_clip_ended_fails_the_synthesi
     sid = _explore(store, demo_photos / "room-0.png", FIRST)
     execute(store, sid, PLAN, 2, TINY, "t", elsewhere)
     with pytest.raises(StepError, match=r"iter_2/synthesize failed: ValueError: the trajectory of iteration 2 "
-                                        r"does not start at the last pose of iteration 1 .*not available"):
+                                        r"does not start at the estimated last pose of iteration 1 .*not available"):
         run(store, sid, "synthesize", TINY, "t", 2)

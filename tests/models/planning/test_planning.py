@@ -15,9 +15,12 @@ from navcrafter.models.planning.planners import (
     SearchSpace,
     SeenView,
     ViewCrafterPlanner,
+    candidate_rounds,
     optimise_trajectory,
+    repair_candidate,
     sample_candidates,
     search_frame,
+    space_positions,
     visibility_score,
 )
 from navcrafter.models.reconstruction.pointrender import render_points
@@ -110,24 +113,63 @@ def test_point_renderer_splats_grow_with_proximity():
 # --------------------------------------------------------------------------------------------------
 # Candidates and score
 # --------------------------------------------------------------------------------------------------
-def test_candidates_lie_in_the_search_space_and_look_at_the_centre():
+def test_candidates_lie_on_the_quarter_sphere_about_the_centre_and_look_at_it():
     centre = np.array([0.0, 0.0, 5.0])
-    space = SearchSpace((0.2, 0.4), (-60.0, 60.0), (-20.0, 20.0))
-    c = sample_candidates(np.eye(4), centre, 5.0, space, 20, np.random.default_rng(1))
-    f, right, up = search_frame(np.eye(4), centre)
-    np.testing.assert_allclose(f, [0, 0, 1])
+    space = SearchSpace((0.6, 1.0), (-60.0, 60.0), (-20.0, 20.0))
+    c = sample_candidates(centre, 5.0, space, 20, np.random.default_rng(1))
+    back, right, up = search_frame(centre)
+    np.testing.assert_allclose(back, [0, 0, -1])  # from o towards the input camera
     np.testing.assert_allclose(up, -np.array([0, 1, 0]))
-    off = c[:, :3, 3]
+    off = c[:, :3, 3] - centre
     r = np.linalg.norm(off, axis=1)
-    assert ((r >= 1.0 - 1e-9) & (r <= 2.0 + 1e-9)).all()
+    assert ((r >= 3.0 - 1e-9) & (r <= 5.0 + 1e-9)).all()
     el = np.rad2deg(np.arcsin(off @ up / r))
-    az = np.rad2deg(np.arctan2(off @ right, off @ f))
+    az = np.rad2deg(np.arctan2(off @ right, off @ back))
     assert (np.abs(el) <= 20 + 1e-6).all() and (np.abs(az) <= 60 + 1e-6).all()
+    assert az.min() < -30 and az.max() > 30  # stratified over the whole range
     for T in c:  # every candidate looks at o, upright
         to_o = (centre - T[:3, 3]) / np.linalg.norm(centre - T[:3, 3])
         assert T[:3, 2] @ to_o > 1 - 1e-9 and T[:3, 1] @ WORLD_UP < 0
-    again = sample_candidates(np.eye(4), centre, 5.0, space, 20, np.random.default_rng(1))
+    again = sample_candidates(centre, 5.0, space, 20, np.random.default_rng(1))
     np.testing.assert_array_equal(c, again)
+    # the input camera itself lies on S (azimuth 0, elevation 0, radius d0)
+    np.testing.assert_allclose(space_positions(centre, np.array(0.0), np.array(0.0), np.array(5.0)), [0, 0, 0],
+                               atol=1e-12)
+
+
+def test_a_colliding_candidate_is_moved_to_the_nearest_free_position_of_the_search_space():
+    _, state = room_state()
+    det = CollisionDetector(state.cloud_points, 0.25, state.views)
+    space = SearchSpace()
+    side = look_at(space_positions(state.centre, np.deg2rad(80.0), 0.0, 4.0), state.centre)  # beyond the wall
+    assert det.collides(side[None, :3, 3])[0]
+    moved = repair_candidate(side, state.current, state.centre, state.d0, space, det)
+    assert moved is not None and not det.collides(moved[None, :3, 3])[0]
+    to_o = state.centre - moved[:3, 3]
+    np.testing.assert_allclose(moved[:3, 2], to_o / np.linalg.norm(to_o), atol=1e-9)  # still looks at o
+    # the nearest free one: no free grid position of S is closer to the candidate
+    grid = space_positions(state.centre, *np.meshgrid(np.deg2rad(np.arange(-90, 91, 10.0)),
+                                                      np.deg2rad(np.arange(-30, 31, 10.0)),
+                                                      state.d0 * np.linspace(0.6, 1.0, 3), indexing="ij"))
+    grid = grid.reshape(-1, 3)[~det.collides(grid.reshape(-1, 3))]
+    assert np.linalg.norm(moved[:3, 3] - side[:3, 3]) <= np.linalg.norm(grid - side[:3, 3], axis=1).min() + 1e-9
+    blocked = CollisionDetector(state.cloud_points, 50.0, state.views)  # nothing is free
+    assert repair_candidate(side, state.current, state.centre, state.d0, space, blocked) is None
+
+
+def test_the_clearance_a_path_needs_grows_with_the_distance_travelled():
+    _, state = room_state()
+    det = CollisionDetector(state.cloud_points, 0.25, state.views, follow_error=0.1)
+    x = np.stack([np.zeros(3), [1.0, 0, 0], [1.0, 0, 2.0]])
+    np.testing.assert_allclose(det.path_clearance(x), [0.25, 0.35, 0.55])
+    # a path that keeps r_safe but not the growing margin collides only with the follow error
+    wall_x = 2.9  # the east wall's inner face is at x = 3.0
+    path = interpolate_poses(look_at(np.array([wall_x - 1.5, 0.0, 4.0]), state.centre),
+                             look_at(np.array([wall_x - 0.3, 0.0, 4.5]), state.centre), 21)
+    free_space = CollisionDetector(state.cloud_points, 0.25, state.views, unknown_is_free=True)
+    drifting = CollisionDetector(state.cloud_points, 0.25, state.views, unknown_is_free=True, follow_error=0.2)
+    assert free_space.clearance(path[:, :3, 3]).min() > 0.25  # 0.4 m from the wall the cloud saw at its end
+    assert not free_space.trajectory_collides(path) and drifting.trajectory_collides(path)
 
 
 def test_visibility_score_formula():
@@ -248,19 +290,22 @@ def test_collision_aware_planner_returns_a_safe_trajectory_to_its_choice():
     det = CollisionDetector(state.cloud_points, 0.25, state.views)
     assert not det.trajectory_collides(res.trajectory)
     assert (scene.distance(res.trajectory[:, :3, 3]) > 0.2).all()  # clear of the true walls and pillar
-    assert (~res.collides).sum() >= 6 or res.rounds == PlanConfig().max_resample + 1  # K valid ones
+    assert len(res.candidates) == 6 * res.rounds and res.rounds == PlanConfig().max_resample + 1  # K, no redraw
     if res.fallback == "":  # the next-best view: the best score among collision-free candidates
         assert res.chosen == int(np.argmax(np.where(res.collides, -1, res.scores)))
     assert (res.scores[res.collides] == 0).all() and not res.masks[res.collides].any()  # empty masks
 
 
-def test_baseline_ignores_collisions_and_moves_straight():
+def test_baseline_is_viewcrafters_nbv_on_the_same_candidates():
     _, state = room_state()
-    res = ViewCrafterPlanner(PlanConfig(num_candidates=6)).plan(state, np.random.default_rng(3))
+    cfg = PlanConfig(num_candidates=6)
+    res = ViewCrafterPlanner(cfg).plan(state, np.random.default_rng(3))
     assert not res.collides.any() and res.collision_free is None and not res.optimised
+    # the same K candidates as ours would draw from the same seed, scored by the empty area of their render
+    np.testing.assert_array_equal(res.candidates, candidate_rounds(state, cfg, np.random.default_rng(3), 1))
+    np.testing.assert_allclose(res.scores, [1 - m.mean() for m in res.masks])
     assert res.chosen == int(np.argmax(res.scores))
     p = res.trajectory[:, :3, 3]
-    direction = (p[-1] - p[0]) / np.linalg.norm(p[-1] - p[0])
-    off_line = (p - p[0]) - np.outer((p - p[0]) @ direction, direction)
-    assert np.abs(off_line).max() < 1e-9  # a straight line
+    r = np.linalg.norm(p - state.centre, axis=1)  # on the arc about o (radius interpolated linearly)
+    np.testing.assert_allclose(r, np.linspace(r[0], r[-1], len(r)), atol=1e-9)
     assert np.array_equal(res.trajectory[-1], res.candidates[res.chosen])

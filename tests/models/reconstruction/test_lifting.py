@@ -28,7 +28,7 @@ def _world(kind="room", seed=0):
     K = Intrinsics.from_fov(scene.camera_fov_x_deg, W, H)
     record = {"scene": scene.spec, "photo_c2w": scene.camera_c2w.tolist(), "work_intrinsics": K.to_dict()}
     truth = SimulationTruth.from_record(record)
-    cfg = SimulationConfig(depth_noise=0.003, pose_rot_deg=0.0, pose_trans=0.0, focal_noise=0.0)
+    cfg = SimulationConfig(preset="perfect", depth_noise=0.003, pose_rot_deg=0.0, pose_trans=0.0, focal_noise=0.0)
     backend = simulation_backend(truth, cfg)
     image = render(scene, truth.photo_c2w, K).rgb
     first = backend.geometry.predict(image[None], seed=1, hint_c2w=np.eye(4)[None])

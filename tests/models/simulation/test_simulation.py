@@ -9,7 +9,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from navcrafter.models.camera.cameras import Intrinsics, invert_pose, look_at, make_pose
+from navcrafter.models.camera.cameras import (
+    Intrinsics,
+    invert_pose,
+    look_at,
+    make_pose,
+    rotation_angle_deg,
+    unproject_depth,
+)
 from navcrafter.models.simulation.backend import SimulationError, SimulationTruth, simulation_backend
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import (
@@ -95,7 +102,7 @@ def test_truth_maps_world_and_ground_truth_frames():
 
 
 def test_geometry_first_call_defines_world_and_later_calls_are_relative():
-    cfg = SimulationConfig(scale_sigma=0.3, depth_noise=0.0, pose_rot_deg=0.0, pose_trans=0.0)
+    cfg = SimulationConfig(preset="perfect", scale_sigma=0.3, depth_noise=0.0, pose_rot_deg=0.0, pose_trans=0.0)
     truth = _truth()
     backend = simulation_backend(truth, cfg)
     img = np.zeros((1, 48, 64, 3), np.uint8)
@@ -119,7 +126,7 @@ def test_geometry_first_call_defines_world_and_later_calls_are_relative():
 
 def test_geometry_noise_and_confidence():
     truth = _truth(scale=1.0)
-    backend = simulation_backend(truth, SimulationConfig(scale_sigma=0.0, depth_noise=0.01))
+    backend = simulation_backend(truth, SimulationConfig(preset="perfect", scale_sigma=0.0, depth_noise=0.01))
     pred = backend.geometry.predict(np.zeros((1, 48, 64, 3), np.uint8), seed=3, hint_c2w=np.eye(4)[None])
     true_depth = render(truth.scene, truth.photo_c2w, truth.work_intrinsics, colour=False).depth
     rel = pred.depth[0] / true_depth - 1
@@ -131,7 +138,7 @@ def test_geometry_noise_and_confidence():
 
 def test_mono_depth_is_affine_in_inverse_depth():
     truth = _truth("street", 0, scale=1.0)
-    backend = simulation_backend(truth, SimulationConfig(depth_noise=0.0))
+    backend = simulation_backend(truth, SimulationConfig(preset="perfect", depth_noise=0.0))
     pred = backend.mono_depth.predict(np.zeros((48, 64, 3), np.uint8), seed=5, hint_c2w=np.eye(4)[None])
     r = render(truth.scene, truth.photo_c2w, truth.work_intrinsics, colour=False)
     assert (pred.sky == ~r.hit).all() and pred.sky.any()
@@ -142,9 +149,9 @@ def test_mono_depth_is_affine_in_inverse_depth():
     assert coef[0] > 0
 
 
-def test_synthesizer_renders_the_requested_poses():
+def test_perfect_synthesizer_renders_the_requested_poses():
     truth = _truth(scale=2.0)
-    backend = simulation_backend(truth, SimulationConfig())
+    backend = simulation_backend(truth, SimulationConfig(preset="perfect"))
     T = np.eye(4)
     T[:3, 3] = [0.2, 0.0, 0.4]
     from navcrafter.models.roles import SynthesisRequest
@@ -161,7 +168,7 @@ def test_synthesizer_checks_the_request_and_ignores_its_images():
     from navcrafter.models.roles import SynthesisRequest
 
     truth = _truth(scale=2.0)
-    synth = simulation_backend(truth, SimulationConfig()).synthesizer
+    synth = simulation_backend(truth, SimulationConfig(preset="perfect")).synthesizer
     T = np.eye(4)
     T[:3, 3] = [0.2, 0.0, 0.4]
     image = np.zeros((48, 64, 3), np.uint8)
@@ -178,6 +185,105 @@ def test_synthesizer_checks_the_request_and_ignores_its_images():
                        ({"trajectory": np.eye(4)}, "trajectory")):
         with pytest.raises(ValueError, match=match):
             synth.synthesize(SynthesisRequest(**{**vars(ref), **bad}))
+
+
+def _request(truth, trajectory, cloud=None, image=None, seed=0):
+    from navcrafter.models.roles import SynthesisRequest
+
+    K = truth.work_intrinsics
+    image = render(truth.scene, truth.gt_pose(trajectory[0]), K).rgb if image is None else image
+    pts = np.zeros((0, 3), np.float32) if cloud is None else cloud.astype(np.float32)
+    return SynthesisRequest(image, trajectory, K, pts, np.zeros((len(pts), 3), np.uint8), seed)
+
+
+def _true_cloud(truth, poses_world):
+    """World points of the true surfaces seen from ``poses_world``: a cloud that anchors those views."""
+    K = truth.work_intrinsics
+    parts = []
+    for c2w in poses_world:
+        r = render(truth.scene, truth.gt_pose(c2w), K, colour=False)
+        pts, _ = unproject_depth(r.depth.astype(np.float64), truth.gt_pose(c2w), K.K, mask=r.hit)
+        parts.append(truth.world_points(pts))
+    return np.concatenate(parts)
+
+
+def _walk(num: int, step: float, world_scale: float) -> np.ndarray:
+    traj = np.tile(np.eye(4), (num, 1, 1))
+    traj[:, 0, 3] = np.linspace(0.0, step * world_scale, num)  # sideways, metres x world units
+    return traj
+
+
+def test_honest_synthesizer_starts_from_the_conditioning_image_and_drifts():
+    from navcrafter.models.simulation.backend import ClipStart
+
+    truth = _truth(scale=2.0)
+    synth = simulation_backend(truth, SimulationConfig(drift_rot_deg=3.0, drift_trans=0.1)).synthesizer
+    traj = _walk(9, 0.4, 2.0)
+    image = np.full((48, 64, 3), 77, np.uint8)
+    clip = synth.simulate(_request(truth, traj, _true_cloud(truth, traj), image=image, seed=4))
+    np.testing.assert_array_equal(clip.frames[0], image)  # frame 0 is the conditioning image, as Wan I2V
+    np.testing.assert_array_equal(clip.true_c2w[0], traj[0])
+    rot = [rotation_angle_deg(r[:3, :3], t[:3, :3]) for r, t in zip(traj, clip.true_c2w)]
+    moved = np.linalg.norm(clip.true_c2w[:, :3, 3] - traj[:, :3, 3], axis=1)
+    assert rot[0] == 0 and moved[0] == 0
+    assert np.all(np.diff(rot) > 0) and np.all(np.diff(moved) > 0)  # the drift grows over the clip
+    assert rot[-1] < 15 and moved[-1] < 0.5 * 0.4 * 2.0  # of the size of the configured means (half-normal)
+    # the frames are where the camera really went (anchored content is the truth there)
+    for i in (4, 8):
+        truth_i = render(truth.scene, truth.gt_pose(clip.true_c2w[i]), truth.work_intrinsics)
+        same = np.abs(clip.frames[i].astype(int) - truth_i.rgb.astype(int)).max(-1) <= 1
+        assert same.mean() >= clip.true_quality[i] - 1e-6 and clip.true_quality[i] > 0.8
+    # a clip that starts where its conditioning image really was continues from there, not from the request
+    start = ClipStart(clip.true_c2w[-1], clip.true_depth[-1], float(clip.true_quality[-1]))
+    nxt = synth.simulate(_request(truth, _walk(5, 0.2, 2.0) @ np.eye(4), seed=5), start)
+    np.testing.assert_array_equal(nxt.true_c2w[0], clip.true_c2w[-1])
+    np.testing.assert_array_equal(nxt.true_depth[0], clip.true_depth[-1])
+    perfect = simulation_backend(truth, SimulationConfig(preset="perfect")).synthesizer
+    np.testing.assert_array_equal(perfect.simulate(_request(truth, traj)).true_c2w, traj)
+
+
+def test_honest_synthesizer_hallucinates_what_the_cloud_does_not_show():
+    truth = _truth(scale=1.0)
+    cfg = SimulationConfig(drift_rot_deg=0.0, drift_trans=0.0)
+    synth = simulation_backend(truth, cfg).synthesizer
+    traj = _walk(3, 0.3, 1.0)
+    seen = synth.simulate(_request(truth, traj, _true_cloud(truth, traj), seed=1))
+    unseen = synth.simulate(_request(truth, traj, None, seed=1))
+    other = synth.simulate(_request(truth, traj, None, seed=2))
+    assert seen.true_quality[1:].min() > 0.9 and unseen.true_quality[1:].max() < 0.1
+    true2 = render(truth.scene, truth.gt_pose(traj[2]), truth.work_intrinsics).rgb.astype(int)
+    err = [np.abs(c.frames[2].astype(int) - true2).mean() for c in (seen, unseen)]
+    assert err[0] < 0.5 and err[1] > 3  # invented content is not the truth ...
+    assert np.abs(unseen.frames[2].astype(int) - other.frames[2].astype(int)).mean() > 3  # ... nor twice the same
+    assert (unseen.true_depth[2] > 0).mean() > 0.9  # ... but it has geometry, which the geometry model will lift
+
+
+def test_honest_synthesizer_corrupts_frames_near_or_inside_surfaces():
+    truth = _truth(scale=1.0)
+    synth = simulation_backend(truth, SimulationConfig(drift_rot_deg=0.0, drift_trans=0.0)).synthesizer
+    wall = np.eye(4)
+    wall[:3, 3] = truth.world_points(np.array([[truth.photo_c2w[0, 3], -0.05, 1.3]]))[0]  # inside the south wall
+    traj = np.stack([np.eye(4), np.eye(4), wall])
+    clip = synth.simulate(_request(truth, traj, _true_cloud(truth, traj[:1]), seed=3))
+    assert clip.true_quality[1] > 0.9 and clip.true_quality[2] == 0.0
+
+
+def test_honest_geometry_estimates_from_the_frames_truth():
+    truth = _truth(scale=1.0)
+    cfg = SimulationConfig(scale_sigma=0.0, depth_noise=0.0, depth_lowfreq=0.0, pose_rot_deg=0.0, pose_trans=0.0,
+                           pose_trans_rel=0.0)
+    geo = simulation_backend(truth, cfg).geometry
+    T = np.eye(4)
+    T[:3, 3] = [0.3, 0.0, 0.0]
+    shown = np.full((48, 64), 2.5, np.float32)  # what the frame shows (e.g. hallucinated), not the true scene
+    pred = geo.predict(np.zeros((2, 48, 64, 3), np.uint8), seed=1, hint_c2w=np.stack([np.eye(4), T]),
+                       hint_depth=[None, shown])
+    np.testing.assert_allclose(pred.depth[1], shown, rtol=1e-6)
+    np.testing.assert_allclose(pred.c2w[1][:3, 3], [0.3, 0, 0], atol=1e-9)
+    noisy = simulation_backend(truth, SimulationConfig(scale_sigma=0.0)).geometry.predict(
+        np.zeros((2, 48, 64, 3), np.uint8), seed=1, hint_c2w=np.stack([np.eye(4), T]), hint_depth=[None, shown])
+    rel = noisy.depth[1] / shown - 1
+    assert 0.005 < np.abs(rel).mean() < 0.15  # the smooth per-view error of feed-forward depth
 
 
 def test_demo_collection_writes_photos_and_ground_truth(demo_photos):
