@@ -119,11 +119,18 @@ def frame_truth(scene: SceneStore, k: int, frames: np.ndarray) -> tuple[np.ndarr
     the hints of the simulated Geometry and MonoDepth roles, which learned backends ignore. A store written
     before the truth was kept gives the planned poses and no depth."""
     frames = np.asarray(frames, dtype=np.int64)
-    if scene.has(SYNTHESIZE, k, "true_c2w"):
-        c2w = scene.read(SYNTHESIZE, k, "true_c2w")[frames]
-        depth = scene.read_rows(SYNTHESIZE, k, "true_depth", frames)
-        return c2w, list(depth)
-    return scene.read(PLAN, k, "trajectory")[frames], [None] * len(frames)
+    c2w = true_cameras(scene, k)[frames]
+    if scene.has(SYNTHESIZE, k, "true_depth"):
+        return c2w, list(scene.read_rows(SYNTHESIZE, k, "true_depth", frames))
+    return c2w, [None] * len(frames)
+
+
+def true_cameras(scene: SceneStore, k: int) -> np.ndarray:
+    """World c2w ``[T, 4, 4]`` where each frame of clip k was really taken (the synthesize step's ``true_c2w``,
+    simulation only); the planned trajectory for a clip stored without it."""
+    name = "true_c2w" if scene.has(SYNTHESIZE, k, "true_c2w") else None
+    return np.asarray(scene.read(SYNTHESIZE, k, name) if name else scene.read(PLAN, k, "trajectory"),
+                      dtype=np.float64)
 
 
 def input_pose(scene: SceneStore) -> np.ndarray:

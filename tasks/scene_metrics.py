@@ -45,7 +45,7 @@ from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, SYNTHESIZE
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import load_cloud, simulation_truth
-from navcrafter.tasks.readers import stored_scene_centre
+from navcrafter.tasks.readers import stored_scene_centre, true_cameras
 from navcrafter.tasks.steps import StepContext
 
 
@@ -74,16 +74,9 @@ def true_array(scene, k: int, name: str) -> np.ndarray | None:
     return scene.read(SYNTHESIZE, k, name) if scene.has(SYNTHESIZE, k, name) else None
 
 
-def true_clip_cameras(scene, k: int) -> np.ndarray:
-    """World c2w ``[T, 4, 4]`` of every frame of clip ``k`` where it was really taken (``true_c2w``), the
-    planned trajectory for a clip stored without it."""
-    c2w = true_array(scene, k, "true_c2w")
-    return np.asarray(scene.read(PLAN, k, "trajectory") if c2w is None else c2w, dtype=np.float64)
-
-
 def true_camera_path(scene, config: RunConfig) -> np.ndarray:
-    """``true_clip_cameras`` of clips 1..N, concatenated."""
-    parts = [true_clip_cameras(scene, k) for k in range(1, config.iterations + 1)]
+    """``readers.true_cameras`` of clips 1..N, concatenated."""
+    parts = [true_cameras(scene, k) for k in range(1, config.iterations + 1)]
     return np.concatenate(parts) if parts else np.zeros((0, 4, 4))
 
 
@@ -127,7 +120,7 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
         errs = []
         for k in range(1, config.iterations + 1):
             est = scene.read(LIFT, k, "c2w")[:, :3, 3]
-            req = true_clip_cameras(scene, k)[scene.read(LIFT, k, "view_index")][:, :3, 3]
+            req = true_cameras(scene, k)[scene.read(LIFT, k, "view_index")][:, :3, 3]
             errs.append(np.linalg.norm(est - req, axis=1) / truth.world_scale)
         if errs:
             metrics["camera_median_err_m"] = float(np.median(np.concatenate(errs)))

@@ -569,14 +569,16 @@ def planning_cloud(state: PlanningState, r_safe: float | None = None) -> np.ndar
 
 
 def _masks_and_scores(state: PlanningState, points: np.ndarray, cands: np.ndarray, skip: np.ndarray,
-                      anchor: float) -> tuple[np.ndarray, np.ndarray]:
+                      score) -> tuple[np.ndarray, np.ndarray]:
+    """Visibility masks of the candidates not skipped (the cloud splatted into them) and ``score(mask)`` of each
+    (skipped ones: an empty mask, score 0)."""
     masks = np.zeros((len(cands), state.height, state.width), dtype=bool)
     scores = np.zeros(len(cands))
     for i, c2w in enumerate(cands):
         if skip[i]:
             continue
         masks[i] = render_points(points, c2w, state.K, state.height, state.width, state.point_size).mask
-        scores[i] = visibility_score(masks[i], anchor)
+        scores[i] = score(masks[i])
     return masks, scores
 
 
@@ -613,7 +615,8 @@ class CollisionAwarePlanner:
                 break
         rounds = len(cands)
         cands_a, collides_a = np.concatenate(cands), np.concatenate(collides)
-        masks_a, scores_a = _masks_and_scores(state, points, cands_a, collides_a, cfg.anchor_fraction)
+        masks_a, scores_a = _masks_and_scores(state, points, cands_a, collides_a,
+                                              lambda m: visibility_score(m, cfg.anchor_fraction))
         t_score = time.perf_counter() - t_tree
         T = state.num_frames
         first_initial = None
@@ -668,17 +671,14 @@ class ViewCrafterPlanner:
         cfg = self.config
         t0 = time.perf_counter()
         cands = candidate_rounds(state, cfg, rng, 1)
-        points = planning_cloud(state)
-        masks = np.stack([render_points(points, c2w, state.K, state.height, state.width, state.point_size).mask
-                          for c2w in cands])
-        scores = np.array([occlusion_utility(m) for m in masks])
+        none = np.zeros(len(cands), dtype=bool)
+        masks, scores = _masks_and_scores(state, planning_cloud(state), cands, none, occlusion_utility)
         t_score = time.perf_counter()
         i = int(np.argmax(scores))
         traj = spherical_interpolate(state.current, cands[i], state.num_frames, state.centre)
         t_end = time.perf_counter()
         timings = {"detector_s": 0.0, "candidates_s": t_score - t0, "trajectory_s": t_end - t_score,
                    "total_s": t_end - t0}
-        none = np.zeros(len(cands), dtype=bool)
         return PlanResult(traj, traj, cands, scores, none, masks, i, timings=timings)
 
 
