@@ -138,20 +138,27 @@ class LiftConfig(_Section):
         "ICP correspondence distance, relative to the reference view's median depth."))
 
 
+# The fit's named loss weightings (fit.loss): values of lambda_lpips, lambda_depth, depth_space
+LOSS_WEIGHTINGS: dict[str, dict[str, Any]] = {
+    "paper": {"lambda_lpips": 1.0, "lambda_depth": 1.0, "depth_space": "inverse"},
+    "light": {"lambda_lpips": 0.2, "lambda_depth": 0.1, "depth_space": "median"},
+}
+
+
 class FitConfig(_Section):
     """Geometry-aware 3D Gaussian Splatting fit (``tasks/fit.py``; paper, Sec. III-D).
 
     Initialised from the final cloud, trained on every synthesized frame at its planned camera except each
     ``holdout_every``-th (held out for PSNR/SSIM/LPIPS) with L1 + ``lambda_lpips`` LPIPS (only with the
     official LPIPS weights; skipped with a note otherwise) + ``lambda_depth`` depth L1 against monocular depth
-    calibrated to the lift step's geometry depth, and DropGaussian. Learning rates are 3DGS's, density control
-    gsplat's defaults; the paper's own values for the lambdas and iterations were not available here, so they
-    are the usual choices of depth-regularised 3DGS and DropGaussian (documented per field). Off by default:
-    at paper sizes it takes hours on a CPU (models/gaussians/README.md).
+    calibrated to the lift step's geometry depth, and DropGaussian. Learning rates are 3DGS's; the loss weights are
+    the paper's (unit); the size (resolution, iterations, Gaussian budget, and 3DGS's schedule scaled to it) was
+    chosen by held-out quality against time on 2 CPU cores (benchmarks/fit_defaults.py,
+    models/gaussians/README.md#default-size). On by default. With a GPU, longer fits are cheap: see that README.
     """
 
-    enabled: bool = Field(False, description="Run the fit step after the last lift.")
-    iterations: int = Field(10_000, ge=1, description="Training iterations (one view each).")
+    enabled: bool = Field(True, description="Run the fit step after the last lift.")
+    iterations: int = Field(500, ge=1, description="Training iterations (one view each).")
     holdout_every: int = Field(8, ge=2, description="Every n-th frame (0, n, 2n, ...) is held out for evaluation.")
     train_stride: int = Field(
         1, ge=1, description="Train on every n-th of the frames not held out (1: all of them). Sparser training "
@@ -164,13 +171,13 @@ class FitConfig(_Section):
         0.02, gt=0, description="World size of a cloud point when the cloud is rendered as a frame's multi-view "
         "depth (depth_views='all'); the lift voxel size is a good value.")
     resolution: int | None = Field(
-        None, ge=8, description="Longer image side for training and evaluation (frames box-downsampled, "
+        128, ge=8, description="Longer image side for training and evaluation (frames box-downsampled, "
         "intrinsics scaled); None: the synthesis resolution.")
     max_init_points: int | None = Field(
-        None, ge=1, description="Initialise from at most this many cloud points (a seeded random subset); "
+        50_000, ge=1, description="Initialise from at most this many cloud points (a seeded random subset); "
         "None: every point (3DGS).")
     sh_degree: int = Field(3, ge=0, le=3, description="Spherical-harmonics degree (3DGS: 3).")
-    sh_degree_interval: int = Field(1000, ge=1, description="Iterations per increase of the active SH degree.")
+    sh_degree_interval: int = Field(125, ge=1, description="Iterations per increase of the active SH degree.")
     lr_means: float = Field(1.6e-4, gt=0, description="Position learning rate x scene scale, at the start (3DGS).")
     lr_means_final: float = Field(1.6e-6, gt=0, description="... at the last iteration (log-linear decay).")
     lr_quats: float = Field(1e-3, gt=0)
@@ -178,8 +185,16 @@ class FitConfig(_Section):
     lr_opacities: float = Field(5e-2, gt=0, description="Learning rate of the opacity logits.")
     lr_sh0: float = Field(2.5e-3, gt=0)
     lr_shN: float = Field(2.5e-3 / 20, gt=0)
-    lambda_lpips: float = Field(0.2, ge=0, description="Weight of the LPIPS term (needs the official weights).")
-    lambda_depth: float = Field(0.1, ge=0, description="Weight of the calibrated-depth L1 term (relative depth).")
+    loss: Literal["paper", "light"] = Field(
+        "paper", description="Named weighting of the loss; sets lambda_lpips, lambda_depth and depth_space where "
+        "they are not given: 'paper' L1 + LPIPS + depth L1 with unit weights, the depth term in inverse depth (the "
+        "space the calibration fits); 'light' 1 : 0.2 : 0.1 with the depth term in median-normalised depth (the "
+        "earlier default; measured effect in models/gaussians/README.md#the-loss).")
+    lambda_lpips: float = Field(1.0, ge=0, description="Weight of the LPIPS term (needs the official weights).")
+    lambda_depth: float = Field(1.0, ge=0, description="Weight of the calibrated-depth L1 term.")
+    depth_space: Literal["inverse", "median"] = Field(
+        "inverse", description="The depth term's space: 'inverse' |1/ED - 1/D| (world units^-1, where the target "
+        "is valid, not sky, and the render covers the pixel); 'median' |ED - D| / median(D).")
     drop_gamma: float = Field(0.1, ge=0, lt=1, description="DropGaussian: drop rate r_t = gamma t / T (0: off).")
     depth_confidence: float = Field(
         0.5, ge=0, le=1, description="Geometry pixels at least this confident take part in the depth calibration.")
@@ -188,18 +203,22 @@ class FitConfig(_Section):
     grow_scale3d: float = Field(0.01, gt=0, description="Clone below, split above this size x scene scale.")
     prune_opa: float = Field(0.005, gt=0, lt=0.5, description="Prune Gaussians less opaque than this.")
     prune_scale3d: float = Field(0.1, gt=0, description="Prune Gaussians larger than this x scene scale.")
-    densify_start: int = Field(500, ge=0, description="First iteration of density control (gsplat: refine_start_iter).")
-    densify_stop: int = Field(15_000, ge=0, description="Density control stops at this iteration (refine_stop_iter).")
-    densify_every: int = Field(100, ge=1, description="Iterations between density-control steps (refine_every).")
-    reset_every: int = Field(3000, ge=0, description="Opacity reset period (0: never).")
-    max_gaussians: int = Field(1_000_000, ge=1, description="Densification never grows the model beyond this.")
+    densify_start: int = Field(50, ge=0, description="First iteration of density control (gsplat: refine_start_iter).")
+    densify_stop: int = Field(375, ge=0, description="Density control stops at this iteration (refine_stop_iter).")
+    densify_every: int = Field(25, ge=1, description="Iterations between density-control steps (refine_every).")
+    reset_every: int = Field(0, ge=0, description="Opacity reset period (0: never).")
+    max_gaussians: int = Field(50_000, ge=1, description="Densification never grows the model beyond this.")
     device: str = Field(
         "auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="Where to train: 'auto' (CUDA when torch sees a "
         "GPU, else the CPU), 'cpu', 'cuda' or 'cuda:N'. Results come back to the CPU either way.")
-    renderer: Literal["auto", "torch", "gsplat"] = Field(
-        "auto", description="Rasterizer: 'auto' (gsplat on CUDA when it is installed, else navcrafter's PyTorch "
-        "renderer), 'torch', or 'gsplat' (CUDA only; `pip install navcrafter[cuda]`). gsplat clamps alpha at 0.999 "
-        "(ours 0.99) and is not bit-reproducible.")
+    renderer: Literal["auto", "cpu", "torch", "gsplat"] = Field(
+        "auto", description="Rasterizer: 'auto' (on the CPU navcrafter's compiled kernels; on CUDA gsplat when it "
+        "is installed, else the PyTorch renderer), 'cpu', 'torch' (the PyTorch renderer, any device) or 'gsplat' "
+        "(CUDA only; `pip install navcrafter[cuda]`). gsplat clamps alpha at 0.999 (ours 0.99) and is not "
+        "bit-reproducible; 'cpu' and 'torch' give the same images.")
+    threads: int | None = Field(
+        None, ge=1, description="Threads of the compiled CPU rasterizer (None: every core; results do not depend "
+        "on it).")
 
     # the density-control fields were called refine_* (gsplat's names) when the first stores were written;
     # cache keys keep those names (schemas.keys), so that renaming them recomputes nothing
@@ -209,6 +228,8 @@ class FitConfig(_Section):
     @model_validator(mode="before")
     @classmethod
     def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("loss") in LOSS_WEIGHTINGS:
+            data = {**LOSS_WEIGHTINGS[data["loss"]], **data}
         if isinstance(data, dict):
             for new, old in cls.key_names.items():
                 if old in data:
@@ -232,7 +253,10 @@ class RefineConfig(_Section):
                           "x the scene scale (the median camera-to-cloud distance).")
     angle_deg: float = Field(8.0, ge=0, description="Largest turn (yaw and pitch) of a novel camera.")
     iterations: int = Field(1000, ge=1, description="Training iterations after adding the refined views.")
-    weight: float = Field(0.5, gt=0, le=1, description="Loss weight of a refined view (real views: 1).")
+    weight: float = Field(1.0, gt=0, le=1, description="Loss weight of a refined view (real views: 1; the "
+                          "paper's recipe uses the refined views as training views, i.e. 1).")
+    depth: bool = Field(True, description="Depth term on the refined views too (their monocular depth calibrated "
+                        "to the scene cloud rendered there), i.e. the fit's loss; false: colour terms only.")
 
 
 class EvaluationConfig(_Section):
@@ -363,7 +387,8 @@ class RunConfig(BaseModel):
     # fields that change no stored output (scheduling only): the only ones that key no step
     # (tests/schemas/test_cache_keys.py checks every other field keys some step)
     NOT_KEYING: ClassVar[dict[str, str]] = {
-        "max_parallel_scenes": "how many scenes run at once", "gpu_limit": "which concurrency limit steps wait on"}
+        "max_parallel_scenes": "how many scenes run at once", "gpu_limit": "which concurrency limit steps wait on",
+        "fit.threads": "the compiled rasterizer's threads (its results do not depend on them)"}
 
     @model_validator(mode="after")
     def _check(self) -> RunConfig:
@@ -425,7 +450,7 @@ def _tiny() -> dict[str, Any]:
         "iterations": 2,
         "synthesis": {"num_frames": 9, "height": 64, "width": 64},
         "lift": {"max_views": 4, "pixel_stride": 1, "voxel_size": 0.03},
-        "fit": {"iterations": 40, "resolution": 32, "max_init_points": 3000, "sh_degree": 1,
+        "fit": {"enabled": False, "iterations": 40, "resolution": 32, "max_init_points": 3000, "sh_degree": 1,
                 "sh_degree_interval": 20, "lr_means": 1.6e-3, "lr_means_final": 1.6e-4, "densify_start": 10,
                 "densify_every": 10, "densify_stop": 30, "reset_every": 0, "max_gaussians": 4000},
     }

@@ -8,7 +8,8 @@ pins every key for fixed configs: a change here that moves a key recomputes ever
 
 Config fields that were renamed keep their old names in keys (``key_names`` of a config section), and fields
 added after stores existed key their step only once set away from their default (``keyed_when_set``), so that
-stores made before either change resume without recomputing anything.
+stores made before either change resume without recomputing anything. Fields that cannot change a result (a
+thread count) are declared in ``RunConfig.NOT_KEYING`` and left out.
 """
 
 from __future__ import annotations
@@ -105,6 +106,8 @@ def _section(section: BaseModel, key: Key) -> dict[str, Any]:
     dump = section.model_dump(mode="json")
     names = getattr(section, "key_names", {})
     unset = {f: default for f, default in getattr(section, "keyed_when_set", {}).items() if dump.get(f) == default}
+    if isinstance(key.path, str):  # fields declared not to change any result (RunConfig.NOT_KEYING)
+        unset.update(dict.fromkeys(f for f in dump if f"{key.path}.{f}" in RunConfig.NOT_KEYING))
     out = {}
     for name, value in dump.items():
         if name in unset or (key.include is not None and name not in key.include):

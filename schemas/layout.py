@@ -288,8 +288,9 @@ FIT = StepSpec(
                   "per iteration: loss, l1, lpips, depth (NaN when off), drop rate, number of Gaussians"),
     ),
     attrs=("n_gaussians", "sh_degree", "resolution", "holdout_every", "n_train", "n_holdout", "psnr", "ssim",
-           "lpips", "lpips_note", "init_psnr", "scene_scale", "train_seconds", "final_loss"),
-    body="fit:fit", gpu=True, models=MODEL_ROLES, runs_if="fit.enabled",
+           "lpips", "lpips_note", "init_psnr", "scene_scale", "train_seconds", "final_loss", "peak_rss_mb"),
+    # version 2: the compiled CPU rasterizer under renderer 'auto', the paper's loss, peak memory in attrs
+    body="fit:fit", gpu=True, models=MODEL_ROLES, runs_if="fit.enabled", version=2,
     reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION),
     keyed_by=(Key("fit", "fit"), _SIM, _LPIPS),
 )
@@ -318,13 +319,14 @@ REFINE = StepSpec(
         ArraySpec("history", "float32", ("I", 6), ("I", 6), "per iteration, as gaussians/history"),
     ),
     attrs=("psnr", "ssim", "lpips", "psnr_before", "ssim_before", "n_views", "n_gaussians", "refiner",
-           "train_seconds"),
-    body="refine:refine", gpu=True, models=(*MODEL_ROLES, "refiner"), runs_if="refine.enabled",
+           "train_seconds", "peak_rss_mb"),
+    # version 2: the fit's loss on the refined views (weight 1, depth)
+    body="refine:refine", gpu=True, models=(*MODEL_ROLES, "refiner"), runs_if="refine.enabled", version=2,
     reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION, Read("fit")),
     keyed_by=(Key("refine", "refine"), Key("simulation", "simulation", simulation_only=True),
               Key("fit", "fit", include=("device", "renderer", "lr_means_final", "lr_quats", "lr_scales",
                                          "lr_opacities", "lr_sh0", "lr_shN", "lambda_depth", "drop_gamma",
-                                         "sh_degree")),
+                                         "sh_degree", "lambda_lpips", "depth_space", "depth_point_size")),
               _LPIPS),
 )
 

@@ -15,20 +15,24 @@
   ``fit.depth_views = "all"`` (default) the scene cloud rendered into the other frames (z-buffered points of
   size ``fit.depth_point_size``). The calibrated depth supervises the rendered expected depth
   (``lambda_depth``); the targets are stored (``depth_targets``) for the refine step.
-* **Loss** L1 + ``lambda_lpips`` LPIPS + ``lambda_depth`` depth, with DropGaussian (``models.gaussians.train``;
-  the recipe around it: ``models.gaussians.recipe``).
+* **Loss** L1 + ``lambda_lpips`` LPIPS + ``lambda_depth`` depth (the paper's unit weights, depth in inverse
+  depth; ``fit.loss``), with DropGaussian (``models.gaussians.train``; the recipe around it:
+  ``models.gaussians.recipe``).
   LPIPS needs the official weights (``evaluation.weights_dir``); without them the term is skipped, held-out
   LPIPS is not reported, and ``lpips_note`` says why. It is never computed with a random network.
 * **Device and renderer** (``fit.device``, ``fit.renderer``; ``models.gaussians.renderer``): by default the fit
   trains on CUDA when torch sees a GPU, rendering with gsplat when it is installed (``pip install
-  navcrafter[cuda]``) and with our PyTorch rasterizer otherwise; on the CPU always with ours. Results (model,
+  navcrafter[cuda]``) and with our PyTorch rasterizer otherwise; on the CPU with our compiled kernels
+  (``fit.threads``). Results (model,
   renders, metrics) come back to the CPU; the attrs record the device and renderer used.
 * **Progress**: iteration, loss terms and Gaussian count are logged about ten times per fit (the CLI and the
   task run's log), and a ``fit-<id12>`` progress artifact follows the iterations in the dashboard
   (``tasks/progress.py``).
 * **Outputs** (group ``gaussians``): the Gaussians, the frames' cameras, the hold-out and training masks,
   held-out renders, depth targets and calibrations, the loss history; attrs: held-out PSNR / SSIM (/ LPIPS),
-  the initial model's held-out PSNR (``init_psnr``), counts and timings.
+  the initial model's held-out PSNR (``init_psnr``), counts and timings, and the step's peak resident memory
+  (``peak_rss_mb``, ``tasks/memory.py``: sampled while it runs; process-wide, so scenes fitted at the same time
+  in one worker share it). Only one clip's frames are held at full resolution at a time.
 
 The diffusion refinement of rendered views and the fitting again with them is the next step, ``tasks/refine.py``.
 """
@@ -56,17 +60,23 @@ from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibr
 from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.layout import LIFT, SYNTHESIZE
 from navcrafter.tasks.common import logger
+from navcrafter.tasks.memory import PeakRSS
 from navcrafter.tasks.progress import TrainingProgress
 from navcrafter.tasks.readers import camera_path, frame_truth
 from navcrafter.tasks.steps import StepContext
 
 
 def fit(ctx: StepContext) -> dict:
+    with PeakRSS() as peak:
+        out = _fit(ctx)
+    return {**out, "peak_rss_mb": peak.mb}
+
+
+def _fit(ctx: StepContext) -> dict:
     cfg, N, scene, seed = ctx.config.fit, ctx.config.iterations, ctx.scene, ctx.seed
     path = camera_path(scene, ctx.config, cameras="estimated").distinct()
     refs, c2w, K_full = path.refs, path.c2w, path.K
-    frames = {k: scene.read(SYNTHESIZE, k, "frames") for k in range(1, N + 1)}
-    H, W = frames[1].shape[1:3]
+    H, W = scene.read_rows(SYNTHESIZE, 1, "frames", [0]).shape[1:3]
     h, w = fit_size(H, W, cfg.resolution)
     K = np.stack([path.intrinsics(f).resize(w, h).K for f in range(len(path))])
     holdout = (np.arange(len(refs)) % cfg.holdout_every) == 0
@@ -76,41 +86,50 @@ def fit(ctx: StepContext) -> dict:
     train_idx, test_idx = np.nonzero(~holdout)[0][::cfg.train_stride], np.nonzero(holdout)[0]
     cloud = ctx.cloud(N)
 
-    # 1. calibrated monocular depth of the training frames: against the lift step's geometry depth where it ran
-    #    on the frame, else (depth_views="all") against the scene cloud rendered into the frame
-    lift_depth = {}
-    for k in range(1, N + 1):
-        lift = scene.read_all(LIFT, k)
-        for j, i in enumerate(lift["view_index"]):
-            lift_depth[(k, int(i))] = (lift["depth"][j], lift["confidence"][j])
+    # 1. per clip (one clip's frames at full resolution in memory at a time): the views at the fit's resolution
+    #    and the calibrated monocular depth of the training frames, against the lift step's geometry depth where
+    #    it ran on the frame, else (depth_views="all") against the scene cloud rendered into the frame
     depth_for: dict[int, np.ndarray] = {}
     calib_rows = []
-    for f in train_idx:
-        ref = refs[f]
-        if ref in lift_depth:
-            d_v, conf = lift_depth[ref]
-            valid, source = conf >= cfg.depth_confidence, 0
-        elif cfg.depth_views == "all":
-            pr = render_points(cloud.points, c2w[f], K_full[f], H, W, point_size=cfg.depth_point_size)
-            d_v, valid, source = pr.depth, pr.mask, 1
-        else:
-            continue
-        img = frames[ref[0]][ref[1]]
-        true_c2w, true_depth = frame_truth(scene, ref[0], [ref[1]])  # hints of the simulated role only
-        mono = ctx.backend.mono_depth.predict(img, seed=seed + int(f), hint_c2w=true_c2w, hint_depth=true_depth[0])
-        try:
-            cal = calibrate_depth(mono.inv_depth, d_v, valid, mono.sky)
-        except CalibrationError as exc:
-            logger().warning("scene %s: no depth supervision for frame %s: %s", ctx.scene_id[:12], ref, exc)
-            continue
-        depth_for[int(f)] = resize_depth(cal.depth, h, w)
-        calib_rows.append([f, cal.scale, cal.bias, cal.inlier_fraction, cal.sigma, source])
+    images: dict[int, np.ndarray] = {}
+    is_train = np.zeros(len(refs), dtype=bool)
+    is_train[train_idx] = True
+    for k in range(1, N + 1):
+        frames = scene.read(SYNTHESIZE, k, "frames")
+        lift = scene.read_all(LIFT, k)
+        lift_depth = {int(i): (lift["depth"][j], lift["confidence"][j]) for j, i in enumerate(lift["view_index"])}
+        for f in np.nonzero([r[0] == k for r in refs])[0]:
+            f = int(f)
+            if not (is_train[f] or holdout[f]):
+                continue
+            img = frames[refs[f][1]]
+            images[f] = resize_image(img, h, w).astype(np.float32) / 255.0
+            if not is_train[f]:
+                continue
+            if refs[f][1] in lift_depth:
+                d_v, conf = lift_depth[refs[f][1]]
+                valid, source = conf >= cfg.depth_confidence, 0
+            elif cfg.depth_views == "all":
+                pr = render_points(cloud.points, c2w[f], K_full[f], H, W, point_size=cfg.depth_point_size)
+                d_v, valid, source = pr.depth, pr.mask, 1
+            else:
+                continue
+            true_c2w, true_depth = frame_truth(scene, k, [refs[f][1]])  # hints of the simulated role only
+            mono = ctx.backend.mono_depth.predict(img, seed=seed + f, hint_c2w=true_c2w, hint_depth=true_depth[0])
+            try:
+                cal = calibrate_depth(mono.inv_depth, d_v, valid, mono.sky)
+            except CalibrationError as exc:
+                logger().warning("scene %s: no depth supervision for frame %s: %s", ctx.scene_id[:12], refs[f], exc)
+                continue
+            depth_for[f] = resize_depth(cal.depth, h, w)
+            calib_rows.append([f, cal.scale, cal.bias, cal.inlier_fraction, cal.sigma, source])
+        del frames, lift, lift_depth
+    calib_rows.sort(key=lambda r: r[0])
 
     # 2. the views, the initial Gaussians from the cloud
     def view(f: int) -> TrainView:
-        img = resize_image(frames[refs[f][0]][refs[f][1]], h, w).astype(np.float32) / 255.0
         d = depth_for.get(f)
-        return TrainView(torch.from_numpy(img), torch.as_tensor(c2w[f], dtype=torch.float32),
+        return TrainView(torch.from_numpy(images.pop(f)), torch.as_tensor(c2w[f], dtype=torch.float32),
                          torch.as_tensor(K[f], dtype=torch.float32),
                          None if d is None else torch.from_numpy(np.ascontiguousarray(d, dtype=np.float32)))
 

@@ -10,7 +10,8 @@ the Difix3D+ recipe).
    a Difix-style single-step diffusion model (``onnx`` backend, ``models/refiner``), or the simulation
    stand-in (the render moved toward the true view; ``simulation.refine_strength``).
 4. **Fit again**: the fitted Gaussians train ``refine.iterations`` more iterations on the training views plus
-   the refined views (loss weight ``refine.weight``, no depth term on them), with the fit's learning rates
+   the refined views with the fit's loss (weight ``refine.weight``, 1; with ``refine.depth`` their monocular
+   depth calibrated to the scene cloud rendered at the novel camera supervises depth), with the fit's learning rates
    except the position rate, which decays from 10 x to 1 x ``fit.lr_means_final``; density control off;
    DropGaussian as in the fit.
 5. **Evaluate** on the fit's held-out frames: ``psnr`` / ``ssim`` (/ ``lpips``) after, ``psnr_before`` /
@@ -31,7 +32,11 @@ from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.gaussians.novelviews import nearest_views, novel_cameras
 from navcrafter.models.gaussians.recipe import continue_training, heldout_metrics, history_array, load_lpips
 from navcrafter.models.gaussians.train import TrainView, render_model
+from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
+from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.layout import FIT
+from navcrafter.tasks.common import logger
+from navcrafter.tasks.memory import PeakRSS
 from navcrafter.tasks.progress import TrainingProgress
 from navcrafter.tasks.readers import load_fit_views, load_gaussians
 from navcrafter.tasks.steps import StepContext
@@ -42,6 +47,12 @@ class RefinerMissing(RuntimeError):
 
 
 def refine(ctx: StepContext) -> dict:
+    with PeakRSS() as peak:
+        out = _refine(ctx)
+    return {**out, "peak_rss_mb": peak.mb}
+
+
+def _refine(ctx: StepContext) -> dict:
     rc, fc, scene, seed = ctx.config.refine, ctx.config.fit, ctx.scene, ctx.seed
     backend = ctx.backend
     if backend.refiner is None:
@@ -76,9 +87,10 @@ def refine(ctx: StepContext) -> dict:
         ref_img = np.round(train_views[frame_pos[int(ref_frames[i])]].image.numpy() * 255).astype(np.uint8)
         refined[i] = backend.refiner.refine(renders[i], ref_img, seed=seed + i, hint_c2w=c2w[i],
                                             hint_intrinsics=intr)
+    depth = refined_depth(ctx, refined, c2w, K) if rc.depth and fc.lambda_depth > 0 else [None] * len(c2w)
     extra = [TrainView(torch.from_numpy(refined[i].astype(np.float32) / 255.0),
                        torch.as_tensor(c2w[i], dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32),
-                       None, rc.weight) for i in range(len(c2w))]
+                       depth[i], rc.weight) for i in range(len(c2w))]
     # 4. fit again with the refined views; 5. evaluate on the fit's held-out frames
     lpips_model, _ = load_lpips(ctx.config.evaluation)
     t0 = time.perf_counter()
@@ -96,4 +108,26 @@ def refine(ctx: StepContext) -> dict:
     ctx.write_all(holdout_renders=np.round(rgb * 255).astype(np.uint8), history=history_array(result.history))
     return {**metrics, "psnr_before": fit_attrs["psnr"], "ssim_before": fit_attrs["ssim"],
             "lpips_before": fit_attrs.get("lpips"), "n_views": len(c2w), "n_gaussians": len(out),
+            "n_depth_views": sum(d is not None for d in depth),
             "refiner": backend.refiner.backend, "train_seconds": seconds}
+
+
+def refined_depth(ctx: StepContext, refined: np.ndarray, c2w: np.ndarray, K: np.ndarray) -> list[torch.Tensor | None]:
+    """Depth targets of the refined views, made as the fit makes those of its frames without a lift: the MonoDepth
+    role's inverse depth of the refined image calibrated to the scene cloud rendered at the novel camera (None
+    where the calibration finds too little to align to)."""
+    fc, cloud = ctx.config.fit, ctx.cloud(ctx.config.iterations)
+    h, w = refined.shape[1:3]
+    out: list[torch.Tensor | None] = []
+    for i in range(len(refined)):
+        pr = render_points(cloud.points, c2w[i], K, h, w, point_size=fc.depth_point_size)
+        # hint: the novel camera (simulation renders what the refined view shows there; real models ignore it)
+        mono = ctx.backend.mono_depth.predict(refined[i], seed=ctx.seed + 7919 + i, hint_c2w=c2w[i])
+        try:
+            cal = calibrate_depth(mono.inv_depth, pr.depth, pr.mask, mono.sky)
+        except CalibrationError as exc:
+            logger().warning("scene %s: no depth supervision for refined view %d: %s", ctx.scene_id[:12], i, exc)
+            out.append(None)
+            continue
+        out.append(torch.from_numpy(np.ascontiguousarray(cal.depth, dtype=np.float32)))
+    return out

@@ -12,7 +12,7 @@ import pyarrow as pa
 from navcrafter.models.backends import run_label
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EVALUATE
+from navcrafter.schemas.layout import EVALUATE, FIT, REFINE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.common import open_store
@@ -33,6 +33,7 @@ class SceneResult:
     timings: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, float] = field(default_factory=dict)
     outputs: str | None = None
+    notes: list[str] = field(default_factory=list)  # what a reader of the summary must know (e.g. a skipped term)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -64,8 +65,18 @@ def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, statu
                  **fields: Any) -> SceneResult:
     """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
     timings = step_timings(scene, config)
-    return SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
-                       seconds=sum(timings.values()), timings=timings, **fields)
+    result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
+                         seconds=sum(timings.values()), timings=timings, **fields)
+    fitted = scene.status(REFINE) if config.refine.enabled else scene.status(FIT)
+    if config.fit.enabled and fitted.complete:
+        a = fitted.attrs
+        result.metrics = {**result.metrics, "gs_psnr": float(a["psnr"]), "gs_gaussians": float(a["n_gaussians"])}
+        if a.get("peak_rss_mb") is not None:
+            result.metrics["gs_peak_rss_mb"] = float(a["peak_rss_mb"])
+        note = scene.status(FIT).attrs.get("lpips_note", "")
+        if "skipped" in note:
+            result.notes.append(f"3DGS fit: {note}")
+    return result
 
 
 def write_manifest(store_uri: str, rows: list[dict[str, Any]]) -> None:
@@ -93,7 +104,7 @@ def _fmt(v: float | None, unit: str = "", digits: int = 3) -> str:
 
 
 SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "coverage",
-                   "noise ratio", "F-score", "collisions", "seconds", "outputs / error")
+                   "noise ratio", "F-score", "collisions", "3DGS PSNR", "seconds", "outputs / error")
 _TEXT_COLUMNS = {"image", "scene", "status", "outputs / error"}
 EXPORT_FILES = "cloud.ply, video.mp4, trajectory.json, trajectory.parquet"
 
@@ -107,7 +118,8 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
         rows.append((PurePath(r.sources[0]).name, r.scene_id[:12] if r.scene_id else "-", r.status,
                      str(int(m["n_points"])) if "n_points" in m else "", _fmt(m.get("cloud_median_dist_m"), " m", 4),
                      _fmt(m.get("coverage")), _fmt(m.get("noise_ratio")), _fmt(m.get("fscore")),
-                     str(int(m["collisions"])) if "collisions" in m else "", f"{r.seconds:.1f}", note or ""))
+                     str(int(m["collisions"])) if "collisions" in m else "", _fmt(m.get("gs_psnr"), " dB", 2),
+                     f"{r.seconds:.1f}", note or ""))
     return rows
 
 
@@ -122,6 +134,14 @@ def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -
     lines.append(f"Run {run_id}: {done} of {len(results)} images done; backend '{config.backend}', "
                  f"{config.iterations} iterations of {config.synthesis.num_frames} frames at "
                  f"{config.synthesis.width}x{config.synthesis.height}.")
+    if config.fit.enabled:
+        f = config.fit
+        size = f"{f.resolution} px" if f.resolution else "the frames' size"
+        lines.append(f"3DGS: {f.iterations} iterations at {size}, loss L1 + "
+                     f"{f.lambda_lpips:g} LPIPS + {f.lambda_depth:g} depth ({f.depth_space} depth); 3DGS PSNR is "
+                     f"on held-out synthesized frames{' after refinement' if config.refine.enabled else ''}.")
+    for note in dict.fromkeys(n for r in results for n in r.notes):
+        lines.append(note)
     return lines
 
 

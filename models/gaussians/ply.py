@@ -8,11 +8,13 @@ One ``vertex`` element, binary little-endian, all properties ``float`` (float32)
 order (all of red's ``K-1`` coefficients, then green's, then blue's); ``opacity`` is the logit, ``scale_*``
 the log-scales, ``rot_*`` the quaternion (w, x, y, z); normals are written as zeros. Header ``comment``
 lines may carry a label (navcrafter writes the simulation-mode label there). Float32 models round-trip
-bit for bit.
+bit for bit through ``save_ply`` / ``load_ply``; ``load_gaussian_ply`` is the checked load for rendering a PLY
+from any tool (no NaN/inf, no zero quaternions, at least one Gaussian; quaternions normalised).
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +23,7 @@ import numpy as np
 import torch
 
 from navcrafter.models.gaussians.model import GaussianModel
-from navcrafter.models.gaussians.sh import num_sh_bases, sh_degree_from_bases
+from navcrafter.models.gaussians.sh import num_sh_bases
 
 _PLY_TYPES = {
     "char": "i1",
@@ -41,6 +43,7 @@ _PLY_TYPES = {
     "double": "f8",
     "float64": "f8",
 }
+_MAX_HEADER_LINE = 4096  # bytes: a longer header line means the file is no PLY (binary data)
 
 
 def property_names(sh_degree: int) -> list[str]:
@@ -111,13 +114,14 @@ class PlyHeader:
 def read_ply_header(path: str | Path) -> PlyHeader:
     """Parse the header of a binary little-endian PLY whose first element is ``vertex`` (scalar properties)."""
     with open(path, "rb") as fh:
-        if fh.readline().strip() != b"ply":
-            raise ValueError(f"{path}: not a PLY file")
+        if fh.readline(64).strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file (it does not start with the line 'ply'); give a 3D Gaussian "
+                             "Splatting .ply as written by navcrafter, the INRIA 3DGS code or gsplat")
         fmt, comments, count, props, element = "", [], None, [], None
-        while True:
-            raw = fh.readline()
-            if not raw:
-                raise ValueError(f"{path}: PLY header has no end_header")
+        for n in itertools.count(2):
+            raw = fh.readline(_MAX_HEADER_LINE)
+            if not raw or (len(raw) == _MAX_HEADER_LINE and not raw.endswith(b"\n")):
+                raise ValueError(f"{path}: PLY header has no end_header (the file is truncated or not a PLY)")
             line = raw.decode("ascii", errors="replace").rstrip("\r\n")
             words = line.split()
             if not words:
@@ -129,40 +133,57 @@ def read_ply_header(path: str | Path) -> PlyHeader:
             elif words[0] == "comment":
                 comments.append(line[len("comment") :].strip())
             elif words[0] == "element":
+                if len(words) != 3 or not words[2].isdigit():
+                    raise ValueError(f"{path}: malformed PLY header line {n}: {line!r} (expected 'element NAME "
+                                     "COUNT')")
                 if element is None and words[1] != "vertex":
-                    raise ValueError(f"{path}: the first PLY element must be 'vertex', got {words[1]!r}")
+                    raise ValueError(f"{path}: the first PLY element must be 'vertex', got {words[1]!r} (a "
+                                     "compressed or non-3DGS PLY; export an uncompressed 3DGS PLY)")
                 element = words[1]
                 if element == "vertex":
                     count = int(words[2])
             elif words[0] == "property" and element == "vertex":
-                if words[1] == "list" or words[1] not in _PLY_TYPES:
-                    raise ValueError(f"{path}: unsupported vertex property {line!r}")
+                if len(words) < 3 or words[1] == "list" or words[1] not in _PLY_TYPES:
+                    raise ValueError(f"{path}: unsupported vertex property {line!r} (line {n}); a 3DGS PLY has "
+                                     "scalar float properties only")
                 props.append((words[2], "<" + _PLY_TYPES[words[1]]))
         offset = fh.tell()
     if fmt != "binary_little_endian":
-        raise ValueError(f"{path}: only binary_little_endian PLY is supported, got format {fmt!r}")
+        raise ValueError(f"{path}: only binary_little_endian PLY is supported, got format {fmt!r}; re-save it as "
+                         "binary little-endian (e.g. plyfile: PlyData(..., text=False, byte_order='<'))")
     if count is None:
         raise ValueError(f"{path}: PLY has no vertex element")
+    names = [name for name, _ in props]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{path}: duplicate vertex properties {sorted({x for x in names if names.count(x) > 1})}")
     return PlyHeader(fmt, tuple(comments), count, np.dtype(props), offset)
 
 
 def load_ply(path: str | Path, *, dtype: torch.dtype = torch.float32) -> GaussianModel:
-    """Read a 3DGS PLY written by :func:`save_ply` or by 3DGS-compatible tools. Extra properties are ignored;
-    the SH degree follows from the number of ``f_rest_*`` properties."""
+    """Read a 3DGS PLY written by :func:`save_ply` or by 3DGS-compatible tools, as stored (bit for bit; see
+    :func:`load_gaussian_ply` for the checked, normalised load). Extra properties are ignored; the SH degree
+    follows from the number of ``f_rest_*`` properties. A file that is no 3DGS PLY, or is truncated, raises a
+    ``ValueError`` naming the file and the problem."""
     header = read_ply_header(path)
     names = set(header.vertex_dtype.names or ())
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
-    if n_rest % 3:
-        raise ValueError(f"{path}: {n_rest} f_rest properties is not a multiple of 3")
-    degree = sh_degree_from_bases(n_rest // 3 + 1)
+    valid = {3 * (num_sh_bases(d) - 1): d for d in range(4)}
+    if n_rest not in valid:
+        raise ValueError(f"{path}: {n_rest} f_rest_* properties; a 3DGS PLY has 0, 9, 24 or 45 of them (SH degree "
+                         "0 to 3)")
+    degree = valid[n_rest]
     missing = [name for name in property_names(degree) if name not in names and name not in ("nx", "ny", "nz")]
     if missing:
-        raise ValueError(f"{path}: not a 3DGS PLY, missing properties {missing}")
+        raise ValueError(f"{path}: not a 3DGS PLY, missing properties {missing} (a 3DGS PLY has x, y, z, f_dc_0..2, "
+                         "f_rest_*, opacity, scale_0..2, rot_0..3; a plain point cloud is not a Gaussian splat)")
+    expected = header.vertex_count * header.vertex_dtype.itemsize
     with open(path, "rb") as fh:
         fh.seek(header.data_offset)
-        data = fh.read(header.vertex_count * header.vertex_dtype.itemsize)
-    if len(data) != header.vertex_count * header.vertex_dtype.itemsize:
-        raise ValueError(f"{path}: truncated PLY ({len(data)} bytes of vertex data)")
+        data = fh.read(expected)
+    if len(data) != expected:
+        raise ValueError(f"{path}: truncated PLY: the header declares {header.vertex_count} Gaussians "
+                         f"({expected} bytes) but the file holds {len(data)} bytes of vertex data; re-export or "
+                         "re-download it")
     arr = np.frombuffer(data, dtype=header.vertex_dtype, count=header.vertex_count)
     n = header.vertex_count
 
@@ -180,3 +201,29 @@ def load_ply(path: str | Path, *, dtype: torch.dtype = torch.float32) -> Gaussia
         sh_dc=get(["f_dc_0", "f_dc_1", "f_dc_2"]),
         sh_rest=rest,
     )
+
+
+def load_gaussian_ply(path: str | Path, *, dtype: torch.dtype = torch.float32) -> GaussianModel:
+    """:func:`load_ply` for rendering a PLY from anywhere: also refuses files without Gaussians, with NaN/inf
+    values or zero-norm quaternions (``ValueError`` saying how many rows), and normalises the quaternions (3DGS
+    tools store them unnormalised)."""
+    model = load_ply(path, dtype=dtype)
+    if len(model) == 0:
+        raise ValueError(f"{path}: the PLY holds zero Gaussians; nothing to render")
+    bad = torch.zeros(len(model), dtype=torch.bool)
+    for t in model.tensors().values():
+        bad |= ~torch.isfinite(t.reshape(len(model), -1)).all(dim=1)
+    if bad.any():
+        rows = torch.nonzero(bad).flatten()[:5].tolist()
+        raise ValueError(f"{path}: {int(bad.sum())} of {len(model)} Gaussians have NaN/inf values (rows {rows}"
+                         f"{', ...' if int(bad.sum()) > 5 else ''}); the file is corrupt: re-export it or drop those "
+                         "rows")
+    norm = torch.linalg.vector_norm(model.quats, dim=1, keepdim=True)
+    zero = norm[:, 0] < 1e-12
+    if zero.any():
+        rows = torch.nonzero(zero).flatten()[:5].tolist()
+        raise ValueError(f"{path}: {int(zero.sum())} of {len(model)} Gaussians have a zero quaternion rot_0..3 "
+                         f"(rows {rows}{', ...' if int(zero.sum()) > 5 else ''}); a rotation needs a non-zero "
+                         "quaternion")
+    return GaussianModel(model.means, model.quats / norm, model.log_scales, model.opacity_logits, model.sh_dc,
+                         model.sh_rest)

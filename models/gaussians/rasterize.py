@@ -415,6 +415,19 @@ def rasterization(
     ``meta["means2d"]`` is part of the graph (``retain_grad()`` it for densification statistics).
     """
     del packed
+    return render_gaussians(project_gaussians, rasterize_to_pixels, means, quats, scales, opacities, colors, viewmats,
+                            Ks, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+                            eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
+                            render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
+                            alpha_clamp=alpha_clamp)
+
+
+def render_gaussians(project, composite, means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
+                     near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
+                     rasterize_mode, covars, alpha_clamp) -> tuple[Tensor, Tensor, dict]:
+    """:func:`rasterization`'s body over a pair of kernels: ``project`` (:func:`project_gaussians`'s contract)
+    and ``composite`` (:func:`rasterize_to_pixels`'s); the compiled CPU kernels
+    (``models.gaussians.cpu_rasterize``) plug in here, so the render modes, SH and checks are written once."""
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, render_mode, covars)
     if rasterize_mode not in ("classic", "antialiased"):
         raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
@@ -425,7 +438,7 @@ def rasterization(
     n_cam = viewmats.shape[0]
     if covars is None:
         covars = quat_scale_to_covar(quats, scales)
-    proj = project_gaussians(
+    proj = project(
         means,
         covars,
         viewmats,
@@ -457,7 +470,7 @@ def rasterization(
     if backgrounds is not None and backgrounds.shape != (n_cam, feats.shape[-1]):
         raise ValueError(f"backgrounds must be [C, D] = [{n_cam}, {feats.shape[-1]}], got {tuple(backgrounds.shape)}")
 
-    render, alphas, info = rasterize_to_pixels(
+    render, alphas, info = composite(
         proj["means2d"],
         proj["conics"],
         feats,

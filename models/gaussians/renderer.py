@@ -1,10 +1,16 @@
-"""Renderer backends of the 3DGS code: our pure-PyTorch rasterizer (any device) or gsplat's CUDA kernels.
+"""Renderer backends of the 3DGS code: our compiled CPU kernels, our pure-PyTorch rasterizer (any device) or
+gsplat's CUDA kernels.
 
 :func:`rasterize` takes the arguments of :func:`~navcrafter.models.gaussians.rasterize.rasterization` (which
 has gsplat's ``rasterization`` contract) plus ``backend``:
 
-* ``"auto"``: gsplat when the tensors are on a CUDA device and ``import gsplat`` works, else ours;
-* ``"torch"``: ours, on whatever device the tensors are (it runs on CUDA too, just without fused kernels);
+* ``"auto"``: on CPU tensors the compiled kernels; on CUDA gsplat when ``import gsplat`` works, else the
+  PyTorch renderer;
+* ``"cpu"``: the compiled numba kernels (``cpu_rasterize``; CPU tensors only; same results as ``"torch"``,
+  many times faster, no camera gradients);
+* ``"torch"``: the PyTorch renderer, on whatever device the tensors are (it runs on CUDA too, just without
+  fused kernels; the reference the compiled kernels are tested against, and the one that differentiates
+  cameras);
 * ``"gsplat"``: gsplat, or :class:`GsplatUnavailableError` (with the install hint) when the tensors are not
   on CUDA or gsplat does not import.
 
@@ -57,8 +63,8 @@ from torch import Tensor
 
 from navcrafter.models.gaussians.rasterize import DEFAULT_ALPHA_CLAMP, RenderMode, _check_inputs, rasterization
 
-Backend = Literal["auto", "torch", "gsplat"]
-BACKENDS = ("auto", "torch", "gsplat")
+Backend = Literal["auto", "cpu", "torch", "gsplat"]
+BACKENDS = ("auto", "cpu", "torch", "gsplat")
 GSPLAT_ALPHA_CLAMP = 0.999  # hard-coded in gsplat's rasterization kernels
 INSTALL_HINT = (
     "install the CUDA extra with `pip install navcrafter[cuda]` (gsplat>=1.5) in an environment with a CUDA "
@@ -101,14 +107,21 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     return dev
 
 
-def resolve_backend(backend: str, device: str | torch.device) -> Literal["torch", "gsplat"]:
+def resolve_backend(backend: str, device: str | torch.device) -> Literal["cpu", "torch", "gsplat"]:
     """The renderer that ``backend`` means for tensors on ``device`` (see the module docstring)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     dev = torch.device(device)
     if backend == "torch":
         return "torch"
+    if backend == "cpu":
+        if dev.type != "cpu":
+            raise ValueError(f"the compiled CPU rasterizer needs CPU tensors, got {str(dev)!r}; use 'auto', "
+                             "'gsplat' or 'torch' on CUDA")
+        return "cpu"
     if backend == "auto":
+        if dev.type == "cpu":
+            return "cpu"
         return "gsplat" if dev.type == "cuda" and gsplat_available() else "torch"
     if dev.type != "cuda" and not _ALLOW_GSPLAT_ON_CPU:
         raise GsplatUnavailableError(f"the gsplat renderer needs CUDA tensors, got tensors on {str(dev)!r}; "
@@ -169,6 +182,18 @@ def rasterize(
     arguments. See the module docstring for the mapping and the ``meta`` normalisation.
     """
     which = resolve_backend(backend, means.device)
+    if which == "cpu":
+        if kwargs:
+            raise TypeError(f"the CPU renderer does not take {sorted(kwargs)} (gsplat-only arguments)")
+        from navcrafter.models.gaussians.cpu_rasterize import rasterization as cpu_rasterization
+
+        render, alphas, meta = cpu_rasterization(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
+            far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, sh_degree=sh_degree, packed=packed,
+            tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
+            covars=covars, alpha_clamp=DEFAULT_ALPHA_CLAMP if alpha_clamp is None else alpha_clamp)
+        meta["backend"] = "cpu"
+        return render, alphas, meta
     if which == "torch":
         if kwargs:
             raise TypeError(f"the torch renderer does not take {sorted(kwargs)} (gsplat-only arguments)")

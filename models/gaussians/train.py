@@ -3,11 +3,13 @@
 Per iteration ``t`` one training view (a seeded permutation, one epoch after another) is rendered with the
 ``RGB+ED`` mode; with DropGaussian's rate ``r_t = gamma * t / T`` applied to the opacities (training only)::
 
-    L = L1(rgb, image) + lambda_lpips * LPIPS(rgb, image) + lambda_depth * L1(ED, D_cal) / median(D_cal)
+    L = L1(rgb, image) + lambda_lpips * LPIPS(rgb, image) + lambda_depth * L1(1 / ED, 1 / D_cal)
 
-``ED`` is the rendered expected depth, ``D_cal`` the view's calibrated monocular depth (``models.depthcalib``);
-the depth term is the mean over pixels where ``D_cal > 0``, divided by the view's median ``D_cal`` so that
-``lambda_depth`` does not depend on the scene's units. A term with ``lambda = 0`` is neither computed nor
+with unit weights by default (the paper's loss, ``fit.loss = "paper"``). ``ED`` is the rendered expected depth,
+``D_cal`` the view's calibrated monocular depth (``models.depthcalib``), compared in inverse depth, the space the
+calibration fits, over pixels where ``D_cal > 0`` (valid, not sky) and the render covers the pixel (alpha >
+0.5). ``fit.depth_space = "median"`` (the ``"light"`` weighting, 1 : 0.2 : 0.1) compares ``|ED - D_cal|``
+divided by the view's median ``D_cal`` instead. A term with ``lambda = 0`` is neither computed nor
 added; the LPIPS term needs a perceptual model (the official LPIPS weights) and is skipped otherwise.
 
 Optimisation is 3DGS's: one Adam (eps 1e-15) per parameter with its own learning rate; the position rate is
@@ -117,7 +119,11 @@ class GaussianTrainer:
         if self.lambda_lpips > 0 and perceptual is None:
             raise ValueError("lambda_lpips > 0 needs a perceptual model (pass lambda_lpips=0 without LPIPS weights)")
         self.device = resolve_device(config.device)
-        self.renderer = resolve_backend(config.renderer, self.device)  # "torch" | "gsplat"; raises early
+        self.renderer = resolve_backend(config.renderer, self.device)  # "cpu" | "torch" | "gsplat"; raises early
+        if self.renderer == "cpu":
+            from navcrafter.models.gaussians.cpu_rasterize import set_threads
+
+            set_threads(config.threads)
         self.config, self.scene_scale = config, float(scene_scale)
         self.views = [self._on_device(v) for v in views]
         if isinstance(perceptual, torch.nn.Module):
@@ -171,7 +177,8 @@ class GaussianTrainer:
             backgrounds=self.background[None], render_mode="RGB+ED", packed=False, backend=self.renderer)
         return out[0, ..., :3], out[0, ..., 3], alpha[0, ..., 0], meta
 
-    def losses(self, view: TrainView, rgb: Tensor, depth: Tensor) -> dict[str, Tensor]:
+    def losses(self, view: TrainView, rgb: Tensor, depth: Tensor, alpha: Tensor | None = None) -> dict[str, Tensor]:
+        """The loss terms of one rendered view (``alpha``: its rendered opacity, for the inverse-depth mask)."""
         c = self.config
         view = self._on_device(view)
         terms = {"l1": (rgb - view.image).abs().mean()}
@@ -179,8 +186,14 @@ class GaussianTrainer:
             terms["lpips"] = self.perceptual(rgb.permute(2, 0, 1)[None] * 2 - 1,
                                              view.image.permute(2, 0, 1)[None] * 2 - 1).reshape(())
         if c.lambda_depth > 0 and view.depth is not None:
-            mask = view.depth > 0
-            if mask.any():
+            mask = view.depth > 0  # calibrated depth: 0 = sky or invalid
+            if c.depth_space == "inverse":
+                if alpha is not None:  # 1/ED is meaningless where the render does not cover the pixel
+                    mask = mask & (alpha.detach() > 0.5)
+                if mask.any():
+                    inv_ref = 1.0 / view.depth[mask]
+                    terms["depth"] = (1.0 / depth[mask].clamp(min=1e-6) - inv_ref).abs().mean()
+            elif mask.any():
                 ref = view.depth[mask]
                 terms["depth"] = (depth[mask] - ref).abs().mean() / ref.median().clamp(min=1e-8)
         total = terms["l1"]
@@ -203,8 +216,8 @@ class GaussianTrainer:
             opt.zero_grad(set_to_none=True)
         self.optimizers["means"].param_groups[0]["lr"] = position_lr(
             step, c.iterations, c.lr_means * self.scene_scale, c.lr_means_final * self.scene_scale)
-        rgb, depth, _, meta = self.render(view, step, training=True)
-        terms = self.losses(view, rgb, depth)
+        rgb, depth, alpha, meta = self.render(view, step, training=True)
+        terms = self.losses(view, rgb, depth, alpha)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.state, step, meta)
         terms["loss"].backward()
         for opt in self.optimizers.values():

@@ -56,7 +56,8 @@ def _trimmed(x: np.ndarray, y: np.ndarray, s: float, b: float, h: int, max_steps
     keep = None
     for _ in range(max_steps):
         r2 = (s * x + b - y) ** 2
-        new = np.sort(np.argpartition(r2, h - 1)[:h])
+        new = np.zeros(len(x), dtype=bool)  # the h smallest residuals, as a mask (x[mask] keeps index order)
+        new[np.argpartition(r2, h - 1)[:h]] = True
         if keep is not None and np.array_equal(new, keep):
             break
         keep = new
@@ -67,13 +68,16 @@ def _trimmed(x: np.ndarray, y: np.ndarray, s: float, b: float, h: int, max_steps
 
 def calibrate_depth(inv_depth: np.ndarray, geo_depth: np.ndarray, valid: np.ndarray | None = None,
                     sky: np.ndarray | None = None, *, trim: float = 0.6, threshold: float = 3.0,
-                    max_steps: int = 30, min_pixels: int = 16) -> DepthCalibration:
+                    max_steps: int = 30, min_pixels: int = 16, max_fit_pixels: int = 16384) -> DepthCalibration:
     """Align monocular inverse depth ``inv_depth`` [H, W] to geometry z-depth ``geo_depth`` [H, W].
 
     ``valid`` (optional) marks trusted geometry pixels (e.g. confidence above a threshold); pixels with
     ``geo_depth <= 0``, non-finite values or ``sky`` are never used. ``trim`` is the fraction of pixels the
     trimmed fit keeps (it tolerates up to ``1 - trim`` outliers); ``threshold`` the inlier bound in robust
-    sigmas. Raises ``CalibrationError`` with fewer than ``min_pixels`` usable pixels.
+    sigmas. The trimmed fit of ``(s, b)`` runs on at most ``max_fit_pixels`` of the usable pixels (an even,
+    deterministic stride through them: two numbers need no more, and it keeps the fit step's calibration of
+    every frame cheap); the final refit, sigma and inliers use all of them. Raises ``CalibrationError`` with
+    fewer than ``min_pixels`` usable pixels.
     """
     d_m = np.asarray(inv_depth, dtype=np.float64)
     d_v = np.asarray(geo_depth, dtype=np.float64)
@@ -89,8 +93,10 @@ def calibrate_depth(inv_depth: np.ndarray, geo_depth: np.ndarray, valid: np.ndar
     n = int(mask.sum())
     if n < min_pixels:
         raise CalibrationError(f"only {n} pixels have valid geometry and monocular depth (need {min_pixels})")
-    x, y = d_m[mask], 1.0 / d_v[mask]
-    h = max(min_pixels // 2, int(np.ceil(trim * n)))
+    x_all, y_all = d_m[mask], 1.0 / d_v[mask]
+    stride = max(1, -(-n // max_fit_pixels))
+    x, y = x_all[::stride], y_all[::stride]
+    h = max(min_pixels // 2, int(np.ceil(trim * len(x))))
     # two starts: ordinary least squares, and matching the medians and interquartile ranges
     qx, qy = np.percentile(x, [25, 50, 75]), np.percentile(y, [25, 50, 75])
     starts = [_lstsq(x, y)]
@@ -99,6 +105,7 @@ def calibrate_depth(inv_depth: np.ndarray, geo_depth: np.ndarray, valid: np.ndar
         starts.append((float(s0), float(qy[1] - s0 * qx[1])))
     best = min((_trimmed(x, y, s, b, h, max_steps) for s, b in starts), key=lambda t: t[2])
     s, b, _, keep = best
+    x, y = x_all, y_all  # sigma, inliers and the refit over every usable pixel
     res = s * x + b - y
     sigma = MAD_TO_SIGMA * float(np.median(np.abs(res)))  # over all pixels: robust while outliers < 50 %
     sigma = max(sigma, 1e-12 * max(float(np.abs(y).max()), 1e-12))

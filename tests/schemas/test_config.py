@@ -11,7 +11,15 @@ def test_paper_defaults():
     assert c.iterations == 3 and c.plan.num_candidates == 3
     assert (c.synthesis.num_frames, c.synthesis.height, c.synthesis.width) == (81, 256, 256)
     assert (c.synthesis.steps, c.synthesis.guidance_scale, c.synthesis.lora_scale) == (40, 6.5, 0.7)
-    assert c.backend == "simulation" and c.fit.enabled is False
+    assert c.backend == "simulation" and c.fit.enabled is True and c.refine.enabled is False
+    # the paper's loss: unit weights, the depth term in inverse depth; 'light' is a named alternative
+    assert (c.fit.loss, c.fit.lambda_lpips, c.fit.lambda_depth, c.fit.depth_space) == ("paper", 1.0, 1.0, "inverse")
+    light = RunConfig.load(overrides={"fit.loss": "light"}).fit
+    assert (light.lambda_lpips, light.lambda_depth, light.depth_space) == (0.2, 0.1, "median")
+    assert RunConfig.load(overrides={"fit.loss": "light", "fit.lambda_depth": 0.5}).fit.lambda_depth == 0.5
+    assert RunConfig.load(preset="tiny").fit.enabled is False  # tests and quick looks fit only when asked
+    # a thread count cannot change a result: it does not key the fit
+    assert RunConfig.load(overrides={"fit.threads": 1}).step_config("fit") == c.step_config("fit")
 
 
 def test_presets_files_and_overrides(tmp_path):

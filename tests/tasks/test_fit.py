@@ -212,7 +212,7 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     assert arrays["history"].shape == (cfg.fit.iterations, 6) and np.isnan(arrays["history"][:, 2]).all()
     assert len(arrays["depth_calibration"]) > 0 and (arrays["depth_calibration"][:, 3] > 0.8).all()
     # held out: well above what the initial model (the cloud as Gaussians) reaches
-    assert a["psnr"] > 20 and a["psnr"] > a["init_psnr"] + 4 and 0 < a["ssim"] <= 1
+    assert a["psnr"] > 20 and a["psnr"] > a["init_psnr"] + 3 and 0 < a["ssim"] <= 1
     assert a["lpips"] is None and "weights are missing" in a["lpips_note"]
     # exports: the PLY re-loads bit for bit and renders the same image; a labelled fly-through
     files = scene.status(EXPORT).attrs["files"]

@@ -21,6 +21,7 @@ import torch
 
 import navcrafter.models.gaussians.renderer as backend
 from navcrafter.models.camera.cameras import look_at
+from navcrafter.models.gaussians.cpu_rasterize import rasterization as cpu_rasterization
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.rasterize import rasterization
 from navcrafter.models.gaussians.renderer import (
@@ -132,17 +133,17 @@ def test_auto_on_cpu_tensors_uses_the_torch_renderer_even_with_gsplat_importable
     params = scene()
     vm, K = camera()
     out, alpha, meta = rasterize(*params, vm, K, S, S, sh_degree=1, render_mode="RGB+ED")
-    ref, ref_alpha, _ = rasterization(*params, vm, K, S, S, sh_degree=1, render_mode="RGB+ED")
-    assert not fake_gsplat.calls and meta["backend"] == "torch"
+    ref, ref_alpha, _ = cpu_rasterization(*params, vm, K, S, S, sh_degree=1, render_mode="RGB+ED")
+    assert not fake_gsplat.calls and meta["backend"] == "cpu"
     assert torch.equal(out, ref) and torch.equal(alpha, ref_alpha)  # alpha_clamp=None: ours, 0.99
     assert gsplat_available()
-    assert resolve_backend("auto", "cpu") == "torch" and resolve_backend("torch", "cuda") == "torch"
+    assert resolve_backend("auto", "cpu") == "cpu" and resolve_backend("torch", "cuda") == "torch"
     assert resolve_backend("auto", "cuda") == "gsplat"  # tensors on CUDA + gsplat importable
     # the model and render_model default to the same (CPU, torch) path
     model = GaussianModel(params[0], params[1], torch.log(params[2]), torch.logit(params[3]), params[4][:, 0],
                           params[4][:, 1:])
     img, _, m = model.render(vm, K, S, S)
-    assert m["backend"] == "torch" and not fake_gsplat.calls
+    assert m["backend"] == "cpu" and not fake_gsplat.calls
     frames = render_model(model, torch.eye(4)[None].numpy(), K.numpy(), S, S)
     assert frames.shape == (1, S, S, 3) and np.array_equal(frames[0], np.round(img[0].clamp(0, 1).numpy() * 255))
 
@@ -170,7 +171,8 @@ def test_trainer_device_and_renderer_resolution(no_gsplat):
     with pytest.raises(GsplatUnavailableError, match=r"navcrafter\[cuda\]"):  # refused before any training
         GaussianTrainer(init, views, quick_config(renderer="gsplat"), scene_scale=3.0)
     trainer = GaussianTrainer(init, views, quick_config(device="auto", renderer="auto"), scene_scale=3.0)
-    assert trainer.device == resolve_device("auto") and trainer.renderer == "torch"
+    assert trainer.device == resolve_device("auto") and trainer.renderer == ("cpu" if trainer.device.type == "cpu"
+                                                                              else "torch")
     if not torch.cuda.is_available():
         assert resolve_device("auto") == torch.device("cpu")
         with pytest.raises(RuntimeError, match="cuda"):

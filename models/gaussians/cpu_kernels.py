@@ -1,0 +1,547 @@
+"""Compiled CPU kernels of the 3DGS rasterizer (numba): projection, tile binning, compositing, backward passes.
+
+Plain functions over NumPy arrays, ``float64`` arithmetic inside whatever the input dtype; the autograd glue
+and the gsplat-shaped entry point are in :mod:`~navcrafter.models.gaussians.cpu_rasterize`. The maths is the
+one of :mod:`~navcrafter.models.gaussians.rasterize` (the PyTorch renderer these kernels are checked against):
+EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, per tile a
+stable depth sort, front-to-back compositing with the ``1/255`` skip and the exclusive ``T <= 1e-4`` stop.
+
+Every kernel is deterministic for any thread count: parallel loops write disjoint outputs (one Gaussian, one
+tile), and the per-Gaussian sums of the backward pass are taken in a fixed order (each tile writes the
+gradients of its own list entries; one serial pass adds them up by list position), so a fit gives the same
+bits whether it runs on 1 or 16 threads, and resuming a run reproduces it exactly.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numba
+import numpy as np
+
+# numba's own thread pool, unless the user chose a layer: its OpenMP layer pays ~8 ms per parallel call when
+# torch's OpenMP threads spin beside it (OMP_WAIT_POLICY unset); callers serialise calls (cpu_rasterize's lock),
+# which this layer requires. Takes effect at the first parallel call.
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+TRANSMITTANCE_STOP = 1e-4
+
+_jit = numba.njit(cache=True, fastmath=False, nogil=True)
+_pjit = numba.njit(cache=True, fastmath=False, nogil=True, parallel=True)
+
+
+# --------------------------------------------------------------------------------------------------
+# Covariances
+# --------------------------------------------------------------------------------------------------
+@_jit
+def _rotmat(w, x, y, z, R):
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+
+
+@_pjit
+def covar_forward(quats, scales, covars):
+    """``covars`` [N, 3, 3] = ``R diag(s)^2 R^T`` of (w, x, y, z) ``quats`` [N, 4] (normalised here, as
+    ``torch.nn.functional.normalize``) and ``scales`` [N, 3]."""
+    for g in numba.prange(quats.shape[0]):
+        nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
+        R = np.empty((3, 3))
+        _rotmat(quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm, R)
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += R[i, k] * scales[g, k] * scales[g, k] * R[j, k]
+                covars[g, i, j] = acc
+
+
+@_pjit
+def covar_backward(quats, scales, v_covars, v_quats, v_scales):
+    """Gradients of :func:`covar_forward` into ``v_quats`` [N, 4] and ``v_scales`` [N, 3]."""
+    for g in numba.prange(quats.shape[0]):
+        nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
+        w, x, y, z = quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm
+        R = np.empty((3, 3))
+        _rotmat(w, x, y, z, R)
+        # Sigma = M M^T, M = R diag(s): v_M = (G + G^T) M
+        vR = np.empty((3, 3))
+        for j in range(3):
+            v_scales[g, j] = 0.0
+        for i in range(3):
+            for j in range(3):
+                vm = 0.0
+                for k in range(3):
+                    vm += (v_covars[g, i, k] + v_covars[g, k, i]) * R[k, j] * scales[g, j]
+                vR[i, j] = vm * scales[g, j]
+                v_scales[g, j] += vm * R[i, j]
+        vw = 2 * (-z * vR[0, 1] + y * vR[0, 2] + z * vR[1, 0] - x * vR[1, 2] - y * vR[2, 0] + x * vR[2, 1])
+        vx = 2 * (y * vR[0, 1] + z * vR[0, 2] + y * vR[1, 0] - 2 * x * vR[1, 1] - w * vR[1, 2] + z * vR[2, 0]
+                  + w * vR[2, 1] - 2 * x * vR[2, 2])
+        vy = 2 * (-2 * y * vR[0, 0] + x * vR[0, 1] + w * vR[0, 2] + x * vR[1, 0] + z * vR[1, 2] - w * vR[2, 0]
+                  + z * vR[2, 1] - 2 * y * vR[2, 2])
+        vz = 2 * (-2 * z * vR[0, 0] - w * vR[0, 1] + x * vR[0, 2] + w * vR[1, 0] - 2 * z * vR[1, 1] + y * vR[1, 2]
+                  + x * vR[2, 0] + y * vR[2, 1])
+        dot = w * vw + x * vx + y * vy + z * vz
+        v_quats[g, 0] = (vw - w * dot) / nrm
+        v_quats[g, 1] = (vx - x * dot) / nrm
+        v_quats[g, 2] = (vy - y * dot) / nrm
+        v_quats[g, 3] = (vz - z * dot) / nrm
+
+
+# --------------------------------------------------------------------------------------------------
+# Projection
+# --------------------------------------------------------------------------------------------------
+@_pjit
+def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
+                    means2d, depths, conics, radii, comps):
+    """EWA projection of ``means`` [N, 3], ``covars`` [N, 3, 3] into ``viewmats`` [C, 4, 4] / ``Ks``
+    [C, 3, 3]; writes ``means2d`` [C, N, 2], ``depths`` [C, N], ``conics`` [C, N, 3], ``radii`` [C, N]
+    (int32, 0 = culled) and ``comps`` [C, N] (antialiasing compensation)."""
+    n_cam, n = viewmats.shape[0], means.shape[0]
+    for idx in numba.prange(n_cam * n):
+        c, g = idx // n, idx % n
+        R = viewmats[c, :3, :3]
+        mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
+        x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + viewmats[c, 0, 3]
+        y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + viewmats[c, 1, 3]
+        z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + viewmats[c, 2, 3]
+        depths[c, g] = z
+        depth_ok = (z > near) and (z < far)
+        zs = z if depth_ok else 1.0
+        # camera-space covariance R S R^T
+        RS = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                RS[i, j] = R[i, 0] * covars[g, 0, j] + R[i, 1] * covars[g, 1, j] + R[i, 2] * covars[g, 2, j]
+        Sc = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                Sc[i, j] = RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] + RS[i, 2] * R[j, 2]
+        fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+        tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+        lxp, lxn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+        lyp, lyn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+        tx = zs * min(max(x / zs, -lxn), lxp)
+        ty = zs * min(max(y / zs, -lyn), lyp)
+        j00, j02 = fx / zs, -fx * tx / (zs * zs)
+        j11, j12 = fy / zs, -fy * ty / (zs * zs)
+        # cov2d = J Sc J^T with J = [[j00, 0, j02], [0, j11, j12]]
+        a = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
+        b = j00 * (j11 * Sc[0, 1] + j12 * Sc[0, 2]) + j02 * (j11 * Sc[2, 1] + j12 * Sc[2, 2])
+        d = j11 * (j11 * Sc[1, 1] + j12 * Sc[2, 1]) + j12 * (j11 * Sc[1, 2] + j12 * Sc[2, 2])
+        means2d[c, g, 0] = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
+        means2d[c, g, 1] = (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y + Ks[c, 1, 2] * zs) / zs
+        det_orig = a * d - b * b
+        a += eps2d
+        d += eps2d
+        det = a * d - b * b
+        valid = depth_ok and det > 0
+        det_safe = det if valid else 1.0
+        conics[c, g, 0] = d / det_safe
+        conics[c, g, 1] = -b / det_safe
+        conics[c, g, 2] = a / det_safe
+        comps[c, g] = math.sqrt(max(det_orig / det_safe, 0.0))
+        bb = 0.5 * (a + d)
+        v1 = bb + math.sqrt(max(bb * bb - det_safe, 0.01))
+        radius = math.ceil(3.0 * math.sqrt(v1))
+        u, v = means2d[c, g, 0], means2d[c, g, 1]
+        inside = (u + radius > 0) and (u - radius < width) and (v + radius > 0) and (v - radius < height)
+        radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
+
+
+@_pjit
+def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, far,
+                     v_means2d, v_depths, v_conics, v_comps, use_comps, v_means, v_covars):
+    """Gradients of :func:`project_forward`'s outputs into ``v_means`` [N, 3] and ``v_covars`` [N, 3, 3]
+    (cameras summed in order per Gaussian)."""
+    n_cam, n = viewmats.shape[0], means.shape[0]
+    for g in numba.prange(n):
+        for k in range(3):
+            v_means[g, k] = 0.0
+            for j in range(3):
+                v_covars[g, k, j] = 0.0
+        for c in range(n_cam):
+            R = viewmats[c, :3, :3]
+            mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
+            x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + viewmats[c, 0, 3]
+            y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + viewmats[c, 1, 3]
+            z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + viewmats[c, 2, 3]
+            depth_ok = (z > near) and (z < far)
+            zs = z if depth_ok else 1.0
+            RS = np.empty((3, 3))
+            for i in range(3):
+                for j in range(3):
+                    RS[i, j] = R[i, 0] * covars[g, 0, j] + R[i, 1] * covars[g, 1, j] + R[i, 2] * covars[g, 2, j]
+            Sc = np.empty((3, 3))
+            for i in range(3):
+                for j in range(3):
+                    Sc[i, j] = RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] + RS[i, 2] * R[j, 2]
+            fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+            tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+            lxp, lxn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+            lyp, lyn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+            rx, ry = x / zs, y / zs
+            x_clamped = rx < -lxn or rx > lxp
+            y_clamped = ry < -lyn or ry > lyp
+            tx = zs * min(max(rx, -lxn), lxp)
+            ty = zs * min(max(ry, -lyn), lyp)
+            j00, j02 = fx / zs, -fx * tx / (zs * zs)
+            j11, j12 = fy / zs, -fy * ty / (zs * zs)
+            a0 = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
+            b0 = j00 * (j11 * Sc[0, 1] + j12 * Sc[0, 2]) + j02 * (j11 * Sc[2, 1] + j12 * Sc[2, 2])
+            d0 = j11 * (j11 * Sc[1, 1] + j12 * Sc[2, 1]) + j12 * (j11 * Sc[1, 2] + j12 * Sc[2, 2])
+            a, d = a0 + eps2d, d0 + eps2d
+            det = a * d - b0 * b0
+            valid = depth_ok and det > 0
+            if not valid:
+                # culled: conics are constants (det_safe = 1 branch) and never rasterized; only depth flows
+                v_z = v_depths[c, g]
+                for k in range(3):
+                    v_means[g, k] += R[2, k] * v_z
+                continue
+            # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+            q00, q01, q11 = d / det, -b0 / det, a / det
+            g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
+            # Q G Q (symmetric 2x2)
+            t00 = q00 * g00 + q01 * g01
+            t01 = q00 * g01 + q01 * g11
+            t10 = q01 * g00 + q11 * g01
+            t11 = q01 * g01 + q11 * g11
+            m00 = -(t00 * q00 + t01 * q01)
+            m01 = -(t00 * q01 + t01 * q11)
+            m11 = -(t10 * q01 + t11 * q11)
+            if use_comps:
+                det_orig = a0 * d0 - b0 * b0
+                ratio = det_orig / det
+                if ratio > 0:
+                    comp = math.sqrt(ratio)
+                    f = 0.5 / comp * v_comps[c, g] / (det * det)
+                    m00 += f * (d0 * det - det_orig * d)
+                    m11 += f * (a0 * det - det_orig * a)
+                    m01 += 0.5 * f * (-2.0 * b0 * det + 2.0 * b0 * det_orig)
+            # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric)
+            J = np.zeros((2, 3))
+            J[0, 0], J[0, 2], J[1, 1], J[1, 2] = j00, j02, j11, j12
+            Gm = np.empty((2, 2))
+            Gm[0, 0], Gm[0, 1], Gm[1, 0], Gm[1, 1] = m00, m01, m01, m11
+            GJ = np.empty((2, 3))
+            for i in range(2):
+                for k in range(3):
+                    GJ[i, k] = Gm[i, 0] * J[0, k] + Gm[i, 1] * J[1, k]
+            v_Sc = np.empty((3, 3))
+            for i in range(3):
+                for k in range(3):
+                    v_Sc[i, k] = J[0, i] * GJ[0, k] + J[1, i] * GJ[1, k]
+            v_J = np.empty((2, 3))
+            for i in range(2):
+                for k in range(3):
+                    v_J[i, k] = 2.0 * (GJ[i, 0] * Sc[0, k] + GJ[i, 1] * Sc[1, k] + GJ[i, 2] * Sc[2, k])
+            # J's dependence on zs, tx, ty
+            zs2, zs3 = zs * zs, zs * zs * zs
+            v_zs = -fx / zs2 * v_J[0, 0] - fy / zs2 * v_J[1, 1]
+            v_tx = -fx / zs2 * v_J[0, 2]
+            v_ty = -fy / zs2 * v_J[1, 2]
+            v_zs += 2.0 * fx * tx / zs3 * v_J[0, 2] + 2.0 * fy * ty / zs3 * v_J[1, 2]
+            v_x, v_y = 0.0, 0.0
+            if x_clamped:
+                v_zs += min(max(rx, -lxn), lxp) * v_tx
+            else:
+                v_x += v_tx
+            if y_clamped:
+                v_zs += min(max(ry, -lyn), lyp) * v_ty
+            else:
+                v_y += v_ty
+            # means2d = (K[:2] @ (x, y, zs)) / zs
+            vu, vv = v_means2d[c, g, 0], v_means2d[c, g, 1]
+            v_x += (Ks[c, 0, 0] * vu + Ks[c, 1, 0] * vv) / zs
+            v_y += (Ks[c, 0, 1] * vu + Ks[c, 1, 1] * vv) / zs
+            v_zs += -(vu * (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y) + vv * (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y)) / zs2
+            v_z = v_depths[c, g] + v_zs  # depth_ok holds here
+            for k in range(3):
+                v_means[g, k] += R[0, k] * v_x + R[1, k] * v_y + R[2, k] * v_z
+            # Sc = R S R^T: dL/dS = R^T v_Sc R
+            for i in range(3):
+                for k in range(3):
+                    s = 0.0
+                    for p in range(3):
+                        for q in range(3):
+                            s += R[p, i] * v_Sc[p, q] * R[q, k]
+                    v_covars[g, i, k] += s
+
+
+# --------------------------------------------------------------------------------------------------
+# Tile binning
+# --------------------------------------------------------------------------------------------------
+@_jit
+def tile_bounds(means2d, radii, tile_size, tile_w, tile_h, bounds):
+    """gsplat's ``isect_tiles`` squares: ``bounds`` [C, N, 4] = (x0, x1, y0, y1), half-open; returns the
+    number of (Gaussian, tile) intersections."""
+    n_cam, n = radii.shape
+    total = 0
+    for c in range(n_cam):
+        for g in range(n):
+            if radii[c, g] <= 0:
+                bounds[c, g, 0] = bounds[c, g, 1] = bounds[c, g, 2] = bounds[c, g, 3] = 0
+                continue
+            tr = radii[c, g] / tile_size
+            tx, ty = means2d[c, g, 0] / tile_size, means2d[c, g, 1] / tile_size
+            x0 = min(max(math.floor(tx - tr), 0), tile_w)
+            x1 = min(max(math.ceil(tx + tr), 0), tile_w)
+            y0 = min(max(math.floor(ty - tr), 0), tile_h)
+            y1 = min(max(math.ceil(ty + tr), 0), tile_h)
+            bounds[c, g, 0], bounds[c, g, 1], bounds[c, g, 2], bounds[c, g, 3] = x0, x1, y0, y1
+            total += (x1 - x0) * (y1 - y0)
+    return total
+
+
+@_jit
+def bin_gaussians(bounds, tile_w, tile_h, offsets, gids):
+    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose square touches it, in index
+    order: ``offsets`` [C * tiles + 1], ``gids`` [n_isects]."""
+    n_cam, n = bounds.shape[0], bounds.shape[1]
+    n_tiles = tile_w * tile_h
+    counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
+    for c in range(n_cam):
+        for g in range(n):
+            for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
+                for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
+                    counts[c * n_tiles + ty * tile_w + tx] += 1
+    offsets[0] = 0
+    for t in range(n_cam * n_tiles):
+        offsets[t + 1] = offsets[t] + counts[t]
+    fill = offsets[:-1].copy()
+    for c in range(n_cam):
+        for g in range(n):
+            for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
+                for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
+                    t = c * n_tiles + ty * tile_w + tx
+                    gids[fill[t]] = g
+                    fill[t] += 1
+
+
+@_pjit
+def sort_tiles(offsets, gids, depths, n_tiles):
+    """Each tile's list sorted by depth, stably (ties keep index order, as a stable global sort)."""
+    for t in numba.prange(offsets.shape[0] - 1):
+        lo, hi = offsets[t], offsets[t + 1]
+        if hi - lo < 2:
+            continue
+        c = t // n_tiles
+        seg = gids[lo:hi].copy()
+        keys = np.empty(hi - lo)
+        for k in range(hi - lo):
+            keys[k] = depths[c, seg[k]]
+        order = np.argsort(keys, kind="mergesort")
+        for k in range(hi - lo):
+            gids[lo + k] = seg[order[k]]
+
+
+# --------------------------------------------------------------------------------------------------
+# Compositing
+# --------------------------------------------------------------------------------------------------
+@_jit
+def _entry_box(m2x, m2y, q0, q1, q2, opacity, x_lo, x_hi, y_lo, y_hi):
+    """The pixels ``[x0, x1) x [y0, y1)`` of the tile ``[x_lo, x_hi) x [y_lo, y_hi)`` inside the bounding box
+    of a Gaussian's ``alpha >= 1/255`` ellipse ``q <= 2 ln(255 o)``, plus a pixel of margin (outside it every
+    pixel's alpha is below the threshold; the PyTorch renderer enumerates the same boxes)."""
+    extent = 2.0 * math.log(max(opacity * 255.0, 1.0))
+    if extent <= 0.0:
+        return 0, 0, 0, 0
+    inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
+    half_w = math.sqrt(extent * q2 * inv_det) + 1.0
+    half_h = math.sqrt(extent * q0 * inv_det) + 1.0
+    u, v = m2x - 0.5, m2y - 0.5
+    x0 = max(max(math.floor(u - half_w), 0), x_lo)
+    x1 = min(min(math.floor(u + half_w), x_hi - 1) + 1, x_hi)
+    y0 = max(max(math.floor(v - half_h), 0), y_lo)
+    y1 = min(min(math.floor(v + half_h), y_hi - 1) + 1, y_hi)
+    return x0, x1, y0, y1
+
+
+@_jit
+def _sigma_cut(opacity):
+    """A ``sigma`` above which ``opacity * exp(-sigma) < 1/255`` for certain (``ln(255 o)`` plus a margin far
+    above rounding), so the exponential is skipped there; pairs below it take the exact test."""
+    return math.log(max(opacity * 255.0, 1e-300)) + 1e-6
+
+
+@_jit
+def _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1):
+    """The columns ``[rx0, rx1)`` of ``[x0, x1)`` in one pixel row (offset ``dy`` from the mean) where ``sigma``
+    can be <= ``sigma_max``: the roots of ``q0/2 dx^2 + q1 dy dx + q2/2 dy^2 - sigma_max``, widened by a pixel.
+    ``sigma_max`` carries its own margin (``_sigma_cut``), so every pixel the exact test accepts is inside."""
+    if q0 <= 0.0:
+        return x0, x1
+    b = q1 * dy
+    disc = b * b - q0 * (q2 * dy * dy - 2.0 * sigma_max)
+    if disc < 0.0:
+        return x0, x0
+    root = math.sqrt(disc)
+    lo = mx - 0.5 + (-b - root) / q0
+    hi = mx - 0.5 + (-b + root) / q0
+    return max(x0, math.floor(lo)), max(min(x1, math.floor(hi) + 1), x0)
+
+
+@_pjit
+def composite_forward(means2d, conics, colors, opacities, offsets, gids, width, height, tile_size, tile_w,
+                      alpha_clamp, backgrounds, use_bg, render, t_final, last):
+    """Front-to-back compositing: ``render`` [C, H, W, D], ``t_final`` [C, H, W] (final transmittance),
+    ``last`` [C, H, W] (one past the list position of the pixel's last contribution).
+
+    Per tile, Gaussian-major: the tile's list is walked once in depth order and each entry visits only the
+    pixels of its alpha box, so the work is the candidate pairs, not pixels x list length; each pixel still
+    sees its Gaussians front to back with the same arithmetic as a per-pixel loop."""
+    n_cam = render.shape[0]
+    n_feat = render.shape[3]
+    tile_h = (height + tile_size - 1) // tile_size
+    n_tiles = tile_w * tile_h
+    for t in numba.prange(n_cam * n_tiles):
+        c, tt = t // n_tiles, t % n_tiles
+        ty, tx = tt // tile_w, tt % tile_w
+        lo, hi = offsets[t], offsets[t + 1]
+        x_lo, y_lo = tx * tile_size, ty * tile_size
+        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+        tw = x_hi - x_lo
+        n_px = tw * (y_hi - y_lo)
+        T = np.ones(n_px)
+        acc = np.zeros((n_px, n_feat))
+        done = np.zeros(n_px, dtype=np.bool_)
+        end = np.full(n_px, lo, dtype=np.int64)
+        n_done = 0
+        for k in range(lo, hi):
+            if n_done == n_px:
+                break
+            g = gids[k]
+            mx, my = means2d[c, g, 0], means2d[c, g, 1]
+            q0, q1, q2, o = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2], opacities[c, g]
+            x0, x1, y0, y1 = _entry_box(mx, my, q0, q1, q2, o, x_lo, x_hi, y_lo, y_hi)
+            sigma_max = _sigma_cut(o)
+            for py in range(y0, y1):
+                dy = py + 0.5 - my
+                rx0, rx1 = _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1)
+                for px in range(rx0, rx1):
+                    p = (py - y_lo) * tw + (px - x_lo)
+                    if done[p]:
+                        continue
+                    dx = px + 0.5 - mx
+                    sigma = 0.5 * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+                    if sigma < 0.0 or sigma > sigma_max:
+                        continue
+                    alpha = min(alpha_clamp, o * math.exp(-sigma))
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    nt = T[p] * (1.0 - alpha)
+                    if nt <= TRANSMITTANCE_STOP:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    w = alpha * T[p]
+                    for f in range(n_feat):
+                        acc[p, f] += w * colors[c, g, f]
+                    T[p] = nt
+                    end[p] = k + 1
+        for py in range(y_lo, y_hi):
+            for px in range(x_lo, x_hi):
+                p = (py - y_lo) * tw + (px - x_lo)
+                for f in range(n_feat):
+                    render[c, py, px, f] = acc[p, f] + (T[p] * backgrounds[c, f] if use_bg else 0.0)
+                t_final[c, py, px] = T[p]
+                last[c, py, px] = end[p]
+
+
+@_pjit
+def composite_backward(means2d, conics, colors, opacities, offsets, gids, width, height, tile_size, tile_w,
+                       alpha_clamp, backgrounds, use_bg, t_final, last, v_render, v_alphas,
+                       s_means2d, s_conics, s_colors, s_opacities):
+    """Gradients of each list entry (tile, Gaussian) into the slots ``s_*`` [n_isects, ...] (a tile writes
+    only its own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
+    front, so each pixel sees its contributions in reverse order (transmittance recovered by division)."""
+    n_cam = v_render.shape[0]
+    n_feat = v_render.shape[3]
+    tile_h = (height + tile_size - 1) // tile_size
+    n_tiles = tile_w * tile_h
+    for t in numba.prange(n_cam * n_tiles):
+        c, tt = t // n_tiles, t % n_tiles
+        ty, tx = tt // tile_w, tt % tile_w
+        lo, hi = offsets[t], offsets[t + 1]
+        x_lo, y_lo = tx * tile_size, ty * tile_size
+        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+        tw = x_hi - x_lo
+        n_px = tw * (y_hi - y_lo)
+        T = np.empty(n_px)
+        behind = np.empty((n_px, n_feat))
+        for py in range(y_lo, y_hi):
+            for px in range(x_lo, x_hi):
+                p = (py - y_lo) * tw + (px - x_lo)
+                T[p] = t_final[c, py, px]
+                for f in range(n_feat):
+                    behind[p, f] = T[p] * backgrounds[c, f] if use_bg else 0.0
+        for k in range(hi - 1, lo - 1, -1):
+            g = gids[k]
+            mx, my = means2d[c, g, 0], means2d[c, g, 1]
+            q0, q1, q2, o = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2], opacities[c, g]
+            x0, x1, y0, y1 = _entry_box(mx, my, q0, q1, q2, o, x_lo, x_hi, y_lo, y_hi)
+            sigma_max = _sigma_cut(o)
+            g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
+            for f in range(n_feat):
+                s_colors[k, f] = 0.0
+            for py in range(y0, y1):
+                dy = py + 0.5 - my
+                rx0, rx1 = _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1)
+                for px in range(rx0, rx1):
+                    if k >= last[c, py, px]:
+                        continue
+                    p = (py - y_lo) * tw + (px - x_lo)
+                    dx = px + 0.5 - mx
+                    sigma = 0.5 * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+                    if sigma < 0.0 or sigma > sigma_max:
+                        continue
+                    e = math.exp(-sigma)
+                    raw = o * e
+                    alpha = min(alpha_clamp, raw)
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    ra = 1.0 / (1.0 - alpha)
+                    Ti = T[p] * ra
+                    w = alpha * Ti
+                    v_alpha = v_alphas[c, py, px] * t_final[c, py, px] * ra
+                    for f in range(n_feat):
+                        vc = v_render[c, py, px, f]
+                        s_colors[k, f] += w * vc
+                        v_alpha += vc * (Ti * colors[c, g, f] - behind[p, f] * ra)
+                        behind[p, f] += w * colors[c, g, f]
+                    T[p] = Ti
+                    if raw <= alpha_clamp:
+                        g_o += v_alpha * e
+                        v_sigma = -v_alpha * alpha
+                        g_q0 += 0.5 * v_sigma * dx * dx
+                        g_q1 += v_sigma * dx * dy
+                        g_q2 += 0.5 * v_sigma * dy * dy
+                        g_mx -= v_sigma * (q0 * dx + q1 * dy)
+                        g_my -= v_sigma * (q1 * dx + q2 * dy)
+            s_means2d[k, 0], s_means2d[k, 1] = g_mx, g_my
+            s_conics[k, 0], s_conics[k, 1], s_conics[k, 2] = g_q0, g_q1, g_q2
+            s_opacities[k] = g_o
+
+
+@_jit
+def gather_slots(offsets, gids, n_tiles, s_means2d, s_conics, s_colors, s_opacities,
+                 v_means2d, v_conics, v_colors, v_opacities):
+    """Sum the list entries' gradients per (camera, Gaussian), in list order (deterministic)."""
+    n_feat = s_colors.shape[1]
+    for t in range(offsets.shape[0] - 1):
+        c = t // n_tiles
+        for k in range(offsets[t], offsets[t + 1]):
+            g = gids[k]
+            v_means2d[c, g, 0] += s_means2d[k, 0]
+            v_means2d[c, g, 1] += s_means2d[k, 1]
+            v_conics[c, g, 0] += s_conics[k, 0]
+            v_conics[c, g, 1] += s_conics[k, 1]
+            v_conics[c, g, 2] += s_conics[k, 2]
+            v_opacities[c, g] += s_opacities[k]
+            for f in range(n_feat):
+                v_colors[c, g, f] += s_colors[k, f]

@@ -1,0 +1,243 @@
+"""The compiled CPU rasterizer: gsplat's ``rasterization`` contract on numba kernels (the default on the CPU).
+
+:func:`rasterization` takes exactly the arguments of :func:`~navcrafter.models.gaussians.rasterize.rasterization`
+(gsplat's signature) and gives the same results: the render modes, SH evaluation and input checks are that
+module's (``render_gaussians``); projection, tile binning and sorting, compositing and their backward passes
+run in :mod:`~navcrafter.models.gaussians.cpu_kernels` (float64 arithmetic, results in the inputs' dtype).
+Tests hold both to each other and to the brute-force reference (``tests/models/gaussians/test_cpu_rasterizer.py``);
+``benchmarks/rasterizer.py`` times them.
+
+Differentiable with respect to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (features or SH),
+``covars`` and ``backgrounds`` (the quaternion/scale -> covariance step is compiled too; SH evaluation stays in
+PyTorch); ``viewmats``
+and ``Ks`` are not differentiated: a camera that needs gradients is refused with a pointer to the PyTorch
+renderer. ``meta["means2d"]`` is part of the graph (densification's ``retain_grad()`` works).
+
+Threads: numba's pool, :func:`set_threads` (``fit.threads``; default: every core numba sees, i.e.
+``NUMBA_NUM_THREADS``). Results do not depend on the thread count (see the kernels' docstring). The threading
+layer is numba's own ``workqueue`` (``cpu_kernels``; ``NUMBA_THREADING_LAYER`` overrides it): its OpenMP layer
+costs ~8 ms per parallel call on a busy 2-core machine unless ``OMP_WAIT_POLICY=PASSIVE`` (which the CLI and the
+tests set, for torch's own threads too). Calls are serialised by a lock: the workqueue layer must not be entered
+by two Python threads at once (the explore flow runs scenes on a thread pool); the kernels release the GIL, so
+other work goes on meanwhile.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from navcrafter.models.gaussians import cpu_kernels as K
+from navcrafter.models.gaussians.rasterize import DEFAULT_ALPHA_CLAMP, RenderMode, _check_inputs, render_gaussians
+
+_LOCK = threading.Lock()
+
+
+def set_threads(threads: int | None) -> int:
+    """Use ``threads`` of numba's threads (None: all of them); returns the number in use."""
+    import numba
+
+    top = numba.config.NUMBA_NUM_THREADS
+    if threads is not None:
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        numba.set_num_threads(min(int(threads), top))
+    else:
+        numba.set_num_threads(top)
+    return numba.get_num_threads()
+
+
+def _np(t: Tensor) -> np.ndarray:
+    """A float64, C-contiguous NumPy copy of ``t`` (always a copy: the autograd functions keep these arrays for
+    the backward pass, and a view would silently follow an in-place change of a float64 input)."""
+    return np.array(t.detach().to(device="cpu", dtype=torch.float64).numpy(), dtype=np.float64, order="C", copy=True)
+
+
+def _out(a: np.ndarray, like: Tensor) -> Tensor:
+    return torch.from_numpy(a).to(dtype=like.dtype, device=like.device)
+
+
+class _Covar(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, quats, scales):
+        q, sc = _np(quats), _np(scales)
+        covars = np.empty((len(q), 3, 3))
+        with _LOCK:
+            K.covar_forward(q, sc, covars)
+        ctx.arrays, ctx.likes = (q, sc), (quats, scales)
+        return _out(covars, scales)
+
+    @staticmethod
+    def backward(ctx, v_covars):
+        q, sc = ctx.arrays
+        v_q, v_s = np.empty_like(q), np.empty_like(sc)
+        with _LOCK:
+            K.covar_backward(q, sc, _np(v_covars), v_q, v_s)
+        return _out(v_q, ctx.likes[0]), _out(v_s, ctx.likes[1])
+
+
+def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
+    """:func:`~navcrafter.models.gaussians.rasterize.quat_scale_to_covar` on the compiled kernels."""
+    return _Covar.apply(quats, scales)
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, covars, viewmats, Ks, width, height, eps2d, near, far, radius_clip):
+        m, cv, vm, k = _np(means), _np(covars), _np(viewmats), _np(Ks)
+        n_cam, n = vm.shape[0], m.shape[0]
+        means2d, depths = np.empty((n_cam, n, 2)), np.empty((n_cam, n))
+        conics, comps = np.empty((n_cam, n, 3)), np.empty((n_cam, n))
+        radii = np.empty((n_cam, n), dtype=np.int32)
+        with _LOCK:
+            K.project_forward(m, cv, vm, k, width, height, eps2d, near, far, radius_clip,
+                              means2d, depths, conics, radii, comps)
+        ctx.arrays = (m, cv, vm, k)
+        ctx.scalars = (width, height, eps2d, near, far)
+        ctx.like = means
+        radii_t = torch.from_numpy(radii).to(means.device)
+        ctx.mark_non_differentiable(radii_t)
+        return _out(means2d, means), _out(depths, means), _out(conics, means), _out(comps, means), radii_t
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_depths, v_conics, v_comps, _v_radii):
+        m, cv, vm, k = ctx.arrays
+        n_cam, n = vm.shape[0], m.shape[0]
+
+        def grad(v, shape):
+            return np.zeros(shape) if v is None else _np(v)
+
+        v_comps_np = grad(v_comps, (n_cam, n))
+        v_means, v_covars = np.empty((n, 3)), np.empty((n, 3, 3))
+        with _LOCK:
+            K.project_backward(m, cv, vm, k, *ctx.scalars, grad(v_means2d, (n_cam, n, 2)),
+                               grad(v_depths, (n_cam, n)), grad(v_conics, (n_cam, n, 3)), v_comps_np,
+                               v_comps is not None, v_means, v_covars)
+        like = ctx.like
+        return _out(v_means, like), _out(v_covars, like), None, None, None, None, None, None, None, None
+
+
+def project_gaussians(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int, *,
+                      eps2d: float = 0.3, near_plane: float = 0.01, far_plane: float = 1e10, radius_clip: float = 0.0,
+                      calc_compensations: bool = False) -> dict[str, Tensor | None]:
+    """:func:`~navcrafter.models.gaussians.rasterize.project_gaussians` on the compiled kernels (no
+    ``covars2d`` in the result: nothing downstream reads it)."""
+    if viewmats.requires_grad or Ks.requires_grad:
+        raise ValueError("the compiled CPU rasterizer does not differentiate viewmats or Ks; render with "
+                         "backend='torch' (navcrafter's PyTorch rasterizer) to optimise cameras")
+    means2d, depths, conics, comps, radii = _Project.apply(means, covars, viewmats, Ks, int(width), int(height),
+                                                           float(eps2d), float(near_plane), float(far_plane),
+                                                           float(radius_clip))
+    return {"radii": radii, "means2d": means2d, "depths": depths, "conics": conics,
+            "compensations": comps if calc_compensations else None}
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size,
+                alpha_clamp, info):
+        n_cam, n = radii.shape
+        d = colors.shape[-1]
+        tile_w, tile_h = -(-width // tile_size), -(-height // tile_size)
+        m2, con, col, opa = _np(means2d), _np(conics), _np(colors), _np(opacities)
+        use_bg = backgrounds is not None
+        bg = _np(backgrounds) if use_bg else np.zeros((n_cam, d))
+        rad = np.ascontiguousarray(radii.cpu().numpy())
+        bounds = np.empty((n_cam, n, 4), dtype=np.int64)
+        render = np.empty((n_cam, height, width, d))
+        t_final = np.empty((n_cam, height, width))
+        last = np.empty((n_cam, height, width), dtype=np.int64)
+        offsets = np.empty(n_cam * tile_w * tile_h + 1, dtype=np.int64)
+        with _LOCK:
+            n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
+            gids = np.empty(n_isects, dtype=np.int64)
+            K.bin_gaussians(bounds, tile_w, tile_h, offsets, gids)
+            K.sort_tiles(offsets, gids, _np(depths), tile_w * tile_h)
+            K.composite_forward(m2, con, col, opa, offsets, gids, width, height, tile_size, tile_w, alpha_clamp,
+                                bg, use_bg, render, t_final, last)
+        ctx.arrays = (m2, con, col, opa, bg, offsets, gids, t_final, last)
+        ctx.scalars = (width, height, tile_size, tile_w, alpha_clamp, use_bg)
+        ctx.likes = (means2d, conics, colors, opacities, backgrounds)
+        info.update({"tile_width": tile_w, "tile_height": tile_h, "n_isects": int(n_isects),
+                    "tiles_per_gauss": torch.from_numpy((bounds[..., 1] - bounds[..., 0])
+                                                        * (bounds[..., 3] - bounds[..., 2]))})
+        alphas = 1.0 - t_final
+        return _out(render, means2d), _out(alphas[..., None], means2d)
+
+    @staticmethod
+    def backward(ctx, v_render, v_alphas):
+        m2, con, col, opa, bg, offsets, gids, t_final, last = ctx.arrays
+        width, height, tile_size, tile_w, alpha_clamp, use_bg = ctx.scalars
+        n_cam, n, d = col.shape
+        vr = np.zeros((n_cam, height, width, d)) if v_render is None else _np(v_render)
+        va = np.zeros((n_cam, height, width)) if v_alphas is None else _np(v_alphas)[..., 0]
+        n_isects = len(gids)
+        s_m2, s_con = np.empty((n_isects, 2)), np.empty((n_isects, 3))
+        s_col, s_opa = np.empty((n_isects, d)), np.empty(n_isects)
+        v_m2, v_con = np.zeros((n_cam, n, 2)), np.zeros((n_cam, n, 3))
+        v_col, v_opa = np.zeros((n_cam, n, d)), np.zeros((n_cam, n))
+        with _LOCK:
+            K.composite_backward(m2, con, col, opa, offsets, gids, width, height, tile_size, tile_w, alpha_clamp,
+                                 bg, use_bg, t_final, last, vr, va, s_m2, s_con, s_col, s_opa)
+            K.gather_slots(offsets, gids, tile_w * ((height + tile_size - 1) // tile_size), s_m2, s_con, s_col,
+                           s_opa, v_m2, v_con, v_col, v_opa)
+        l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
+        v_bg = None
+        if use_bg and ctx.needs_input_grad[4]:
+            v_bg = _out(np.einsum("chw,chwd->cd", t_final, vr), l_bg)
+        return (_out(v_m2, l_m2), _out(v_con, l_con), _out(v_col, l_col), _out(v_opa, l_opa), v_bg,
+                None, None, None, None, None, None, None)
+
+
+def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, radii: Tensor,
+                        depths: Tensor, width: int, height: int, *, tile_size: int = 16,
+                        backgrounds: Tensor | None = None, alpha_clamp: float = DEFAULT_ALPHA_CLAMP
+                        ) -> tuple[Tensor, Tensor, dict]:
+    """:func:`~navcrafter.models.gaussians.rasterize.rasterize_to_pixels` on the compiled kernels."""
+    info: dict = {}
+    render, alphas = _Composite.apply(means2d, conics, colors, opacities, backgrounds, radii, depths.detach(),
+                                      int(width), int(height), int(tile_size), float(alpha_clamp), info)
+    return render, alphas, info
+
+
+def rasterization(
+    means: Tensor,
+    quats: Tensor | None,
+    scales: Tensor | None,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: int | None = None,
+    packed: bool = False,
+    tile_size: int = 16,
+    backgrounds: Tensor | None = None,
+    render_mode: RenderMode = "RGB",
+    rasterize_mode: Literal["classic", "antialiased"] = "classic",
+    covars: Tensor | None = None,
+    alpha_clamp: float = DEFAULT_ALPHA_CLAMP,
+) -> tuple[Tensor, Tensor, dict]:
+    """Render N Gaussians into C cameras on the compiled CPU kernels; the contract of
+    :func:`navcrafter.models.gaussians.rasterize.rasterization` (gsplat's), results equal to it."""
+    del packed
+    if means.device.type != "cpu":
+        raise ValueError(f"the compiled CPU rasterizer needs CPU tensors, got {means.device}; use backend 'gsplat' "
+                         "or 'torch' on CUDA")
+    if covars is None:
+        _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, render_mode, covars)
+        covars = quat_scale_to_covar(quats, scales)  # compiled; render_gaussians would use PyTorch's
+    return render_gaussians(project_gaussians, rasterize_to_pixels, means, quats, scales, opacities, colors, viewmats,
+                            Ks, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+                            eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
+                            render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
+                            alpha_clamp=alpha_clamp)
