@@ -130,7 +130,8 @@ def main() -> None:
 
 def write(out: Path, rows: list[dict], names: list[str], seeds: tuple[int, int], complete: bool) -> None:
     summary = []
-    for name in names:
+    present = {r["candidate"] for r in rows}
+    for name in [c for c in CANDIDATES if c in present or c in names]:
         sel = [r for r in rows if r["candidate"] == name]
         if sel:
             summary.append({"candidate": name, "n": len(sel),
