@@ -95,6 +95,49 @@ def covar_backward(quats, scales, v_covars, v_quats, v_scales):
 # --------------------------------------------------------------------------------------------------
 # Projection
 # --------------------------------------------------------------------------------------------------
+@_jit
+def _fov_limits(Ks, width, height, c):
+    """The tangents (right, left, down, up) the Jacobian clamps the mean to: 1.3x the field of view."""
+    fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    return ((width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx,
+            (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy)
+
+
+@_jit
+def _camera_frame(means, covars, viewmats, Ks, width, height, near, far, c, g, Sc):
+    """Gaussian g in camera c: its camera-space mean ``x, y, z``, the depth the Jacobian uses ``zs`` (1 when
+    culled by depth), ``depth_ok``, the clamped ``tx, ty`` and the Jacobian entries; writes the camera-space
+    covariance ``R S R^T`` into ``Sc`` [3, 3]. Shared by the projection and its backward pass."""
+    R = viewmats[c, :3, :3]
+    mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
+    x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + viewmats[c, 0, 3]
+    y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + viewmats[c, 1, 3]
+    z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + viewmats[c, 2, 3]
+    depth_ok = (z > near) and (z < far)
+    zs = z if depth_ok else 1.0
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for p in range(3):
+                acc += (R[i, 0] * covars[g, 0, p] + R[i, 1] * covars[g, 1, p] + R[i, 2] * covars[g, 2, p]) * R[j, p]
+            Sc[i, j] = acc
+    fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+    lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+    tx = zs * min(max(x / zs, -lxn), lxp)
+    ty = zs * min(max(y / zs, -lyn), lyp)
+    return x, y, z, zs, depth_ok, tx, ty, fx / zs, -fx * tx / (zs * zs), fy / zs, -fy * ty / (zs * zs)
+
+
+@_jit
+def _cov2d(Sc, j00, j02, j11, j12):
+    """Upper triangle (a, b, d) of ``J Sc J^T`` with ``J = [[j00, 0, j02], [0, j11, j12]]``."""
+    a = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
+    b = j00 * (j11 * Sc[0, 1] + j12 * Sc[0, 2]) + j02 * (j11 * Sc[2, 1] + j12 * Sc[2, 2])
+    d = j11 * (j11 * Sc[1, 1] + j12 * Sc[2, 1]) + j12 * (j11 * Sc[1, 2] + j12 * Sc[2, 2])
+    return a, b, d
+
+
 @_pjit
 def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
                     means2d, depths, conics, radii, comps):
@@ -104,35 +147,11 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
     n_cam, n = viewmats.shape[0], means.shape[0]
     for idx in numba.prange(n_cam * n):
         c, g = idx // n, idx % n
-        R = viewmats[c, :3, :3]
-        mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
-        x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + viewmats[c, 0, 3]
-        y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + viewmats[c, 1, 3]
-        z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + viewmats[c, 2, 3]
-        depths[c, g] = z
-        depth_ok = (z > near) and (z < far)
-        zs = z if depth_ok else 1.0
-        # camera-space covariance R S R^T
-        RS = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                RS[i, j] = R[i, 0] * covars[g, 0, j] + R[i, 1] * covars[g, 1, j] + R[i, 2] * covars[g, 2, j]
         Sc = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                Sc[i, j] = RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] + RS[i, 2] * R[j, 2]
-        fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
-        tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-        lxp, lxn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
-        lyp, lyn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
-        tx = zs * min(max(x / zs, -lxn), lxp)
-        ty = zs * min(max(y / zs, -lyn), lyp)
-        j00, j02 = fx / zs, -fx * tx / (zs * zs)
-        j11, j12 = fy / zs, -fy * ty / (zs * zs)
-        # cov2d = J Sc J^T with J = [[j00, 0, j02], [0, j11, j12]]
-        a = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
-        b = j00 * (j11 * Sc[0, 1] + j12 * Sc[0, 2]) + j02 * (j11 * Sc[2, 1] + j12 * Sc[2, 2])
-        d = j11 * (j11 * Sc[1, 1] + j12 * Sc[2, 1]) + j12 * (j11 * Sc[1, 2] + j12 * Sc[2, 2])
+        x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
+                                                                          height, near, far, c, g, Sc)
+        depths[c, g] = z
+        a, b, d = _cov2d(Sc, j00, j02, j11, j12)
         means2d[c, g, 0] = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
         means2d[c, g, 1] = (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y + Ks[c, 1, 2] * zs) / zs
         det_orig = a * d - b * b
@@ -160,40 +179,21 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
     (cameras summed in order per Gaussian)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
     for g in numba.prange(n):
+        Sc = np.empty((3, 3))
         for k in range(3):
             v_means[g, k] = 0.0
             for j in range(3):
                 v_covars[g, k, j] = 0.0
         for c in range(n_cam):
             R = viewmats[c, :3, :3]
-            mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
-            x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + viewmats[c, 0, 3]
-            y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + viewmats[c, 1, 3]
-            z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + viewmats[c, 2, 3]
-            depth_ok = (z > near) and (z < far)
-            zs = z if depth_ok else 1.0
-            RS = np.empty((3, 3))
-            for i in range(3):
-                for j in range(3):
-                    RS[i, j] = R[i, 0] * covars[g, 0, j] + R[i, 1] * covars[g, 1, j] + R[i, 2] * covars[g, 2, j]
-            Sc = np.empty((3, 3))
-            for i in range(3):
-                for j in range(3):
-                    Sc[i, j] = RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] + RS[i, 2] * R[j, 2]
-            fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
-            tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-            lxp, lxn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
-            lyp, lyn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+            x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
+                                                                              height, near, far, c, g, Sc)
+            fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+            lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
             rx, ry = x / zs, y / zs
             x_clamped = rx < -lxn or rx > lxp
             y_clamped = ry < -lyn or ry > lyp
-            tx = zs * min(max(rx, -lxn), lxp)
-            ty = zs * min(max(ry, -lyn), lyp)
-            j00, j02 = fx / zs, -fx * tx / (zs * zs)
-            j11, j12 = fy / zs, -fy * ty / (zs * zs)
-            a0 = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
-            b0 = j00 * (j11 * Sc[0, 1] + j12 * Sc[0, 2]) + j02 * (j11 * Sc[2, 1] + j12 * Sc[2, 2])
-            d0 = j11 * (j11 * Sc[1, 1] + j12 * Sc[2, 1]) + j12 * (j11 * Sc[1, 2] + j12 * Sc[2, 2])
+            a0, b0, d0 = _cov2d(Sc, j00, j02, j11, j12)
             a, d = a0 + eps2d, d0 + eps2d
             det = a * d - b0 * b0
             valid = depth_ok and det > 0

@@ -214,6 +214,14 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     # held out: well above what the initial model (the cloud as Gaussians) reaches
     assert a["psnr"] > 20 and a["psnr"] > a["init_psnr"] + 3 and 0 < a["ssim"] <= 1
     assert a["lpips"] is None and "weights are missing" in a["lpips_note"]
+    assert a["renderer"] == "cpu" and a["peak_rss_mb"] > 50  # the compiled kernels; the step's sampled peak
+    # the run summary reports the fit and says that the LPIPS term was skipped
+    from navcrafter.tasks.report import scene_result, summary_markdown
+
+    result = scene_result(scene, ["tabletop-0.png"], cfg, "done")
+    assert result.metrics["gs_psnr"] == a["psnr"] and result.metrics["gs_gaussians"] == G
+    summary = summary_markdown("r", cfg, [result])
+    assert "LPIPS loss term skipped" in summary and f"{a['psnr']:.2f} dB" in summary
     # exports: the PLY re-loads bit for bit and renders the same image; a labelled fly-through
     files = scene.status(EXPORT).attrs["files"]
     assert {"gaussians.ply", "flythrough.mp4", "cloud.ply", "video.mp4"} <= set(files)
