@@ -67,13 +67,14 @@ def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, statu
     timings = step_timings(scene, config)
     result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
                          seconds=sum(timings.values()), timings=timings, **fields)
-    fitted = scene.status(REFINE) if config.refine.enabled else scene.status(FIT)
-    if config.fit.enabled and fitted.complete:
+    fit = scene.status(FIT) if config.fit.enabled else None
+    fitted = scene.status(REFINE) if fit is not None and config.refine.enabled else fit
+    if fitted is not None and fitted.complete:
         a = fitted.attrs
         result.metrics = {**result.metrics, "gs_psnr": float(a["psnr"]), "gs_gaussians": float(a["n_gaussians"])}
         if a.get("peak_rss_mb") is not None:
             result.metrics["gs_peak_rss_mb"] = float(a["peak_rss_mb"])
-        note = scene.status(FIT).attrs.get("lpips_note", "")
+        note = fit.attrs.get("lpips_note", "")
         if "skipped" in note:
             result.notes.append(f"3DGS fit: {note}")
     return result

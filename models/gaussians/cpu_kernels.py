@@ -386,6 +386,25 @@ def _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1):
     return max(x0, math.floor(lo)), max(min(x1, math.floor(hi) + 1), x0)
 
 
+@_jit
+def _tile(t, n_tiles, tile_w, tile_size, width, height):
+    """Camera and pixel bounds ``[x_lo, x_hi) x [y_lo, y_hi)`` of tile ``t`` (``camera * n_tiles + row *
+    tile_w + col``)."""
+    c, tt = t // n_tiles, t % n_tiles
+    x_lo, y_lo = (tt % tile_w) * tile_size, (tt // tile_w) * tile_size
+    return c, x_lo, min(x_lo + tile_size, width), y_lo, min(y_lo + tile_size, height)
+
+
+@_jit
+def _entry(means2d, conics, opacities, c, g, x_lo, x_hi, y_lo, y_hi):
+    """What a list entry's pixels need: Gaussian g's 2D mean, conic, opacity, ``sigma`` cut and its alpha box
+    inside the tile."""
+    mx, my = means2d[c, g, 0], means2d[c, g, 1]
+    q0, q1, q2, o = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2], opacities[c, g]
+    x0, x1, y0, y1 = _entry_box(mx, my, q0, q1, q2, o, x_lo, x_hi, y_lo, y_hi)
+    return mx, my, q0, q1, q2, o, _sigma_cut(o), x0, x1, y0, y1
+
+
 @_pjit
 def composite_forward(means2d, conics, colors, opacities, offsets, gids, width, height, tile_size, tile_w,
                       alpha_clamp, backgrounds, use_bg, render, t_final, last):
@@ -400,11 +419,8 @@ def composite_forward(means2d, conics, colors, opacities, offsets, gids, width, 
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
     for t in numba.prange(n_cam * n_tiles):
-        c, tt = t // n_tiles, t % n_tiles
-        ty, tx = tt // tile_w, tt % tile_w
+        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
-        x_lo, y_lo = tx * tile_size, ty * tile_size
-        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         tw = x_hi - x_lo
         n_px = tw * (y_hi - y_lo)
         T = np.ones(n_px)
@@ -416,10 +432,8 @@ def composite_forward(means2d, conics, colors, opacities, offsets, gids, width, 
             if n_done == n_px:
                 break
             g = gids[k]
-            mx, my = means2d[c, g, 0], means2d[c, g, 1]
-            q0, q1, q2, o = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2], opacities[c, g]
-            x0, x1, y0, y1 = _entry_box(mx, my, q0, q1, q2, o, x_lo, x_hi, y_lo, y_hi)
-            sigma_max = _sigma_cut(o)
+            mx, my, q0, q1, q2, o, sigma_max, x0, x1, y0, y1 = _entry(means2d, conics, opacities, c, g,
+                                                                      x_lo, x_hi, y_lo, y_hi)
             for py in range(y0, y1):
                 dy = py + 0.5 - my
                 rx0, rx1 = _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1)
@@ -465,11 +479,8 @@ def composite_backward(means2d, conics, colors, opacities, offsets, gids, width,
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
     for t in numba.prange(n_cam * n_tiles):
-        c, tt = t // n_tiles, t % n_tiles
-        ty, tx = tt // tile_w, tt % tile_w
+        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
-        x_lo, y_lo = tx * tile_size, ty * tile_size
-        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         tw = x_hi - x_lo
         n_px = tw * (y_hi - y_lo)
         T = np.empty(n_px)
@@ -482,10 +493,8 @@ def composite_backward(means2d, conics, colors, opacities, offsets, gids, width,
                     behind[p, f] = T[p] * backgrounds[c, f] if use_bg else 0.0
         for k in range(hi - 1, lo - 1, -1):
             g = gids[k]
-            mx, my = means2d[c, g, 0], means2d[c, g, 1]
-            q0, q1, q2, o = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2], opacities[c, g]
-            x0, x1, y0, y1 = _entry_box(mx, my, q0, q1, q2, o, x_lo, x_hi, y_lo, y_hi)
-            sigma_max = _sigma_cut(o)
+            mx, my, q0, q1, q2, o, sigma_max, x0, x1, y0, y1 = _entry(means2d, conics, opacities, c, g,
+                                                                      x_lo, x_hi, y_lo, y_hi)
             g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
             for f in range(n_feat):
                 s_colors[k, f] = 0.0

@@ -182,27 +182,19 @@ def rasterize(
     arguments. See the module docstring for the mapping and the ``meta`` normalisation.
     """
     which = resolve_backend(backend, means.device)
-    if which == "cpu":
+    if which in ("cpu", "torch"):
         if kwargs:
-            raise TypeError(f"the CPU renderer does not take {sorted(kwargs)} (gsplat-only arguments)")
-        from navcrafter.models.gaussians.cpu_rasterize import rasterization as cpu_rasterization
-
-        render, alphas, meta = cpu_rasterization(
+            raise TypeError(f"the {which} renderer does not take {sorted(kwargs)} (gsplat-only arguments)")
+        if which == "cpu":
+            from navcrafter.models.gaussians.cpu_rasterize import rasterization as ours
+        else:
+            ours = rasterization
+        render, alphas, meta = ours(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
             far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, sh_degree=sh_degree, packed=packed,
             tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
             covars=covars, alpha_clamp=DEFAULT_ALPHA_CLAMP if alpha_clamp is None else alpha_clamp)
-        meta["backend"] = "cpu"
-        return render, alphas, meta
-    if which == "torch":
-        if kwargs:
-            raise TypeError(f"the torch renderer does not take {sorted(kwargs)} (gsplat-only arguments)")
-        render, alphas, meta = rasterization(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
-            far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, sh_degree=sh_degree, packed=packed,
-            tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
-            covars=covars, alpha_clamp=DEFAULT_ALPHA_CLAMP if alpha_clamp is None else alpha_clamp)
-        meta["backend"] = "torch"
+        meta["backend"] = which
         return render, alphas, meta
 
     # our checks give clearer messages than gsplat's asserts; they also pin our contract (no batch dimensions)

@@ -313,21 +313,6 @@ def test_culled_gaussians_in_a_scene_get_no_gradient():
         assert rel_err(grads[name], ref_grads[name]) <= 1e-9, name
 
 
-def test_transmittance_early_stop_is_exclusive():
-    """Four opaque layers (o = 0.95): T = 0.05, 0.0025, 1.25e-4, then 6.25e-6 <= 1e-4: the fourth is skipped."""
-    means = torch.tensor([[0.0, 0.0, z] for z in (2.0, 2.5, 3.0, 3.5)], dtype=torch.float64)
-    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 4, dtype=torch.float64)
-    scales = torch.full((4, 3), 0.05, dtype=torch.float64)
-    opacities = torch.full((4,), 0.95, dtype=torch.float64)
-    colors = torch.eye(4, 3, dtype=torch.float64) + torch.tensor([0, 0, 0, 1.0], dtype=torch.float64)[:, None]
-    viewmats = torch.eye(4, dtype=torch.float64)[None]
-    Ks = torch.tensor([[[20.0, 0, 8.5], [0, 20.0, 8.5], [0, 0, 1]]], dtype=torch.float64)
-    img, alpha, _ = cpu_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, 16, 16)
-    expected = 0.95 * colors[0] + 0.05 * 0.95 * colors[1] + 0.0025 * 0.95 * colors[2]
-    assert torch.allclose(img[0, 8, 8], expected, atol=1e-12)
-    assert alpha[0, 8, 8, 0].item() == pytest.approx(1 - 1.25e-4, abs=1e-12)
-
-
 def test_many_stacked_opaque_gaussians_match_torch():
     """40 opaque Gaussians stacked along the axis (some at equal depths: ties keep index order): most pixels
     stop early, at different list positions; image and gradients equal the PyTorch renderer's."""

@@ -228,9 +228,13 @@ def test_projection_matches_navcrafter_cameras():
         assert np.allclose(meta["depths"][c].numpy()[ok], depth[ok], atol=1e-12)
 
 
-def test_transmittance_early_stop_is_exclusive():
+@pytest.mark.parametrize("renderer", ["torch", "cpu"])
+def test_transmittance_early_stop_is_exclusive(renderer):
     """Four opaque layers (o = 0.95): T = 0.05, 0.0025, 1.25e-4 and then 6.25e-6 <= 1e-4, so the fourth
-    layer is skipped and the pixel keeps T = 1.25e-4."""
+    layer is skipped and the pixel keeps T = 1.25e-4; the same in the PyTorch renderer and the compiled kernels."""
+    from navcrafter.models.gaussians.cpu_rasterize import rasterization as cpu_rasterization
+
+    render = rasterization if renderer == "torch" else cpu_rasterization
     means = torch.tensor([[0.0, 0.0, z] for z in (2.0, 2.5, 3.0, 3.5)], dtype=torch.float64)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 4, dtype=torch.float64)
     scales = torch.full((4, 3), 0.05, dtype=torch.float64)
@@ -238,7 +242,7 @@ def test_transmittance_early_stop_is_exclusive():
     colors = torch.eye(4, 3, dtype=torch.float64) + torch.tensor([0, 0, 0, 1.0], dtype=torch.float64)[:, None]
     viewmats = torch.eye(4, dtype=torch.float64)[None]
     Ks = torch.tensor([[[20.0, 0, 8.5], [0, 20.0, 8.5], [0, 0, 1]]], dtype=torch.float64)
-    img, alpha, _ = rasterization(means, quats, scales, opacities, colors, viewmats, Ks, 16, 16)
+    img, alpha, _ = render(means, quats, scales, opacities, colors, viewmats, Ks, 16, 16)
     expected = 0.95 * colors[0] + 0.05 * 0.95 * colors[1] + 0.0025 * 0.95 * colors[2]
     assert torch.allclose(img[0, 8, 8], expected, atol=1e-12)  # pixel (8, 8): centre (8.5, 8.5) = the means
     assert alpha[0, 8, 8, 0].item() == pytest.approx(1 - 1.25e-4, abs=1e-12)
