@@ -1,9 +1,10 @@
 """The ``evaluate-store`` flow: the evaluation suite over every finished scene of a store.
 
-One task per scene (``tasks/score.py``: image metrics, COLMAP camera guidance, runtime, geometry),
-then FID / FVD over all scenes, then the rows go to the ``evaluations`` table and to
-``evaluations/<evaluation_id>/report.{md,json}`` in the store, and to Prefect artifacts (a table and
-the Markdown report). Scores are kept per scene, so evaluating again with the same settings only
+One task per scene (``tasks/score.py``: the paper's Table I image metrics, III COLMAP camera pose errors,
+IV 3DGS, V planning geometry and runtime), then Table II, FID / FVD over all scenes, then the rows go to the
+``evaluations`` table and to ``evaluations/<evaluation_id>/report.{md,json}`` in the store, and to Prefect
+artifacts (a table and the Markdown report). A scene that fails to score gets one failed Table I row
+(``scoring``). Scores are kept per scene, so evaluating again with the same settings only
 re-reads them.
 """
 
@@ -19,11 +20,11 @@ from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from navcrafter.schemas.config import EvaluationConfig, RunConfig
+from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.tables import utcnow
+from navcrafter.tasks import clip_reconstruction, score
 from navcrafter.tasks import clips as clip_tasks
-from navcrafter.tasks import score
 from navcrafter.tasks.common import open_store
 from navcrafter.tasks.report import read_manifest
 
@@ -54,6 +55,8 @@ score_task = task(score.score_scene, name="score", task_run_name="score-{scene_i
 distribution_task = task(score.distribution_rows, name="fid-fvd")
 score_clip_task = task(clip_tasks.score_clip, name="score-clip", task_run_name="score-clip-{key}")
 clip_distribution_task = task(clip_tasks.clip_distribution_rows, name="fid-fvd")
+reconstruction_task = task(clip_reconstruction.reconstruction_rows, name="reconstruct-clip",
+                           task_run_name="reconstruct-clip-{key}")
 
 
 @flow(name="evaluate-store", persist_result=False)
@@ -76,7 +79,7 @@ def evaluate_store(store: str, config: RunConfig, scene_ids: list[str] | None = 
             scored.append(sid)
         except Exception as exc:  # one scene's failure is recorded; the others are still reported
             result.failed[sid] = f"{type(exc).__name__}: {exc}"
-            result.rows.append(score.row("V", "scoring", status="failed", note=result.failed[sid], scene_id=sid))
+            result.rows.append(score.row("I", "scoring", status="failed", note=result.failed[sid], scene_id=sid))
     if scored:
         result.rows += distribution_task(store, scored, config)
     s = open_store(store)
@@ -104,9 +107,11 @@ def evaluate_store_local(store: str, config: RunConfig) -> EvaluationRun:
 
 
 @flow(name="evaluate-clips", persist_result=False)
-def evaluate_clips(clips: str, generated: str, out: str, config: EvaluationConfig) -> EvaluationRun:
-    """Score the frames a generator made for dataset clips (``tasks/clips.py``); writes
-    ``out/evaluations.parquet`` (the evaluations schema) and ``out/report.{md,json}``."""
+def evaluate_clips(clips: str, generated: str, out: str, config: RunConfig, reconstruction: bool = True
+                   ) -> EvaluationRun:
+    """Score the frames a generator made for dataset clips (``tasks/clips.py``: Tables I-III; with
+    ``reconstruction``, Table IV: a 3DGS fit per clip, ``tasks/clip_reconstruction.py``, with ``config.fit``);
+    writes ``out/evaluations.parquet`` (the evaluations schema) and ``out/report.{md,json}``."""
     from pathlib import Path
 
     import pyarrow.parquet as pq
@@ -116,22 +121,27 @@ def evaluate_clips(clips: str, generated: str, out: str, config: EvaluationConfi
     evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
     keys = clip_tasks.clip_keys(clips)
     result = EvaluationRun(evaluation_id)
-    futures = [score_clip_task.submit(Path(clips), Path(generated), key, config) for key in keys]
+    futures = [score_clip_task.submit(Path(clips), Path(generated), key, config.evaluation) for key in keys]
     for key, fut in zip(keys, futures):
         rows = fut.result()
         result.rows += rows
-        failed = [r["note"] for r in rows if r["status"] == "failed" and r["table"] == "III"]
+        failed = [r["note"] for r in rows if r["status"] == "failed" and r["table"] == "I"]
         if failed:
             result.failed[key] = failed[0]
     scored = [k for k in keys if k not in result.failed]
-    result.rows += clip_distribution_task(Path(clips), Path(generated), scored, config)
+    result.rows += clip_distribution_task(Path(clips), Path(generated), scored, config.evaluation)
+    if reconstruction:
+        fits = [reconstruction_task.submit(clips, generated, key, config) for key in scored]
+        for fut in fits:
+            result.rows += fut.result()
+    backend = clip_tasks.generator_backend(Path(generated), scored)
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     now = utcnow()
-    pq.write_table(to_table("evaluations", [{**r, "evaluation_id": evaluation_id, "backend": "external",
+    pq.write_table(to_table("evaluations", [{**r, "evaluation_id": evaluation_id, "backend": backend,
                                              "created_at": now} for r in result.rows]),
                    out_dir / "evaluations.parquet")
-    md = score.evaluation_markdown(evaluation_id, result.rows, {}, "external")
+    md = score.evaluation_markdown(evaluation_id, result.rows, {}, backend)
     (out_dir / "report.md").write_text(md)
     (out_dir / "report.json").write_text(json.dumps({"evaluation_id": evaluation_id, "clips": keys,
                                                      "failed": result.failed, "rows": result.rows}, indent=1))

@@ -78,8 +78,9 @@ EVALUATIONS = pa.schema([
     pa.field("evaluation_id", pa.string(), nullable=False, metadata={"doc": "one `navcrafter evaluate` run"}),
     pa.field("scene_id", pa.string(), metadata={"doc": "null for a row over all scenes (FID, FVD)"}),
     pa.field("table", pa.string(), nullable=False,
-             metadata={"doc": "paper table: III synthesis quality, IV camera guidance, V runtime, "
-                              "VI exploration geometry, VII 3DGS"}),
+             metadata={"doc": "paper table: I novel-view synthesis (PSNR/SSIM/LPIPS), II FID/FVD, "
+                              "III camera pose errors, IV 3D scene reconstruction (3DGS), V planning "
+                              "(coverage, noise, F-score, runtime); VI (3DGS ablation) is benchmarks/fitting.py"}),
     pa.field("metric", pa.string(), nullable=False),
     pa.field("value", pa.float64(), metadata={"doc": "null unless status is ok"}),
     pa.field("unit", pa.string()),

@@ -3,8 +3,9 @@
 The paper scores its video model on RealEstate10K, DL3DV and Tanks and Temples clips (a conditioning
 image and the camera path of the next 14 frames). ``export_clips`` writes such clips, read by
 ``schemas/datasets/``, as plain files any generator can consume; ``score_clips`` scores the frames a
-generator wrote for them with the same metrics as ``navcrafter evaluate`` (Table III image quality,
-Table IV camera guidance by COLMAP, FID/FVD over all clips). Layout::
+generator wrote for them with the same metrics as ``navcrafter evaluate`` (Table I image quality on the
+14 frames, Table II FID/FVD over all clips, Table III camera pose errors by COLMAP on the conditioning image
+and the 14 frames: per-frame means, R_err in radians, and per-clip sums). Layout::
 
     <clips>/<clip>/condition.png            the conditioning image
     <clips>/<clip>/reference/0001.png ...   the T-1 ground-truth frames after it
@@ -25,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from navcrafter.schemas.config import EvaluationConfig
-from navcrafter.tasks.score import frechet_rows, image_quality_rows, row
+from navcrafter.tasks.score import frechet_rows, image_quality_rows, pose_error_rows, row
 
 CAMERAS = "cameras.json"
 
@@ -40,10 +41,26 @@ def _save_png(image: np.ndarray, path: Path) -> None:
     Image.fromarray(np.ascontiguousarray(image)).save(path)
 
 
+def simulation_sequences(root: str | Path | None) -> dict[str, dict[str, Any]]:
+    """Per sequence name, the provenance record of a dataset written by the simulation data engine
+    (``models/simulation/datasets.py``: ``<root>/simulation.json``); empty for any other dataset."""
+    from navcrafter.models.simulation.datasets import MANIFEST
+
+    path = None if root is None else Path(root) / MANIFEST
+    if path is None or not path.is_file():
+        return {}
+    return {r["name"]: r for r in json.loads(path.read_text()).get("sequences", [])}
+
+
 def export_clips(samples, out: str | Path) -> list[str]:
-    """Write every ``Sample`` of a dataset reader as a clip folder; returns the clip folder names."""
+    """Write every ``Sample`` of a dataset reader as a clip folder; returns the clip folder names.
+
+    A clip of a simulated dataset also records its hidden truth (``simulation``: the scene's spec and the
+    conditioning camera in the scene's frame), which only the simulated generator (``tasks/clip_generation.py``)
+    reads."""
     out = Path(out)
     keys = []
+    simulated = simulation_sequences(getattr(samples, "root", None))
     for s in samples:
         key = clip_key(s.clip_id)
         d = out / key
@@ -54,6 +71,10 @@ def export_clips(samples, out: str | Path) -> list[str]:
                "height": s.height, "frame_ids": [str(f) for f in s.frame_ids],
                "c2w": s.relative_c2w().tolist(), "K": np.asarray(s.K).tolist(),
                "convention": "OpenCV camera-to-world, relative to the conditioning camera; K in pixels"}
+        if s.sequence in simulated:
+            rec = simulated[s.sequence]
+            doc["simulation"] = {"scene": rec["scene"], "condition_c2w": rec["c2w"][int(s.indices[0])],
+                                 "note": "hidden truth of a simulated dataset: the scene frame (metres)"}
         (d / CAMERAS).write_text(json.dumps(doc, indent=1))
         keys.append(key)
     return keys
@@ -92,12 +113,12 @@ def load_generated(generated: Path, key: str, clip: dict[str, Any]) -> np.ndarra
 
 
 def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig) -> list[dict[str, Any]]:
-    """Table III and IV rows of one generated clip."""
+    """Table I and III rows of one generated clip (a clip that cannot be read: one failed Table I row)."""
     try:
         clip = load_clip(clips, key)
         fake = load_generated(generated, key, clip)
     except (OSError, ValueError) as exc:
-        return [row("III", "PSNR", status="failed", note=str(exc), scene_id=key)]
+        return [row("I", "PSNR", status="failed", note=str(exc), scene_id=key)]
     rows = image_quality_rows(fake, clip["reference"], config, scene_id=key)
     if config.camera_guidance:
         from navcrafter.models.metrics.pose import camera_guidance_precision
@@ -106,15 +127,8 @@ def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig)
         with tempfile.TemporaryDirectory(prefix="navcrafter-colmap-") as work:
             res = camera_guidance_precision(frames, clip["c2w"], clip["K"][0], work, scale="farthest",
                                             num_threads=2)
-        reason = res.get("reason") or None
-        rows.append(row("IV", "registered", res["n_registered"] / max(res["n_frames"], 1), "fraction",
-                        note=f"{res['n_registered']} of {res['n_frames']} frames", scene_id=key))
-        for metric, key_, unit in (("R_err", "R_err_deg_sum", "deg, sum per clip"),
-                                   ("T_err", "T_err_sum", "unit extent, sum per clip")):
-            if np.isfinite(res[key_]):
-                rows.append(row("IV", metric, float(res[key_]), unit, note=reason, scene_id=key))
-            else:
-                rows.append(row("IV", metric, status="failed", note=reason or "COLMAP failed", scene_id=key))
+        note = f"COLMAP (known K) on the conditioning image (frame 0) and the {len(fake)} frames after it"
+        rows += pose_error_rows([("", res, np.arange(len(frames)))], note, scene_id=key)
     return rows
 
 
@@ -145,3 +159,15 @@ def clip_keys(clips: str | Path) -> list[str]:
         raise FileNotFoundError(f"{clips} holds no clips (folders with {CAMERAS}); make them with "
                                 "`navcrafter dataset-clips`")
     return keys
+
+
+def generator_backend(generated: Path, keys: list[str]) -> str:
+    """The backend that made the clips' frames when ``navcrafter generate-clips`` made them all with one
+    (``simulation`` or ``onnx``, from their ``generation.json``), else ``external``."""
+    from navcrafter.tasks.clip_generation import GENERATION
+
+    seen = set()
+    for key in keys:
+        path = Path(generated) / key / GENERATION
+        seen.add(json.loads(path.read_text())["settings"]["backend"] if path.is_file() else "external")
+    return seen.pop() if len(seen) == 1 else "external"

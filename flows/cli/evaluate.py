@@ -31,7 +31,13 @@ def evaluate(
         help="Folder of official evaluation weights (LPIPS, FID Inception, FVD I3D).")] = None,
     parallel: Annotated[Optional[int], typer.Option(min=1, help="Scenes scored at once.")] = None,
 ) -> None:
-    """Score every finished scene: the paper's Tables III-VII as Parquet and Markdown in the store.
+    """Score every finished scene: the paper's Tables I-V as Parquet and Markdown in the store.
+
+    I novel-view synthesis, II FID/FVD, III camera pose errors, IV 3DGS, V planning and runtime.
+
+    Table VI (the 3DGS ablation) is benchmarks/fitting.py.
+
+    Frames: evaluation.frame_choice 'first' (default, the paper's: 14 after the conditioning image) or 'spaced'.
 
     Give the --preset, --config and --set the scenes were explored with.
     """

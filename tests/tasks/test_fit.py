@@ -236,11 +236,12 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
         b_img = loaded.render(torch.linalg.inv(c2w), K, 32, 32)[0]
     assert torch.equal(a_img, b_img)
     assert files["flythrough.mp4"]["bytes"] > 1000
-    # Table VII of navcrafter evaluate reads the held-out metrics
+    # Table IV of navcrafter evaluate reads the held-out metrics
     from navcrafter.tasks.score import gaussian_rows
 
-    vii = {r["metric"]: r for r in gaussian_rows(scene)}
-    assert vii["PSNR"]["value"] == a["psnr"] and vii["LPIPS"]["status"] == "unavailable"
+    table_iv = {r["metric"]: r for r in gaussian_rows(scene)}
+    assert {r["table"] for r in table_iv.values()} == {"IV"}
+    assert table_iv["PSNR"]["value"] == a["psnr"] and table_iv["LPIPS"]["status"] == "unavailable"
     # a rerun skips everything, the fit included
     again = run_scene(store, res.scene_id, cfg, "t2")
     assert all(r.skipped for r in again)

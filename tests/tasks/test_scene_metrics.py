@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from navcrafter.flows.cli import app
 from navcrafter.schemas.layout import EVALUATE, SCORE, SYNTHESIZE
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.score import TABLES, clip_indices, evaluation_markdown, row
+from navcrafter.tasks.score import TABLES, clip_indices, evaluation_markdown, pose_error_rows, row, scored_frames
 
 
 @pytest.fixture(scope="module")
@@ -37,40 +37,47 @@ def test_every_finished_scene_gets_every_table(evaluated, full_run):
     assert per_scene == done
     for sid in done:
         tables = {r["table"] for r in result.rows if r["scene_id"] == sid}
-        assert tables == set(TABLES), sid
+        assert tables == set(TABLES) - {"II"}, sid  # II (FID / FVD) is over all scenes
     by = {(r["scene_id"], r["table"], r["metric"]): r for r in result.rows}
     s = Store(str(store))
     for sid in done:
-        # VI is the scene's stored evaluation, V its recorded step times
+        # V is the scene's stored evaluation, then its recorded step times (Runtime in minutes, stages in seconds)
         metrics = s.scene(sid).status(EVALUATE).attrs["metrics"]
-        assert by[(sid, "VI", "Coverage")]["value"] == pytest.approx(metrics["coverage"])
-        assert by[(sid, "VI", "Collisions")]["value"] == metrics["collisions"]
-        assert by[(sid, "V", "synthesize")]["value"] > 0
-        parts = [by[(sid, "V", n)]["value"] for n in ("geometry", "plan", "synthesize", "lift", "export", "evaluate")]
-        assert by[(sid, "V", "total")]["value"] == pytest.approx(sum(parts))
-        # III: the honest simulated video model drifts from the requested cameras and hallucinates what the cloud
+        assert by[(sid, "V", "Coverage")]["value"] == pytest.approx(metrics["coverage"])
+        assert by[(sid, "V", "Collisions")]["value"] == metrics["collisions"]
+        assert by[(sid, "V", "time: synthesize")]["value"] > 0 and by[(sid, "V", "time: plan")]["unit"] == "s"
+        stages = ("geometry", "plan", "synthesize", "lift", "export", "evaluate")
+        parts = [by[(sid, "V", f"time: {n}")]["value"] for n in stages]
+        assert by[(sid, "V", "Runtime")]["unit"] == "min" and "4.79" in by[(sid, "V", "Runtime")]["note"]
+        assert by[(sid, "V", "Runtime")]["value"] == pytest.approx(sum(parts) / 60)
+        v_metrics = [m for (i, t, m) in by if i == sid and t == "V"]
+        assert v_metrics == ["Coverage", "Noise ratio", "F-score", "Collisions", "Runtime"] + [
+            f"time: {n}" for n in stages]
+        # I: the honest simulated video model drifts from the requested cameras and hallucinates what the cloud
         # does not show, so its frames differ from the truth at those cameras (the perfect preset gives 100 dB)
-        assert 5.0 < by[(sid, "III", "PSNR")]["value"] < 60.0
-        assert 0.0 < by[(sid, "III", "SSIM")]["value"] < 0.99
-        # IV: COLMAP ran on every clip; tiny 64x64 clips may not register, which must then be said
-        reg = by[(sid, "IV", "registered")]
+        assert 5.0 < by[(sid, "I", "PSNR")]["value"] < 60.0
+        assert 0.0 < by[(sid, "I", "SSIM")]["value"] < 0.99
+        # III: COLMAP ran on every clip; tiny 64x64 clips may not register, which must then be said
+        reg = by[(sid, "III", "registered")]
         assert reg["status"] == "ok" and 0 <= reg["value"] <= 1 and "registered by COLMAP" in reg["note"]
-        for m in ("R_err", "T_err"):
-            r = by[(sid, "IV", m)]
+        assert ("unregistered frames: iteration" in reg["note"]) == (reg["value"] < 1)
+        for m in ("R_err", "T_err", "R_err sum", "T_err sum"):
+            r = by[(sid, "III", m)]
             assert (r["status"] == "ok" and r["value"] >= 0) or (r["status"] == "failed" and r["note"])
-        # VII: the fit did not run (fit.enabled is false), and it says so
-        assert {by[(sid, "VII", m)]["status"] for m in ("PSNR", "SSIM", "LPIPS")} == {"unavailable"}
-        assert "fit.enabled" in by[(sid, "VII", "PSNR")]["note"]
+        assert by[(sid, "III", "R_err")]["unit"] == "rad, per-frame mean"
+        # IV: the fit did not run (fit.enabled is false), and it says so
+        assert {by[(sid, "IV", m)]["status"] for m in ("PSNR", "SSIM", "LPIPS")} == {"unavailable"}
+        assert "fit.enabled" in by[(sid, "IV", "PSNR")]["note"]
 
 
 @pytest.mark.system
 def test_metrics_without_weights_are_unavailable_not_invented(evaluated):
     _, _, result = evaluated
-    lp = [r for r in result.rows if r["metric"] == "LPIPS" and r["table"] == "III"]
+    lp = [r for r in result.rows if r["metric"] == "LPIPS" and r["table"] == "I"]
     assert lp and all(r["status"] == "unavailable" and r["value"] is None for r in lp)
     assert all(".pth" in r["note"] and "random weights" in r["note"] for r in lp)  # names the file and the rule
     dist = {r["metric"]: r for r in result.rows if r["scene_id"] is None}
-    assert set(dist) == {"FID", "FVD"}
+    assert set(dist) == {"FID", "FVD"} and {r["table"] for r in dist.values()} == {"II"}
     assert all(r["status"] == "unavailable" and r["value"] is None for r in dist.values())
 
 
@@ -94,7 +101,7 @@ def test_tables_report_and_artifacts_are_written(evaluated):
                         line.startswith("|---") for line in body[:2])
     assert (store / f"evaluations/{result.evaluation_id}/report.json").is_file()
     art = Artifact.get(key="evaluation-report")
-    assert art is not None and "Table IV" in art.data
+    assert art is not None and "## Table III: Camera pose errors" in art.data
 
 
 @pytest.mark.system
@@ -113,12 +120,17 @@ def test_scoring_again_reads_the_scores_back(evaluated, prefect_api_url):
     changed = config.model_copy(update={"evaluation": config.evaluation.model_copy(update={"pose_frames": 5})})
     third = evaluate_store(str(store), changed, scene_ids=[first.rows[0]["scene_id"]])
     reg = next(r for r in third.rows if r["metric"] == "registered")
-    assert "of 10 frames registered" in reg["note"]  # 5 of the 9 frames of each of the 2 clips
+    assert "of 12 frames registered" in reg["note"]  # frames 0-5 of each of the 2 clips (of 9 frames)
+    spaced = config.model_copy(update={"evaluation": config.evaluation.model_copy(
+        update={"pose_frames": 5, "frame_choice": "spaced"})})
+    fourth = evaluate_store(str(store), spaced, scene_ids=[first.rows[0]["scene_id"]])
+    reg = next(r for r in fourth.rows if r["metric"] == "registered")
+    assert "of 10 frames registered" in reg["note"]  # 5 of the 9 frames of each of the 2 clips, evenly spaced
 
 
 @pytest.mark.system
 def test_reference_check_detects_frames_that_do_not_match_their_cameras(evaluated, tmp_path):
-    """Table III is a real comparison: frames that are not the requested views score badly."""
+    """Table I is a real comparison: frames that are not the requested views score badly."""
     from navcrafter.tasks.score import synthesis_rows
 
     store, config, result = evaluated
@@ -135,12 +147,85 @@ def test_reference_check_detects_frames_that_do_not_match_their_cameras(evaluate
 def test_clip_indices_and_markdown_shape():
     assert clip_indices(81, 14).tolist()[0] == 0 and clip_indices(81, 14).tolist()[-1] == 80
     assert len(clip_indices(81, 14)) == 14 and clip_indices(5, 14).tolist() == [0, 1, 2, 3, 4]
-    rows = [row("III", "PSNR", 30.0, "dB", scene_id="a" * 64), row("III", "LPIPS", status="unavailable",
-                                                                    note="x.pth missing", scene_id="a" * 64),
-            row("III", "FID", status="unavailable", note="y missing")]
+    rows = [row("I", "PSNR", 30.0, "dB", scene_id="a" * 64), row("I", "LPIPS", status="unavailable",
+                                                                  note="x.pth missing", scene_id="a" * 64),
+            row("II", "FID", status="unavailable", note="y missing")]
     md = evaluation_markdown("e1", rows, {"a" * 64: "room.png"}, "onnx")
-    assert "SIMULATION" not in md and "| room.png `aaaaaaaaaaaa` | 30 | unavailable [1] |  |" in md
+    assert "SIMULATION" not in md and "| room.png `aaaaaaaaaaaa` | 30 | unavailable [1] |" in md
+    assert "| all scenes | unavailable [2] |" in md
     assert "1. unavailable: x.pth missing" in md and "2. unavailable: y missing" in md
+
+
+def test_first_frames_are_the_default_image_and_colmap_frames():
+    """The paper's protocol: frames 1..14 after the conditioning frame for the image metrics, 0..14 for COLMAP."""
+    from navcrafter.schemas.config import EvaluationConfig
+
+    cfg = EvaluationConfig()
+    assert cfg.frame_choice == "first" and cfg.pose_frames == 14
+    image, pose = scored_frames(81, cfg)
+    assert image.tolist() == list(range(1, 15)) and pose.tolist() == list(range(0, 15))
+    image, pose = scored_frames(9, cfg)  # a clip shorter than the protocol: cut at its end
+    assert image.tolist() == list(range(1, 9)) and pose.tolist() == list(range(0, 9))
+    image, pose = scored_frames(81, EvaluationConfig(pose_frames=5))
+    assert image.tolist() == [1, 2, 3, 4, 5] and pose.tolist() == [0, 1, 2, 3, 4, 5]
+    spaced = EvaluationConfig(frame_choice="spaced")
+    image, pose = scored_frames(81, spaced)
+    assert image.tolist() == pose.tolist() == clip_indices(81, 14).tolist()
+    assert image[0] == 0 and image[-1] == 80
+
+
+def _pose_result(r_deg: list[float], t: list[float], registered: list[bool]) -> dict:
+    """A camera_guidance_precision result (the fields the rows read) with per-frame errors, frame 0 the reference."""
+    n, ok = len(registered), np.asarray(registered)
+    r, tt = np.where(ok, r_deg, np.nan), np.where(ok, t, np.nan)
+    m = int(ok.sum()) - 1
+    mean = (lambda x: float(np.nansum(x) / m)) if m > 0 else (lambda x: float("nan"))
+    return {"n_frames": n, "n_registered": int(ok.sum()), "R_err_deg_sum": float(np.nansum(r)),
+            "R_err_deg_mean": mean(r), "T_err_sum": float(np.nansum(tt)),
+            "T_err_mean": mean(tt), "recovery": {"registered": ok.tolist()},
+            "reason": "" if ok.all() else f"{n - ok.sum()} of {n} frames not registered"}
+
+
+def test_pose_rows_headline_is_the_per_frame_mean_in_radians():
+    a = _pose_result([0.0, 1.0, 2.0, 3.0, 6.0], [0.0, 0.1, 0.2, 0.3, 0.4], [True] * 5)
+    b = _pose_result([0.0, 4.0, 8.0, 99.0], [0.0, 0.5, 0.7, 9.0], [True, True, True, False])
+    rows = {r["metric"]: r for r in pose_error_rows([("iteration 1", a, np.arange(5)),
+                                                     ("iteration 2", b, np.array([0, 3, 6, 8]))], "COLMAP")}
+    assert list(rows) == ["R_err", "T_err", "R_err sum", "T_err sum", "registered"]
+    assert {r["table"] for r in rows.values()} == {"III"}
+    # clip a: 12 deg over 4 frames (the reference excluded); clip b: 12 deg over its 2 registered frames
+    assert rows["R_err"]["value"] == pytest.approx(np.mean([np.deg2rad(12.0 / 4), np.deg2rad(12.0 / 2)]))
+    assert rows["R_err"]["unit"] == "rad, per-frame mean"
+    assert rows["T_err"]["value"] == pytest.approx(np.mean([1.0 / 4, 1.2 / 2]))
+    assert rows["R_err sum"]["value"] == pytest.approx(12.0) and rows["R_err sum"]["unit"] == "deg, per clip"
+    assert rows["T_err sum"]["value"] == pytest.approx(np.mean([1.0, 1.2]))
+    reg = rows["registered"]
+    assert reg["value"] == pytest.approx(8 / 9) and reg["unit"] == "fraction"
+    assert "8 of 9 frames registered by COLMAP" in reg["note"]
+    assert "unregistered frames: iteration 2: 8" in reg["note"]  # the clip-frame index, not the position
+    assert "iteration 2: 1 of 4 frames not registered" in rows["R_err"]["note"]
+    # one clip: the headline is deg2rad of its per-frame mean, the sum column its sum
+    one = {r["metric"]: r for r in pose_error_rows([("", a, np.arange(5))], "x", scene_id="s")}
+    assert one["R_err"]["value"] == pytest.approx(np.deg2rad(3.0)) and one["R_err sum"]["value"] == 12.0
+    assert one["registered"]["note"].endswith("every frame registered") and one["R_err"]["scene_id"] == "s"
+    # no clip COLMAP could compare: every error fails, with the reason; registered is still reported
+    c = {**_pose_result([0.0, 1.0], [0.0, 0.1], [True, False]), "R_err_deg_sum": float("nan"),
+         "T_err_sum": float("nan")}
+    failed = {r["metric"]: r for r in pose_error_rows([("", c, np.arange(2))], "x")}
+    assert {failed[m]["status"] for m in ("R_err", "T_err", "R_err sum", "T_err sum")} == {"failed"}
+    assert failed["registered"]["value"] == 0.5 and "unregistered frames: 1" in failed["registered"]["note"]
+
+
+def test_report_titles_are_the_papers():
+    rows = [row(t, "m", 1.0, scene_id=None if t == "II" else "b" * 64) for t in ("I", "II", "III", "IV", "V")]
+    md = evaluation_markdown("e2", rows, {}, "onnx")
+    titles = [line for line in md.splitlines() if line.startswith("## ")]
+    assert titles == ["## Table I: Novel-view synthesis quality", "## Table II: FID / FVD",
+                      "## Table III: Camera pose errors", "## Table IV: 3D scene reconstruction (3DGS)",
+                      "## Table V: Planning: coverage, noise, F-score, runtime"]
+    last = md.rstrip().splitlines()[-1]
+    assert last.startswith("Table VI (3DGS ablation)") and "benchmarks/fitting.py" in last
+    assert "VII" not in md
 
 
 def test_cli_evaluate_refuses_a_store_without_finished_scenes(tmp_path):
@@ -154,7 +239,8 @@ def test_cli_evaluate_refuses_a_store_without_finished_scenes(tmp_path):
 
 def test_evaluate_help():
     res = CliRunner().invoke(app, ["evaluate", "--help"])
-    assert res.exit_code == 0 and "Tables III-VII" in res.output.replace("\n", " ")
+    out = " ".join(res.output.split())
+    assert res.exit_code == 0 and "Tables I-V" in out and "benchmarks/fitting.py" in out and "VII" not in out
 
 
 # --------------------------------------------------------------------------------------------------
