@@ -109,6 +109,39 @@ class PlanConfig(_Section):
         1.0, gt=0, description="Cap on the camera displacement of one orbit step, in scene units.")
     orbit_radius_scale: float = Field(
         0.85, gt=0, description="Orbit target distance to the centre as a fraction of the initial one.")
+    trajectory: list[str] | None = Field(
+        None, description="A user's camera path in place of the planner (models/planning/user.py): iteration k takes "
+        "entry (k-1) mod len, a preset NAME[:SIZE] (orbit, arc, dolly, pan, tilt, truck, pedestal, spiral, "
+        "lookaround; SIZE in the preset's degrees or amount) or a camera file (RealEstate10K .txt, transforms.json, "
+        "camera_path.json, camera-to-world matrices .npy/.json). Checked by G; see trajectory_repair.")
+    trajectory_extent: float = Field(
+        0.5, ge=0, description="A camera file's path is scaled so its farthest camera lies this many times the "
+        "current camera's distance to the scene centre from its first; 0 keeps the file's units.")
+    trajectory_convention: Literal["opencv", "opengl"] = Field(
+        "opencv", description="Camera axes of plain matrix files (.npy, or .json without a 'convention' field).")
+    trajectory_repair: bool = Field(
+        False, description="Repair a user path that G flags with the collision optimisation (same end poses); "
+        "otherwise it is kept with a warning.")
+
+    # added after stores existed: keys the plan step only when set (schemas.keys)
+    keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
+                                                "trajectory_convention": "opencv", "trajectory_repair": False}
+
+    @field_validator("trajectory")
+    @classmethod
+    def _trajectory(cls, value: list[str] | None) -> list[str] | None:
+        """Entries checked now (a bad one fails before any work); camera files kept as absolute paths."""
+        if value is None:
+            return None
+        if not value:
+            raise ValueError("plan.trajectory must list at least one preset or camera file (or be null)")
+        from navcrafter.models.planning.user import parse_spec
+
+        out = []
+        for entry in value:
+            spec = parse_spec(entry)
+            out.append(spec.path if spec.path is not None else spec.text)
+        return out
 
     @model_validator(mode="after")
     def _ranges(self) -> PlanConfig:

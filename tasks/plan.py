@@ -41,6 +41,8 @@ def planning_state(scene: SceneStore, k: int, config: RunConfig) -> PlanningStat
 
 def plan(ctx: StepContext) -> dict:
     cfg, scene, k = ctx.config.plan, ctx.scene, ctx.k
+    if cfg.trajectory is not None:
+        return user_plan(ctx)
     if cfg.strategy == "orbit":
         centre = stored_scene_centre(scene, ctx.config)
         traj, target = orbit_trajectory(k, current_pose(scene, k), centre, cfg, ctx.config.synthesis.num_frames)
@@ -59,3 +61,51 @@ def plan(ctx: StepContext) -> dict:
     if res.collision_free is not None:
         attrs["collision_free"] = res.collision_free
     return attrs
+
+
+def user_plan(ctx: StepContext) -> dict:
+    """A user's path (``plan.trajectory``, ``models/planning/user.py``) in place of the planner, checked by G."""
+    from navcrafter.models.planning.planners import optimise_trajectory, planning_detector
+    from navcrafter.models.planning.user import trajectory_spec, user_path
+    from navcrafter.tasks.common import logger
+
+    cfg, scene, k = ctx.config.plan, ctx.scene, ctx.k
+    state = planning_state(scene, k, ctx.config)
+    spec = trajectory_spec(cfg.trajectory, k)
+    path = user_path(spec, state.current, state.centre, state.num_frames, extent=cfg.trajectory_extent,
+                     convention=cfg.trajectory_convention)
+    _, detector = planning_detector(state, cfg, np.random.default_rng(ctx.seed))
+    initial = path.trajectory
+    x = initial[:, :3, 3]
+    clearance = detector.clearance(x)
+    near, unseen = clearance < detector.path_clearance(x), ~detector.seen_free(x)
+    bad = near | unseen
+    traj, optimised, warning = initial, False, ""
+    if bad.any():
+        frames = np.flatnonzero(bad)
+        what = (f"iteration {k}: collision detector G flags the trajectory {spec.text!r} at {len(frames)} of "
+                f"{len(x)} frames (first {frames[:5].tolist()}): {int(near.sum())} closer to a surface than "
+                f"r_safe {cfg.safe_radius} (+ the follow error; least clearance {float(clearance.min()):.3f}), "
+                f"{int(unseen.sum())} outside the space the cameras saw free")
+        if cfg.trajectory_repair:
+            opt = optimise_trajectory(initial, detector, state.centre, cfg.smoothness)
+            if opt.collision_free:
+                traj, optimised = opt.trajectory, opt.optimised
+                what += "; repaired by the collision optimisation"
+            else:
+                what += "; the collision optimisation found no safe path: kept as given"
+        else:
+            what += "; kept as given (plan.trajectory_repair=true repairs it)"
+        warning = what
+        logger().warning("scene %s: %s", ctx.scene_id[:12], warning)
+    ctx.write_all(trajectory=traj, K=state.K, centre=state.centre, candidates=traj[-1:],
+                  candidate_collides=np.array([bool(bad.any())]), initial_trajectory=initial)
+    cloud = ctx.cloud(k - 1)
+    from navcrafter.models.planning.planners import PlanResult
+
+    shown = PlanResult(traj, initial, traj[-1:], np.zeros(1), np.array([bool(bad.any())]),
+                       np.zeros((1, state.height, state.width), dtype=bool), 0, optimised=optimised)
+    ctx.write_file("topdown.png", topdown_png(cloud.points, cloud.colors, state, shown, "trajectory", k))
+    return {"strategy": "trajectory", "chosen": 0, "trajectory": spec.text, "source": path.source,
+            "collision_free": not bool(bad.any()) or optimised, "colliding_frames": int(bad.sum()),
+            "optimised": optimised, "warning": warning, "r_safe": cfg.safe_radius, "d0": state.d0}

@@ -243,7 +243,7 @@ def gaussian_rows(scene: SceneStore) -> list[dict[str, Any]]:
     a = status.attrs
     note = (f"{a['n_holdout']} held-out synthesized frames (every {a['holdout_every']}th of our own video, "
             f"i.e. interpolation), {a['resolution'][0]}x{a['resolution'][1]}; not the paper's protocol "
-            "(renders at a dataset's own frames)")
+            "(renders at a dataset's own frames: `navcrafter generate-clips` + `evaluate-clips`)")
     rows = [row("IV", "PSNR", float(a["psnr"]), "dB", note=note),
             row("IV", "SSIM", float(a["ssim"]), None, note=note)]
     if a.get("lpips") is None:

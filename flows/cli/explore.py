@@ -46,12 +46,16 @@ def explore(
     scene_deployment: Annotated[Optional[str], typer.Option(
         help="Run each scene as a flow run of this deployment (e.g. explore-scene/NAME on a GPU work pool; "
              "needs PREFECT_API_URL) instead of in this process.")] = None,
+    trajectory: Annotated[Optional[list[str]], typer.Option(
+        "--trajectory", help="Replace the planner: a preset NAME[:SIZE] (orbit, arc, dolly, pan, tilt, truck, "
+        "pedestal, spiral, lookaround) or a camera file (.txt RealEstate10K, transforms.json, camera_path.json, "
+        ".npy/.json c2w matrices); repeat it for one entry per iteration (plan.trajectory).")] = None,
 ) -> None:
     """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
     from navcrafter.models.simulation import LABEL
 
     cfg = run_config(preset, config, set_, {"backend": backend, "model_dir": str(models) if models else None,
-                                            "max_parallel_scenes": parallel})
+                                            "max_parallel_scenes": parallel, "plan.trajectory": trajectory})
     if "://" in photos:
         from navcrafter.tasks.ingest import CollectionError, list_collection
 

@@ -177,7 +177,8 @@ def render(
         "--scene", help="Scene id (or a unique prefix) in --store; optional when the store has one scene.")] = None,
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="A preset (orbit, arc, dolly, pan, tilt, zoom, truck, pedestal, spiral, lookaround) "
-                             "or a camera file (RealEstate10K .txt, transforms.json, nerfstudio camera_path.json).")
+                             "or a camera file (RealEstate10K .txt, transforms.json, nerfstudio camera_path.json, "
+                             "OpenCV camera-to-world matrices .npy/.json).")
     ] = "orbit",
     frames: Annotated[int, typer.Option(min=1, help="Frames of a preset.")] = 60,
     fps: Annotated[int, typer.Option(min=1, help="Frames per second of the MP4.")] = 24,

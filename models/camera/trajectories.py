@@ -37,6 +37,9 @@ looking at its centre from the distance at which the box's bounding sphere fills
   ``fl_x, fl_y, cx, cy, w, h`` at the top level or per frame (frames in ``file_path`` order, as nerfstudio);
 * nerfstudio ``camera_path.json`` (``read_camera_path``): ``camera_path[i].camera_to_world`` (16 numbers,
   row-major, OpenGL axes) and ``fov`` (vertical, degrees) per camera, ``render_width/height`` (square pixels).
+* plain camera-to-world matrices (``read_matrices``): a ``.npy`` array ``[N, 4, 4]`` (or ``[N, 3, 4]``), or a
+  ``.json`` list of N 4x4 (or 3x4) matrices, or an object ``{"c2w": [...], "convention": "opencv"|"opengl"}``;
+  the camera axes are OpenCV's unless the file (JSON ``convention``) or the caller (``convention=``) says OpenGL.
 
 A malformed file raises ``ValueError`` naming the file and the line or JSON field.
 """
@@ -444,10 +447,53 @@ def _check_pose(M: np.ndarray, where: str, tol: float = 1e-2) -> None:
         raise ValueError(f"{where}: the 3x3 block is not a rotation (R^T R != I or det < 0)")
 
 
+CONVENTIONS = ("opencv", "opengl")
+
+
+def read_matrices(path: str | Path, convention: str = "opencv") -> CameraFile:
+    """Plain camera-to-world matrices (``.npy`` or ``.json``, see the module docstring) in the camera axes of
+    ``convention`` (a JSON object's own ``convention`` field wins), returned in OpenCV axes."""
+    path = Path(path)
+    where = str(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            M = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: not a readable .npy array ({exc})") from None
+    else:
+        doc = json.loads(path.read_text()) if path.is_file() else None
+        if isinstance(doc, dict):
+            if "c2w" not in doc:
+                raise ValueError(f"{path}: a JSON object of matrices needs the field 'c2w' (a list of 4x4 "
+                                 f"camera-to-world matrices); its fields are {sorted(doc)[:10]}")
+            convention = str(doc.get("convention", convention)).lower()
+            doc, where = doc["c2w"], f"{path}: c2w"
+        try:
+            M = np.asarray(doc, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: not a list of numeric matrices") from None
+    if convention not in CONVENTIONS:
+        raise ValueError(f"{path}: convention {convention!r} must be one of {', '.join(CONVENTIONS)}")
+    M = np.asarray(M, dtype=np.float64)
+    if M.ndim != 3 or M.shape[1:] not in ((4, 4), (3, 4)) or len(M) == 0:
+        raise ValueError(f"{where}: expected N camera-to-world matrices of shape [N, 4, 4] or [N, 3, 4], got "
+                         f"shape {list(M.shape)}")
+    if M.shape[1] == 3:
+        M = np.concatenate([M, np.tile([[[0.0, 0.0, 0.0, 1.0]]], (len(M), 1, 1))], axis=1)
+    for i, m in enumerate(M):
+        if not np.isfinite(m).all():
+            raise ValueError(f"{where}[{i}]: not finite")
+        _check_pose(m, f"{where}[{i}]")
+    if convention == "opengl":
+        M = M @ GL_CV_FLIP
+    return CameraFile(str(path), f"matrices ({convention})", M, None, None)
+
+
 CAMERA_FILE_FORMATS: dict[str, Callable[[str | Path], CameraFile]] = {
     "re10k": read_re10k,
     "transforms": read_transforms,
     "camera_path": read_camera_path,
+    "matrices": read_matrices,
 }
 
 
@@ -459,18 +505,30 @@ def camera_file_format(path: str | Path) -> str:
         raise ValueError(f"camera file {path} does not exist")
     if path.suffix.lower() == ".txt":
         return "re10k"
+    if path.suffix.lower() == ".npy":
+        return "matrices"
     if path.suffix.lower() == ".json":
-        doc = _json(path)
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        if isinstance(doc, list) or (isinstance(doc, dict) and "c2w" in doc):
+            return "matrices"
+        if not isinstance(doc, dict):
+            raise ValueError(f"{path}: the JSON must be an object or a list of matrices, got {type(doc).__name__}")
         if "camera_path" in doc:
             return "camera_path"
         if "frames" in doc:
             return "transforms"
-        raise ValueError(f"{path}: neither a nerfstudio camera_path.json (field 'camera_path') nor a "
-                         f"transforms.json (field 'frames'); its fields are {sorted(doc)[:10]}")
+        raise ValueError(f"{path}: neither a nerfstudio camera_path.json (field 'camera_path'), a transforms.json "
+                         f"(field 'frames') nor camera-to-world matrices (a list, or field 'c2w'); its fields are "
+                         f"{sorted(doc)[:10]}")
     raise ValueError(f"{path}: unknown camera file type {path.suffix!r}; give a RealEstate10K .txt, a "
-                     "transforms.json or a nerfstudio camera_path.json")
+                     "transforms.json, a nerfstudio camera_path.json or camera-to-world matrices (.npy / .json)")
 
 
-def read_camera_file(path: str | Path) -> CameraFile:
-    """Parse any supported camera file (format chosen by ``camera_file_format``)."""
-    return CAMERA_FILE_FORMATS[camera_file_format(path)](path)
+def read_camera_file(path: str | Path, convention: str = "opencv") -> CameraFile:
+    """Parse any supported camera file (format chosen by ``camera_file_format``); ``convention``: the camera axes
+    of plain matrices (the other formats state their own)."""
+    fmt = camera_file_format(path)
+    return read_matrices(path, convention) if fmt == "matrices" else CAMERA_FILE_FORMATS[fmt](path)

@@ -582,6 +582,16 @@ def _masks_and_scores(state: PlanningState, points: np.ndarray, cands: np.ndarra
     return masks, scores
 
 
+def planning_detector(state: PlanningState, cfg: PlanConfig, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, CollisionDetector]:
+    """The thinned cloud and the collision detector G of a planning call (ground plane estimated from the cloud)."""
+    points = planning_cloud(state, cfg.safe_radius)
+    ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
+    return points, CollisionDetector(points, cfg.safe_radius, state.views, thin=False,
+                                     unknown_is_free=cfg.unknown_space == "free", ground=ground,
+                                     follow_error=cfg.follow_error)
+
+
 class CollisionAwarePlanner:
     """The paper's Algorithm 1 (one iteration per call)."""
 
@@ -593,11 +603,7 @@ class CollisionAwarePlanner:
     def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
         cfg = self.config
         t0 = time.perf_counter()
-        points = planning_cloud(state, cfg.safe_radius)
-        ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
-        detector = CollisionDetector(points, cfg.safe_radius, state.views, thin=False,
-                                     unknown_is_free=cfg.unknown_space == "free", ground=ground,
-                                     follow_error=cfg.follow_error)
+        points, detector = planning_detector(state, cfg, rng)
         t_tree = time.perf_counter()
         # draw K candidates at a time (the baseline draws the same), a colliding one pulled towards o until G
         # passes it; again, at most max_resample times, until K pass (those that still collide keep an empty mask)

@@ -75,7 +75,7 @@ def _other_values(value, field) -> list:
         return [(value[0] + (1 if isinstance(value[0], int) else 0.05), *value[1:]),
                 (value[0] - (1 if isinstance(value[0], int) else 0.05), *value[1:])]
     if value is None:
-        return [16, "/tmp/navcrafter-elsewhere"]
+        return [16, "/tmp/navcrafter-elsewhere", ["orbit:30"]]
     if isinstance(value, str):
         return ["cpu", value + "-other"]
     return []
