@@ -201,8 +201,8 @@ def pose_error_rows(clips: Sequence[tuple[str, dict[str, Any], np.ndarray]], not
     reg_note = f"{registered} of {total} frames registered by COLMAP"
     reg_note += f"; unregistered frames: {'; '.join(lost)}" if lost else "; every frame registered"
     if not r_mean:
-        rows = [row("III", m, status="failed", note="COLMAP registered no clip: " + note, scene_id=scene_id)
-                for m in POSE_METRICS[:4]]
+        rows = [row("III", m, unit=POSE_UNITS[m], status="failed", note="COLMAP registered no clip: " + note,
+                    scene_id=scene_id) for m in POSE_METRICS[:4]]
     else:
         rows = [row("III", m, float(np.mean(v)), POSE_UNITS[m], note=note, scene_id=scene_id)
                 for m, v in zip(POSE_METRICS, (r_mean, t_mean, r_sum, t_sum))]
