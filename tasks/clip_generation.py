@@ -107,8 +107,8 @@ def _backend(config: RunConfig, doc: dict[str, Any], key: str, height: int, widt
 def generate_clip(clips: str | Path, generated: str | Path, key: str, config: RunConfig) -> dict[str, Any]:
     """Generate (or keep, when already made with the same settings) the frames of clip ``key``; returns its
     ``generation.json`` record (``"skipped": True`` when it was already there)."""
-    from navcrafter.models.reconstruction.pointcloud import views_to_cloud, voxel_fuse
     from navcrafter.models.roles import SynthesisRequest
+    from navcrafter.tasks.geometry import view_cloud
 
     folder = Path(generated) / key
     want = settings(config)
@@ -126,13 +126,10 @@ def generate_clip(clips: str | Path, generated: str | Path, key: str, config: Ru
     backend = _backend(config, clip["doc"], key, H, W, K[0])
 
     pred = backend.geometry.predict(cond[None], seed=seed, hint_c2w=np.eye(4)[None])
-    depth = pred.depth[:1].astype(np.float64)
+    depth = pred.depth[0].astype(np.float64)
     if backend.is_simulation:  # the simulated geometry's own scale, known here: a metric model's depth
         depth = depth / float(pred.extras["simulation_scale"])
-    cfg = config.lift
-    cloud = voxel_fuse(views_to_cloud(cond[None], depth.astype(np.float32), pred.confidence[:1], np.eye(4)[None],
-                                      K[:1], cfg.confidence_threshold, cfg.pixel_stride, cfg.max_depth),
-                       cfg.voxel_size)
+    cloud = view_cloud(cond, depth.astype(np.float32), pred.confidence[0], K[0], config.lift)
     trajectory = extend_path(c2w, n)
     request = SynthesisRequest(image=cond, trajectory=trajectory, intrinsics=Intrinsics.from_matrix(K[0], W, H),
                                cloud_points=cloud.points, cloud_colors=cloud.colors, seed=seed)

@@ -59,8 +59,16 @@ def initial_points(generated: Path, key: str, clip: dict[str, Any], seed: int
 def reconstruction_rows(clips: str | Path, generated: str | Path, key: str, config: RunConfig
                         ) -> list[dict[str, Any]]:
     """Table IV rows of one clip (``status`` failed, with the reason, when its frames cannot be read)."""
+    from navcrafter.models.camera.cameras import Intrinsics
     from navcrafter.models.gaussians.model import GaussianModel
-    from navcrafter.models.gaussians.recipe import fit_size, heldout_metrics, load_lpips, resize_image, scene_scale
+    from navcrafter.models.gaussians.recipe import (
+        fit_size,
+        heldout_metrics,
+        init_subset,
+        load_lpips,
+        resize_image,
+        scene_scale,
+    )
     from navcrafter.models.gaussians.train import GaussianTrainer, TrainView
 
     clips, generated = Path(clips), Path(generated)
@@ -72,10 +80,7 @@ def reconstruction_rows(clips: str | Path, generated: str | Path, key: str, conf
     cfg = config.fit
     H, W = clip["condition"].shape[:2]
     h, w = fit_size(H, W, cfg.resolution)
-    sx, sy = w / W, h / H
-    K = clip["K"].copy()
-    K[:, 0, :] *= sx
-    K[:, 1, :] *= sy
+    K = np.stack([Intrinsics.from_matrix(k, W, H).resize(w, h).K for k in clip["K"]])
     c2w = clip["c2w"]
 
     def view(img: np.ndarray, i: int) -> TrainView:
@@ -86,9 +91,7 @@ def reconstruction_rows(clips: str | Path, generated: str | Path, key: str, conf
     test = [view(f, i) for i, f in enumerate(clip["reference"], start=1)]
     seed = config.seed
     pts, cols, init_note = initial_points(generated, key, clip, seed)
-    if cfg.max_init_points is not None and len(pts) > cfg.max_init_points:
-        keep = np.sort(np.random.default_rng(seed).choice(len(pts), cfg.max_init_points, replace=False))
-        pts, cols = pts[keep], cols[keep]
+    pts, cols = init_subset(pts, cols, cfg.max_init_points, seed)
     model = GaussianModel.from_point_cloud(pts, cols, sh_degree=cfg.sh_degree)
     lpips_model, lpips_note = load_lpips(config.evaluation)
     lam = cfg.lambda_lpips if lpips_model is not None else 0.0

@@ -49,6 +49,7 @@ from navcrafter.models.gaussians.recipe import (
     fit_size,
     heldout_metrics,
     history_array,
+    init_subset,
     load_lpips,
     resize_depth,
     resize_image,
@@ -134,11 +135,7 @@ def _fit(ctx: StepContext) -> dict:
                          None if d is None else torch.from_numpy(np.ascontiguousarray(d, dtype=np.float32)))
 
     train_views, test_views = [view(f) for f in train_idx], [view(f) for f in test_idx]
-    pts, cols = cloud.points, cloud.colors
-    if cfg.max_init_points is not None and len(pts) > cfg.max_init_points:
-        rng = np.random.default_rng(seed)
-        keep = np.sort(rng.choice(len(pts), cfg.max_init_points, replace=False))
-        pts, cols = pts[keep], cols[keep]
+    pts, cols = init_subset(cloud.points, cloud.colors, cfg.max_init_points, seed)
     if len(pts) == 0:
         raise ValueError("the scene cloud is empty; nothing to initialise the Gaussians from")
     init = GaussianModel.from_point_cloud(pts, cols, sh_degree=cfg.sh_degree)

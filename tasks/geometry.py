@@ -8,9 +8,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.reconstruction.pointcloud import views_to_cloud, voxel_fuse
+from navcrafter.models.reconstruction.pointcloud import Cloud, views_to_cloud, voxel_fuse
+from navcrafter.schemas.config import LiftConfig
 from navcrafter.schemas.layout import INGEST
 from navcrafter.tasks.steps import StepContext
+
+
+def view_cloud(image: np.ndarray, depth: np.ndarray, confidence: np.ndarray, K: np.ndarray, cfg: LiftConfig) -> Cloud:
+    """The fused cloud of one view at the identity camera (``depth``, ``confidence`` [H, W], ``K`` [3, 3]), with the
+    lift step's confidence threshold, pixel stride, depth cap and voxel size."""
+    cloud = views_to_cloud(image[None], depth[None], confidence[None], np.eye(4)[None], K[None],
+                           cfg.confidence_threshold, cfg.pixel_stride, cfg.max_depth)
+    return voxel_fuse(cloud, cfg.voxel_size)
 
 
 def initial_geometry(ctx: StepContext) -> dict:
@@ -18,10 +27,7 @@ def initial_geometry(ctx: StepContext) -> dict:
     pred = ctx.backend.geometry.predict(work[None], seed=ctx.seed, hint_c2w=np.eye(4)[None])
     if not np.allclose(pred.c2w[0], np.eye(4), atol=1e-6):
         raise ValueError("geometry backend returned a first-view pose that is not the identity")
-    cfg = ctx.config.lift
-    cloud = views_to_cloud(work[None], pred.depth[:1], pred.confidence[:1], np.eye(4)[None], pred.K[:1],
-                           cfg.confidence_threshold, cfg.pixel_stride, cfg.max_depth)
-    cloud = voxel_fuse(cloud, cfg.voxel_size)
+    cloud = view_cloud(work, pred.depth[0], pred.confidence[0], pred.K[0], ctx.config.lift)
     if len(cloud) == 0:
         raise ValueError("the geometry model found no confident depth in the input image")
     ctx.write_all(c2w=np.eye(4), K=pred.K[0].astype(np.float64), depth=pred.depth[0].astype(np.float32),

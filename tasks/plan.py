@@ -76,15 +76,13 @@ def user_plan(ctx: StepContext) -> dict:
                      convention=cfg.trajectory_convention)
     _, detector = planning_detector(state, cfg, np.random.default_rng(ctx.seed))
     initial = path.trajectory
-    x = initial[:, :3, 3]
-    clearance = detector.clearance(x)
-    near, unseen = clearance < detector.path_clearance(x), ~detector.seen_free(x)
+    near, unseen, clearance = detector.path_flags(initial)
     bad = near | unseen
     traj, optimised, warning = initial, False, ""
     if bad.any():
         frames = np.flatnonzero(bad)
         what = (f"iteration {k}: collision detector G flags the trajectory {spec.text!r} at {len(frames)} of "
-                f"{len(x)} frames (first {frames[:5].tolist()}): {int(near.sum())} closer to a surface than "
+                f"{len(initial)} frames (first {frames[:5].tolist()}): {int(near.sum())} closer to a surface than "
                 f"r_safe {cfg.safe_radius} (+ the follow error; least clearance {float(clearance.min()):.3f}), "
                 f"{int(unseen.sum())} outside the space the cameras saw free")
         if cfg.trajectory_repair:

@@ -49,6 +49,15 @@ def scene_scale(c2w: np.ndarray, points: np.ndarray) -> float:
     return float(np.median(d)) if len(d) else 1.0
 
 
+def init_subset(points: np.ndarray, colors: np.ndarray, max_points: int | None, seed: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The points a fit starts from: all of them, or a seeded subset of ``max_points`` (``fit.max_init_points``)."""
+    if max_points is not None and len(points) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(len(points), max_points, replace=False))
+        return points[keep], colors[keep]
+    return points, colors
+
+
 def load_lpips(evaluation: EvaluationConfig):
     """(LPIPS model or None, note): the official LPIPS network, never a random one."""
     from navcrafter.models.metrics.evalnets.lpips import LPIPS

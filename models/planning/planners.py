@@ -282,9 +282,16 @@ class CollisionDetector:
         travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x, axis=0), axis=1))])
         return self.r_safe + self.follow_error * travelled
 
-    def trajectory_collides(self, trajectory: np.ndarray) -> bool:
+    def path_flags(self, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per pose of ``trajectory`` [T, 4, 4]: closer to a surface than the path's clearance, outside the seen free
+        space; and the clearance itself."""
         x = trajectory[:, :3, 3]
-        return bool(((self.clearance(x) < self.path_clearance(x)) | ~self.seen_free(x)).any())
+        clearance = self.clearance(x)
+        return clearance < self.path_clearance(x), ~self.seen_free(x), clearance
+
+    def trajectory_collides(self, trajectory: np.ndarray) -> bool:
+        near, unseen, _ = self.path_flags(trajectory)
+        return bool((near | unseen).any())
 
 
 def estimate_ground(points: np.ndarray, camera: np.ndarray, rng: np.random.Generator, tolerance: float,
