@@ -19,6 +19,14 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
     || { $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q --no-install-recommends libusb-1.0-0 >/dev/null; }
 fi
 
+# The test tools: the browser tests (tests/browser.py) screenshot pages with headless Chromium (Debian's chromium).
+if [[ ",$extras," == *,test,* ]] && ! command -v chromium >/dev/null 2>&1; then
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get install -y -q --no-install-recommends chromium >/dev/null \
+    || { $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q --no-install-recommends chromium >/dev/null; }
+fi
+
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 stamp=".venv/.installed-${extras:-base}-$(cat pyproject.toml deploy/constraints.txt | sha256sum | cut -c1-16)"
 if [ ! -e "$stamp" ]; then

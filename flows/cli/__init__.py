@@ -11,7 +11,7 @@ import os
 
 import typer
 
-from navcrafter.flows.cli import clips, demo, evaluate, explore, models, render, status, train
+from navcrafter.flows.cli import clips, cloud, demo, evaluate, explore, export, models, render, status, train, view
 from navcrafter.flows.cli.options import prefect_env
 
 app = typer.Typer(help="NavCrafter: explore 3D scenes from single images, as a resumable batch workflow.",
@@ -25,9 +25,12 @@ app.command("dataset-clips")(clips.dataset_clips)
 app.command("generate-clips")(clips.generate_clips)
 app.command("evaluate-clips")(clips.evaluate_clips)
 app.command()(status.status)
+app.command()(view.view)
 app.command()(explore.submit)
 app.command("train-camera")(train.train_camera)
 app.command("simulate-datasets")(train.simulate_datasets)
+app.command("export")(export.export)
+app.command("evaluate-cloud")(cloud.evaluate_cloud)
 
 __all__ = ["app", "main"]
 

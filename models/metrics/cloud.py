@@ -8,6 +8,9 @@ At the paper's 2 cm threshold (``THRESHOLD_M``), for points in the ground-truth 
 * ``collisions``: camera positions closer than ``r_safe`` to a true surface or inside an object;
 * ``close_frames``: frames dominated by a surface nearer than ``2 r_safe`` (``close_frame_mask``);
 * distances of points to the true surfaces (median, mean, p90, fractions within 2 and 5 cm).
+
+Against a reference *cloud* instead of the true surfaces (``navcrafter evaluate-cloud``): ``cloud_metrics``, the same
+definitions with nearest-reference-point distances (precision = 1 - noise ratio, recall = coverage).
 """
 
 from __future__ import annotations
@@ -54,6 +57,30 @@ def coverage_metrics(points: np.ndarray, reference: np.ndarray, surface_distance
     precision = float((surface_distance <= threshold).mean())
     f = 2 * precision * coverage / (precision + coverage) if precision + coverage > 0 else 0.0
     return {"coverage": coverage, "noise_ratio": 1.0 - precision, "fscore": f}
+
+
+def nearest_distances(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Distance of each of ``points`` to its nearest ``reference`` point (inf when ``reference`` is empty)."""
+    if len(points) == 0:
+        return np.zeros(0)
+    if len(reference) == 0:
+        return np.full(len(points), np.inf)
+    d, _ = cKDTree(reference).query(points, k=1, workers=-1)
+    return d
+
+
+def cloud_metrics(points: np.ndarray, reference: np.ndarray, threshold: float = THRESHOLD_M) -> dict[str, float]:
+    """``coverage_metrics`` against a reference *cloud* (``navcrafter evaluate-cloud``; Tanks and Temples style):
+    a point's distance to the true surfaces is its distance to the nearest reference point. ``precision`` (points
+    within ``threshold`` of the reference) = 1 - ``noise_ratio``, ``recall`` (reference points within ``threshold``
+    of a point) = ``coverage``, ``fscore`` their harmonic mean; with the medians of both nearest distances."""
+    points, reference = np.asarray(points, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    d_pred = nearest_distances(points, reference)
+    m = coverage_metrics(points, reference, d_pred, threshold)
+    d_ref = nearest_distances(reference, points)
+    return {"precision": float((d_pred <= threshold).mean()) if len(points) else 0.0, "recall": m["coverage"], **m,
+            "median_dist_to_reference": float(np.median(d_pred)) if len(points) else float("nan"),
+            "median_dist_from_reference": float(np.median(d_ref)) if len(reference) else float("nan")}
 
 
 def trajectory_collisions(truth, trajectories_world: np.ndarray, r_safe_m: float) -> dict[str, float]:
