@@ -1,5 +1,5 @@
-"""Screenshots of web pages with a real headless browser (Debian's ``chromium``; ``deploy/local/setup.sh test``
-installs it). General: any URL (the 3D viewer, a Prefect dashboard...). WebGL runs on the CPU (SwiftShader).
+"""Screenshots of web pages with a real headless browser, for the tests: the functions of
+``deploy/local/browser.py`` (a plain module beside the scripts that use it too), importable as ``browser``.
 
     from browser import find_chromium, screenshot
     if find_chromium() is None: pytest.skip(...)
@@ -8,47 +8,23 @@ installs it). General: any URL (the 3D viewer, a Prefect dashboard...). WebGL ru
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
-import tempfile
+import importlib.util
+import sys
 from pathlib import Path
 
-CANDIDATES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable", "chrome")
+_PATH = Path(__file__).resolve().parents[1] / "deploy" / "local" / "browser.py"
+_NAME = "navcrafter_deploy_browser"
 
+if _NAME not in sys.modules:
+    _spec = importlib.util.spec_from_file_location(_NAME, _PATH)
+    _module = importlib.util.module_from_spec(_spec)
+    sys.modules[_NAME] = _module
+    _spec.loader.exec_module(_module)
+_impl = sys.modules[_NAME]
 
-def find_chromium() -> str | None:
-    """Path of a Chromium/Chrome executable: ``$CHROMIUM`` if set, else the first on PATH; None if none."""
-    env = os.environ.get("CHROMIUM")
-    if env:
-        return env if shutil.which(env) else None
-    return next((p for p in map(shutil.which, CANDIDATES) if p), None)
+CANDIDATES = _impl.CANDIDATES
+find_chromium = _impl.find_chromium
+screenshot = _impl.screenshot
+screenshot_and_dom = _impl.screenshot_and_dom
 
-
-def screenshot(url: str, out_png: str | os.PathLike, width: int = 1280, height: int = 800, wait_ms: int = 8000,
-               *, extra_args: tuple[str, ...] = (), timeout_s: float = 90.0) -> Path:
-    """Load ``url`` in headless Chromium and save a ``width`` x ``height`` PNG to ``out_png``.
-
-    ``wait_ms`` is Chromium's virtual-time budget: the page's timers and network run that long (in virtual time,
-    usually much less wall time) before the shot. Raises RuntimeError (with Chromium's output) when no PNG came."""
-    exe = find_chromium()
-    if exe is None:
-        raise RuntimeError("no chromium found: apt-get install chromium (or set CHROMIUM=/path/to/chrome)")
-    out = Path(out_png).resolve()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.unlink(missing_ok=True)
-    with tempfile.TemporaryDirectory(prefix="chromium-") as profile:
-        args = [exe, "--headless", f"--user-data-dir={profile}", "--hide-scrollbars", "--mute-audio",
-                "--no-first-run", "--no-default-browser-check", "--disable-extensions",
-                # WebGL on the CPU: ANGLE on SwiftShader (no GPU, no display)
-                "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
-                f"--window-size={int(width)},{int(height)}", f"--virtual-time-budget={int(wait_ms)}",
-                f"--screenshot={out}", *extra_args]
-        if hasattr(os, "geteuid") and os.geteuid() == 0:
-            args.append("--no-sandbox")  # Chromium refuses to run as root with its sandbox
-        args.append(url)
-        proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout_s)
-    if not out.is_file() or out.stat().st_size == 0:
-        raise RuntimeError(f"chromium wrote no screenshot of {url} (exit {proc.returncode}):\n"
-                           f"{(proc.stdout + proc.stderr)[-3000:]}")
-    return out
+__all__ = ["CANDIDATES", "find_chromium", "screenshot", "screenshot_and_dom"]

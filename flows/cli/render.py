@@ -178,8 +178,11 @@ def render(
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="A preset (orbit, arc, dolly, pan, tilt, zoom, truck, pedestal, spiral, lookaround) "
                              "or a camera file (RealEstate10K .txt, transforms.json, nerfstudio camera_path.json, "
-                             "OpenCV camera-to-world matrices .npy/.json).")
+                             "camera-to-world matrices .npy/.json, see --convention).")
     ] = "orbit",
+    convention: Annotated[str, typer.Option(
+        help="Camera axes of a matrices file (.npy/.json): opencv (x right, y down, z forward) or opengl (x right, "
+             "y up, -z forward); the other formats state their own.")] = "opencv",
     frames: Annotated[int, typer.Option(min=1, help="Frames of a preset.")] = 60,
     fps: Annotated[int, typer.Option(min=1, help="Frames per second of the MP4.")] = 24,
     degrees: Annotated[Optional[float], typer.Option(
@@ -224,7 +227,7 @@ def render(
         world_up = _triple(up, "--up")
         if np.linalg.norm(world_up) < 1e-9:
             raise ValueError("--up must be a non-zero direction")
-        camfile = None if trajectory in tr.PRESETS else _camera_file(trajectory, tr)
+        camfile = None if trajectory in tr.PRESETS else _camera_file(trajectory, tr, convention)
     with usage_errors(ValueError, StoreError):
         src = ply_source(ply) if ply is not None else scene_source(store, scene)
     file_size = camfile.size if camfile is not None and camfile.K is not None else None
@@ -253,11 +256,11 @@ def render(
     _render(src, c2w, K, w, h, bg, out, fps, device, renderer, trajectory)
 
 
-def _camera_file(trajectory: str, tr):
+def _camera_file(trajectory: str, tr, convention: str = "opencv"):
     if not Path(trajectory).exists():
         raise ValueError(f"--trajectory {trajectory!r} is neither a preset ({', '.join(tr.PRESETS)}) nor an "
                          "existing camera file")
-    return tr.read_camera_file(trajectory)
+    return tr.read_camera_file(trajectory, convention)
 
 
 def _render(src: Source, c2w: np.ndarray, K: np.ndarray, width: int, height: int, bg, out: Path, fps: int,

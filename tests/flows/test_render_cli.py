@@ -207,6 +207,17 @@ def test_a_camera_file_renders_at_its_poses_and_size(tmp_path):
     np.testing.assert_allclose(rel[0, :3, :3], np.eye(3), atol=1e-9)  # the first camera is the framed start view
     assert rel[0, 2, 3] < 3 - 1  # outside the box, in front of it
     np.testing.assert_allclose(np.linalg.inv(rel[0]) @ rel[1], np.linalg.inv(c2w[0]) @ c2w[1], atol=1e-9)
+    mats = tmp_path / "c2w.npy"  # plain matrices: OpenCV axes unless --convention opengl
+    np.save(mats, gl)
+    ok(runner.invoke(app, ["render", str(ply), "--out", str(out), "--trajectory", str(mats), "--convention",
+                           "opengl"] + SIZE))
+    got = np.array([f["c2w"] for f in json.loads((out / "cameras.json").read_text())["frames"]])
+    np.testing.assert_allclose(got, c2w, atol=1e-9)
+    ok(runner.invoke(app, ["render", str(ply), "--out", str(out), "--trajectory", str(mats)] + SIZE))
+    got = np.array([f["c2w"] for f in json.loads((out / "cameras.json").read_text())["frames"]])
+    np.testing.assert_allclose(got, gl, atol=1e-9)  # read as OpenCV: the axes flipped, not converted
+    res = runner.invoke(app, ["render", str(ply), "--out", str(out), "--trajectory", str(mats), "--convention", "gl"])
+    assert res.exit_code == 2 and "convention 'gl' must be one of" in res.output, res.output
     doc["frames"][1]["transform_matrix"] = [[1, 0, 0], [0, 1, 0]]
     cams.write_text(json.dumps(doc))
     res = runner.invoke(app, ["render", str(ply), "--out", str(out), "--trajectory", str(cams)])
