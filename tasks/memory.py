@@ -57,3 +57,45 @@ class PeakRSS:
     @property
     def mb(self) -> float | None:
         return None if self.bytes is None else round(self.bytes / 2**20, 1)
+
+
+class StepPeaks:
+    """Context manager: a step's peak memory, stored with its timings (``peak_rss_mb``, ``peak_gpu_mb``).
+
+    ``peak_rss_mb``: :class:`PeakRSS` over the block (process-wide: steps running at the same time in one process
+    share it). ``peak_gpu_mb``: ``torch.cuda.max_memory_allocated`` over the block (the allocator's peak, reset at
+    the start; all devices summed) when torch is loaded and CUDA is available, else ``None`` (no GPU, or the step
+    never imported torch); onnxruntime's CUDA arena is not torch's and is not counted."""
+
+    def __init__(self, interval_s: float = 0.02) -> None:
+        self.rss = PeakRSS(interval_s)
+        self.gpu_bytes: int | None = None
+        self._cuda = None
+
+    @staticmethod
+    def _torch_cuda():
+        import sys
+
+        torch = sys.modules.get("torch")  # never import torch for a step that does not use it
+        try:
+            return torch.cuda if torch is not None and torch.cuda.is_available() else None
+        except Exception:  # a broken CUDA install: no figure, not a failed step
+            return None
+
+    def __enter__(self) -> StepPeaks:
+        self._cuda = self._torch_cuda()
+        if self._cuda is not None:
+            for d in range(self._cuda.device_count()):
+                self._cuda.reset_peak_memory_stats(d)
+        self.rss.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.rss.__exit__(*exc)
+        cuda = self._cuda or self._torch_cuda()  # torch may have been imported by the step itself
+        if cuda is not None:
+            self.gpu_bytes = sum(int(cuda.max_memory_allocated(d)) for d in range(cuda.device_count()))
+
+    def attrs(self) -> dict[str, float | None]:
+        gpu = None if self.gpu_bytes is None else round(self.gpu_bytes / 2**20, 1)
+        return {"peak_rss_mb": self.rss.mb, "peak_gpu_mb": gpu}

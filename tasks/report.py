@@ -31,6 +31,7 @@ class SceneResult:
     backend: str = ""
     seconds: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
+    peaks: dict[str, dict[str, float | None]] = field(default_factory=dict)  # step -> peak_rss_mb, peak_gpu_mb
     metrics: dict[str, float] = field(default_factory=dict)
     outputs: str | None = None
     notes: list[str] = field(default_factory=list)  # what a reader of the summary must know (e.g. a skipped term)
@@ -52,6 +53,16 @@ def step_timings(scene: SceneStore, config: RunConfig) -> dict[str, float]:
     return out
 
 
+def step_peaks(scene: SceneStore, config: RunConfig) -> dict[str, dict[str, float | None]]:
+    """Peak memory of every completed step of a scene (``peak_rss_mb``, ``peak_gpu_mb``: ``tasks/memory.StepPeaks``),
+    stored beside its seconds; steps committed before the figure existed have none."""
+    out = {}
+    for st in [*(scene.status(step.spec, step.k) for step in scene_steps(config)), scene.status(EVALUATE)]:
+        if st.complete and "peak_rss_mb" in st.attrs:
+            out[st.path] = {m: st.attrs.get(m) for m in ("peak_rss_mb", "peak_gpu_mb")}
+    return out
+
+
 def last_step(scene: SceneStore, config: RunConfig) -> str | None:
     done = None
     for step in scene_steps(config):
@@ -66,7 +77,7 @@ def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, statu
     """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
     timings = step_timings(scene, config)
     result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
-                         seconds=sum(timings.values()), timings=timings, **fields)
+                         seconds=sum(timings.values()), timings=timings, peaks=step_peaks(scene, config), **fields)
     fit = scene.status(FIT) if config.fit.enabled else None
     fitted = scene.status(REFINE) if fit is not None and config.refine.enabled else fit
     if fitted is not None and fitted.complete:

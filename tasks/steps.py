@@ -34,6 +34,7 @@ from navcrafter.schemas.layout import STEPS, StepSpec, scene_steps_in_order
 from navcrafter.schemas.store import SceneStore, StepWriter, Store, StoreFull, store_problem
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.common import StepError, StepRef, load_backend, load_cloud, logger, open_store
+from navcrafter.tasks.memory import StepPeaks
 
 
 @dataclass
@@ -150,8 +151,10 @@ def _execute_locked(store: Store, scene_id: str, spec: StepSpec, k: int | None, 
     try:
         prepared = prepare() if prepare is not None else None
         writer = scene.begin(spec, k, key, config.backend)
-        attrs = body(StepContext(scene, k, config, seed_from_key(key), writer, run_id, prepared)) or {}
+        with StepPeaks() as peaks:
+            attrs = body(StepContext(scene, k, config, seed_from_key(key), writer, run_id, prepared)) or {}
         seconds = time.perf_counter() - t0
+        attrs = {**peaks.attrs(), **attrs}  # the step's own figure (the fit's: its training alone) wins
         writer.commit(seconds, **attrs)
     except Exception as exc:
         problem = None if isinstance(exc, StepError) else store_problem(store.uri, exc)

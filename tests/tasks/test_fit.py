@@ -220,6 +220,10 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
 
     result = scene_result(scene, ["tabletop-0.png"], cfg, "done")
     assert result.metrics["gs_psnr"] == a["psnr"] and result.metrics["gs_gaussians"] == G
+    # every step stores its peak memory beside its seconds (no GPU here: peak_gpu_mb None)
+    assert set(result.peaks) == set(result.timings) and "gaussians" in result.peaks
+    assert all(p["peak_rss_mb"] > 50 and p["peak_gpu_mb"] is None for p in result.peaks.values())
+    assert result.peaks["gaussians"]["peak_rss_mb"] == a["peak_rss_mb"]  # the fit's own figure wins
     summary = summary_markdown("r", cfg, [result])
     assert "LPIPS loss term skipped" in summary and f"{a['psnr']:.2f} dB" in summary
     # exports: the PLY re-loads bit for bit and renders the same image; a labelled fly-through
