@@ -107,6 +107,12 @@ def onnx_problems(config: RunConfig) -> list[str]:
                     f"the synthesizer in {role_dir(root, role)} was exported for {have[0]} frames at "
                     f"{have[2]}x{have[1]}, the run asks for {want[0]} at {want[2]}x{want[1]}: set synthesis."
                     f"num_frames/height/width to match or export it again with those sizes")
+            model = cfg.get("model", "navcrafter")
+            if model != config.synthesis.model:
+                problems.append(
+                    f"the synthesizer in {role_dir(root, role)} is {model!r}, the run asks for synthesis.model="
+                    f"{config.synthesis.model!r}: set synthesis.model={model!r} or export a {config.synthesis.model!r} "
+                    f"synthesizer there (navcrafter models export-synthesizer / export-fun-camera)")
     return problems
 
 

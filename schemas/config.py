@@ -56,8 +56,14 @@ class SynthesisConfig(_Section):
         "models.camera.cameras.plucker_rays); None: the exported weights' recorded convention. When set, a model "
         "recorded with another convention is refused (re-export the matching weights).")
 
+    model: Literal["navcrafter", "fun-camera"] = Field(
+        "navcrafter", description="Synthesizer model (onnx backend): 'navcrafter' (NavCrafter's camera control on "
+        "Wan2.1 I2V, models/synthesis/camcontrol.py) or 'fun-camera' (VideoX-Fun's Wan2.1-Fun-V1.1-Control-Camera, "
+        "models/synthesis/funcamera.py). The exported synthesizer's manifest must hold that model.")
+
     # added after stores existed: keys the synthesize step only when set (schemas.keys)
-    keyed_when_set: ClassVar[dict[str, Any]] = {"flow_shift": None, "plucker_convention": None}
+    keyed_when_set: ClassVar[dict[str, Any]] = {"flow_shift": None, "plucker_convention": None,
+                                                "model": "navcrafter"}
 
 
 class PlanConfig(_Section):

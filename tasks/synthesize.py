@@ -46,6 +46,7 @@ def synthesize(ctx: StepContext) -> dict:
                                cloud_points=cloud.points, cloud_colors=cloud.colors, seed=ctx.seed, **reference)
     attrs = {}
     if ctx.backend.is_simulation:
+        attrs["synthesizer_model"] = "simulation"
         clip = ctx.backend.synthesizer.simulate(request, _simulated_start(scene, k))
         frames = clip.frames
         ctx.write_all(true_c2w=clip.true_c2w, true_depth=clip.true_depth.astype(np.float32),
@@ -53,6 +54,8 @@ def synthesize(ctx: StepContext) -> dict:
         attrs["simulation_true_fraction"] = float(np.mean(clip.true_quality[1:])) if len(frames) > 1 else 1.0
     else:
         frames = ctx.backend.synthesizer.synthesize(request)
+        # which synthesizer made the clip: the model of the exported directory (checked against synthesis.model)
+        attrs["synthesizer_model"] = str(getattr(ctx.backend.synthesizer, "model_name", ctx.config.synthesis.model))
     expected = (len(plan["trajectory"]), H, W, 3)
     if frames.shape != expected or frames.dtype != np.uint8:
         raise ValueError(f"synthesizer returned {frames.dtype} {frames.shape}, expected uint8 {expected}")

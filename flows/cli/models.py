@@ -1,4 +1,4 @@
-"""``navcrafter models ...``: export the learned models to ONNX model directories and inspect them."""
+"""``navcrafter models ...``: pull the official checkpoints, export them to ONNX model directories, inspect them."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import typer
 
 from navcrafter.flows.cli.options import run_config, usage_errors
 
-models_app = typer.Typer(help="Export the learned models (Wan2.1 camera control, VGGT, MoGe-2, Difix) to ONNX and "
-                              "inspect model directories.", no_args_is_help=True)
+models_app = typer.Typer(help="Download the official checkpoints (pull), export the learned models (Wan2.1 camera "
+                              "control, VGGT, MoGe-2, Difix) to ONNX and inspect model directories.",
+                         no_args_is_help=True)
 
 _RANDOM = typer.Option(help="Random weights instead of a checkpoint: 'tiny' (test sizes) or 'full' (published "
                             "sizes, for timing). Outputs of runs using them are labelled RANDOM WEIGHTS.")
@@ -106,6 +107,31 @@ def export_synthesizer_cmd(
                                  control_dir=control, random=random, prompt=prompt, seed=seed))
 
 
+@models_app.command("export-fun-camera")
+def export_fun_camera_cmd(
+    out: Annotated[Path, typer.Argument(help="Directory to write (MODEL_DIR/synthesizer; run with "
+                                             "--set synthesis.model=fun-camera).")],
+    checkpoint: Annotated[Optional[Path], typer.Option(help="The official Wan2.1-Fun-V1.1-*-Control-Camera folder "
+                                                             "(config.json + diffusion_pytorch_model*.safetensors).")
+                          ] = None,
+    base: Annotated[Optional[Path], typer.Option(help="Diffusers-format Wan2.1 I2V directory for the VAE, CLIP image "
+                                                       "encoder and text encoder (with --checkpoint).")] = None,
+    random: Annotated[Optional[str], typer.Option(help="'tiny': tiny random weights (tests); outputs of runs using "
+                                                       "them are labelled RANDOM WEIGHTS.")] = None,
+    frames: Annotated[int, typer.Option(help="Frames per clip (synthesis.num_frames; 4k+1).")] = 81,
+    height: Annotated[int, typer.Option(help="synthesis.height (multiple of 16).")] = 256,
+    width: Annotated[int, typer.Option(help="synthesis.width (multiple of 16).")] = 256,
+    prompt: Annotated[str, typer.Option(help="Text prompt whose embedding is precomputed.")] = "",
+    seed: int = 0,
+) -> None:
+    """The public camera-controlled Wan2.1-Fun-V1.1 Control-Camera (synthesis.model=fun-camera) as ONNX."""
+    from navcrafter.models.runtime.exporters import export_fun_camera
+
+    with usage_errors(*_EXPORT_ERRORS):
+        _done(export_fun_camera(out, checkpoint_dir=checkpoint, base_dir=base, random=random, num_frames=frames,
+                                height=height, width=width, prompt=prompt, seed=seed))
+
+
 @models_app.command("export-all")
 def export_all_cmd(
     model_dir: Annotated[Path, typer.Argument(help="MODEL_DIR for `explore --backend onnx --models MODEL_DIR`.")],
@@ -143,3 +169,39 @@ def show_cmd(
             m = load_manifest(d, kind, verify=verify)
         typer.echo(f"{d}: {kind} {m['architecture']}, weights {m['weights']['source']}, graphs "
                    f"{', '.join(m['graphs'])}, {len(m['files'])} files" + (" (checksums ok)" if verify else ""))
+
+
+@models_app.command("pull")
+def pull_cmd(
+    role: Annotated[Optional[list[str]], typer.Option(
+        "--role", help="Role to pull (repeatable): synthesizer (Wan2.1 I2V 14B base), fun-camera (Wan2.1-Fun 1.3B "
+                       "Control-Camera), geometry (VGGT-1B), monodepth (MoGe-2 ViT-L), refiner (Difix), eval "
+                       "(LPIPS/FID/FVD networks). Default: geometry, monodepth, fun-camera.")] = None,
+    cache: Annotated[Optional[Path], typer.Option(help="Hugging Face hub cache to download into (default: "
+                                                       "huggingface_hub's, $HF_HUB_CACHE).")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="MODEL_DIR to export into (for `explore --backend onnx "
+                                                     "--models MODEL_DIR`).")] = None,
+    offline: Annotated[bool, typer.Option(help="No network: use only the cache, verified against the record an "
+                                               "earlier pull wrote (HF_HUB_OFFLINE=1 does the same).")] = False,
+    export: Annotated[bool, typer.Option(help="Export into --out after verifying (--no-export: download and "
+                                              "verify only).")] = True,
+    revision: Annotated[Optional[str], typer.Option(help="Branch, tag or commit of the repositories (default "
+                                                         "main).")] = None,
+    preset: Annotated[str, typer.Option(help="Run preset whose synthesis sizes the synthesizer is exported for: "
+                                             "'paper' or 'tiny'.")] = "paper",
+) -> None:
+    """Download the official checkpoints with huggingface_hub, verify their sizes and sha256, export them."""
+    from navcrafter.models.runtime.hub import HubError, pull
+
+    s = run_config(preset).synthesis
+    with usage_errors(HubError):
+        results = pull(role, cache, out, local_files_only=offline, export=export, revision=revision,
+                       num_frames=s.num_frames, height=s.height, width=s.width, log=typer.echo)
+    for r in results:
+        for note in r.notes:
+            typer.echo(f"{r.role}: {note}")
+        if r.exported is not None:
+            if (r.exported / "manifest.json").is_file():
+                _done(r.exported)
+            else:
+                typer.echo(f"{r.role}: copied {r.files} files into {r.exported} (pass it as --eval-weights)")

@@ -72,6 +72,32 @@ def export_synthesizer(out: Path, *, num_frames: int, height: int, width: int, b
                    num_frames=num_frames, height=height, width=width, prompt=prompt, seed=seed)
 
 
+def export_fun_camera(out_dir: Path, *, checkpoint_dir: Path | None = None, random: RandomPreset | None = None,
+                      num_frames: int, height: int, width: int, seed: int = 0, base_dir: Path | None = None,
+                      prompt: str = "") -> Path:
+    """The fun-camera synthesizer (Wan2.1-Fun-V1.1-Control-Camera, ``models/synthesis/funcamera.py``) into
+    ``out_dir``; runs select it with ``synthesis.model = "fun-camera"``.
+
+    ``checkpoint_dir``: the official model folder (``config.json`` + ``diffusion_pytorch_model*.safetensors``, read
+    with strict key/shape checks), with ``base_dir``: a diffusers-format Wan2.1 I2V directory for the VAE, CLIP image
+    encoder and UMT5 (the Fun folder's ``.pth`` encoders are not read). ``random="tiny"``: tiny random weights
+    (tests); ``"full"`` is not built. ``num_frames`` / ``height`` / ``width`` as for ``export_synthesizer``.
+    """
+    from navcrafter.models.synthesis.onnx_export import export_fun_camera_synthesizer
+
+    if (random is None) == (checkpoint_dir is None):
+        raise ValueError("export_fun_camera: give either checkpoint_dir (the official Wan2.1-Fun-V1.1-*-Control-Camera "
+                         "folder) or random='tiny' (random weights, for tests)")
+    if random == "full":
+        raise NotImplementedError("export_fun_camera(random='full') is not provided: a random 1.3B-width export "
+                                  "only times the DiT; use funcamera.build_fun_camera(FunCameraConfig.wan_1_3b())")
+    if random is not None and base_dir is not None:
+        raise ValueError("export_fun_camera: base_dir goes with checkpoint_dir, not random")
+    return export_fun_camera_synthesizer(Path(out_dir), checkpoint_dir=checkpoint_dir, base_dir=base_dir,
+                                         tiny=random == "tiny", num_frames=num_frames, height=height, width=width,
+                                         prompt=prompt, seed=seed)
+
+
 def export_all(model_dir: Path, *, num_frames: int, height: int, width: int, random: RandomPreset = "tiny",
                seed: int = 0, prompt: str = "") -> dict[str, Path]:
     """All three roles with random weights into ``model_dir/{synthesizer,geometry,monodepth}``."""

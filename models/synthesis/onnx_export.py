@@ -28,6 +28,11 @@ numpy by the sampler, parameters in ``config.image_encoder``), then ``hidden_sta
 **Text** is precomputed here (UMT5 is ~11 GB and the prompt is fixed per export): as Wan's
 ``_get_t5_prompt_embeds``: tokenised to 512 tokens, encoded, positions past the prompt's length zeroed.
 
+**fun-camera** (``export_fun_camera_synthesizer``; ``funcamera.py``): the same directory layout with the DiT of
+Wan2.1-Fun-V1.1-Control-Camera (architecture ``wan2.1-fun-v1.1-control-camera``; ``config.model = "fun-camera"``,
+``config.condition_layout = "fun-camera"``, ``config.plucker_convention = "videox-fun"``; DiT inputs
+``funcamera.FUN_DIT_INPUTS``); VAE, CLIP and text from a diffusers-format Wan2.1 I2V directory.
+
 With ``tiny=True`` every module is a tiny random one (seeded), and the camera-control weights - which are
 zero-initialised, so an untrained model would ignore the camera - get small random values so that every
 control path is live in the graph and tests exercise it. The manifest then says ``{"source": "random"}``.
@@ -143,6 +148,8 @@ class SynthesisComponents:
         """The manifest ``config``: everything the sampler needs besides the graphs. ``plucker_convention`` is the
         camera control's (``self.dit.config``, the saved config of the loaded weights), which ``OnnxSynthesizer``
         requires and checks against ``synthesis.plucker_convention``."""
+        if getattr(self.dit, "model_name", "navcrafter") == "fun-camera":
+            return self._fun_camera_config(num_frames, height, width, dynamic)
         base = self.dit.base.config
         control = self.dit.config
         vae = self.vae.config
@@ -164,6 +171,42 @@ class SynthesisComponents:
             # the loaded weights' own (load_camera_control replaces the model's config with the saved one)
             "plucker_convention": control.plucker_convention,
             "cond_layout": "render latents (16) + packed visibility mask (4), camcontrol.make_render_condition",
+            "scheduler": dict(SCHEDULER_DEFAULTS),
+            "text": {"file": TEXT_EMBEDDINGS, "prompt": self.prompt, "negative_prompt": self.negative_prompt,
+                     "shape": list(self.text_embeddings.shape), "rows": ["prompt", "negative_prompt"]},
+            "cfg_uncond_camera": "on",
+        }
+
+    def _fun_camera_config(self, num_frames: int, height: int, width: int, dynamic: bool) -> dict[str, Any]:
+        """The manifest ``config`` of a fun-camera synthesizer (``funcamera.py``): no render condition, no LoRA, no
+        extra reference frames; ``condition_layout`` tells the sampler to build ``[noisy | start-image latents]``."""
+        from navcrafter.models.synthesis import funcamera
+
+        base = self.dit.base.config
+        fun = self.dit.config
+        vae = self.vae.config
+        return {
+            "model": funcamera.MODEL_NAME, "condition_layout": funcamera.CONDITION_LAYOUT,
+            "num_frames": int(num_frames), "height": int(height), "width": int(width),
+            "vae_num_frames": int(num_frames), "dynamic_shapes": bool(dynamic),
+            "latent_channels": int(vae.z_dim),
+            "vae_scale_factor_temporal": int(vae.scale_factor_temporal),
+            "vae_scale_factor_spatial": int(vae.scale_factor_spatial),
+            "patch_size": [int(p) for p in base.patch_size],
+            "in_channels": int(base.in_channels), "text_dim": int(base.text_dim),
+            "image_dim": int(base.image_dim), "text_tokens": TEXT_TOKENS,
+            "transformer": _jsonable(dict(base)),
+            "official_config": fun.official_config(),
+            "vae": _jsonable(dict(vae)),
+            "image_encoder": {**self.image_preprocess, "hidden_size": int(self.image_encoder.config.hidden_size),
+                              "features": "hidden_states[-2]"},
+            "control": {"cond_channels": 0, "adapter": "VideoX-Fun SimpleAdapter (control_adapter.*)",
+                        "in_dim_control_adapter": fun.in_dim_control_adapter,
+                        "downscale_factor_control_adapter": fun.downscale_factor_control_adapter},
+            "plucker_convention": funcamera.PLUCKER_CONVENTION,
+            "plucker": "funcamera.fun_camera_plucker: (o x d, d), poses relative to the first camera (identity), "
+                       "no translation normalisation, pixel centres +0.5; packed 4 frames per latent frame",
+            "cond_layout": "[noisy latents (16) | start-image latents (16): frame 0 = the image, others zero]",
             "scheduler": dict(SCHEDULER_DEFAULTS),
             "text": {"file": TEXT_EMBEDDINGS, "prompt": self.prompt, "negative_prompt": self.negative_prompt,
                      "shape": list(self.text_embeddings.shape), "rows": ["prompt", "negative_prompt"]},
@@ -201,9 +244,6 @@ def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFA
 
     ``control_dir``: camera-control weights trained on this tiny base (``navcrafter train-camera`` with
     ``random_base: tiny`` and the same ``seed``) replace the random control."""
-    from diffusers import AutoencoderKLWan
-    from transformers import CLIPVisionConfig, CLIPVisionModel
-
     from navcrafter.models.synthesis.camcontrol import (
         TINY_I2V_CONFIG,
         build_camera_wan,
@@ -218,17 +258,7 @@ def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFA
     else:
         dit = build_camera_wan(TINY_I2V_CONFIG, read_camera_control_config(control_dir), seed=seed)
         load_camera_control(dit, control_dir)
-    image_dim = dit.base.config.image_dim
-    with torch.random.fork_rng():
-        torch.manual_seed(seed + 2)
-        vae = AutoencoderKLWan(**TINY_VAE_CONFIG).eval()
-        torch.manual_seed(seed + 3)
-        clip_cfg = CLIPVisionConfig(hidden_size=image_dim, intermediate_size=16, num_hidden_layers=2,
-                                    num_attention_heads=1, image_size=TINY_CLIP_IMAGE_SIZE,
-                                    patch_size=TINY_CLIP_PATCH, projection_dim=8)
-        clip = CLIPVisionModel(clip_cfg).eval()
-    rng = np.random.RandomState(seed + 4)
-    text = rng.standard_normal((2, TEXT_TOKENS, dit.base.config.text_dim)).astype(np.float32)
+    vae, clip, text = _tiny_encoders(seed, dit.base.config.image_dim, dit.base.config.text_dim)
     out = SynthesisComponents(
         dit=dit.eval(), vae=vae, image_encoder=clip, text_embeddings=text,
         image_preprocess=_preprocess_params(TINY_CLIP_IMAGE_SIZE, TINY_CLIP_IMAGE_SIZE, CLIP_MEAN, CLIP_STD),
@@ -241,6 +271,38 @@ def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFA
         out.weights["control"] = {"path": str(control_dir.resolve()), "files": {
             name: sha256_file(control_dir / name) for name in (CONTROL_WEIGHTS, CONTROL_CONFIG)}}
     return out
+
+
+def _tiny_encoders(seed: int, image_dim: int, text_dim: int):
+    """Tiny random Wan VAE, CLIP vision model (seeds ``seed + 2``, ``seed + 3``) and text embeddings (``seed + 4``)."""
+    from diffusers import AutoencoderKLWan
+    from transformers import CLIPVisionConfig, CLIPVisionModel
+
+    with torch.random.fork_rng():
+        torch.manual_seed(seed + 2)
+        vae = AutoencoderKLWan(**TINY_VAE_CONFIG).eval()
+        torch.manual_seed(seed + 3)
+        clip_cfg = CLIPVisionConfig(hidden_size=image_dim, intermediate_size=16, num_hidden_layers=2,
+                                    num_attention_heads=1, image_size=TINY_CLIP_IMAGE_SIZE,
+                                    patch_size=TINY_CLIP_PATCH, projection_dim=8)
+        clip = CLIPVisionModel(clip_cfg).eval()
+    rng = np.random.RandomState(seed + 4)
+    text = rng.standard_normal((2, TEXT_TOKENS, text_dim)).astype(np.float32)
+    return vae, clip, text
+
+
+def tiny_fun_camera_components(seed: int = 0, prompt: str = "",
+                               negative_prompt: str = DEFAULT_NEGATIVE_PROMPT) -> SynthesisComponents:
+    """Tiny random fun-camera synthesizer (``funcamera.tiny_fun_camera``) with the tiny VAE, CLIP and text."""
+    from navcrafter.models.synthesis.funcamera import tiny_fun_camera
+
+    dit = tiny_fun_camera(seed)
+    vae, clip, text = _tiny_encoders(seed, dit.config.image_dim, dit.config.text_dim)
+    return SynthesisComponents(
+        dit=dit, vae=vae, image_encoder=clip, text_embeddings=text,
+        image_preprocess=_preprocess_params(TINY_CLIP_IMAGE_SIZE, TINY_CLIP_IMAGE_SIZE, CLIP_MEAN, CLIP_STD),
+        weights={"source": "random", "seed": int(seed), "model": "fun-camera"}, prompt=prompt,
+        negative_prompt=negative_prompt)
 
 
 def _preprocess_params(shortest_edge: int, crop: int, mean, std) -> dict[str, Any]:
@@ -272,25 +334,12 @@ def encode_prompts(text_encoder, tokenizer, prompts: list[str], max_length: int 
     return out.numpy().astype(np.float32)
 
 
-def load_components(base_dir: str | Path, control_dir: str | Path | None = None, prompt: str = "",
-                    negative_prompt: str = DEFAULT_NEGATIVE_PROMPT) -> SynthesisComponents:
-    """Real components from a diffusers-format Wan2.1 I2V directory (+ camera-control weights).
-
-    ``base_dir`` holds ``transformer/``, ``vae/``, ``image_encoder/``, ``text_encoder/``, ``tokenizer/`` and
-    optionally ``image_processor/`` (CLIPImageProcessor config). Only safetensors weights are read.
-    """
+def _load_encoders(base_dir: Path, prompt: str, negative_prompt: str):
+    """VAE, CLIP image encoder, text embeddings of (prompt, negative prompt), CLIP preprocessing and the sha256 of
+    every file read, from a diffusers-format Wan2.1 I2V directory (safetensors only)."""
     from diffusers import AutoencoderKLWan
     from transformers import AutoTokenizer, CLIPVisionModel, UMT5EncoderModel
 
-    from navcrafter.models.runtime.onnxio import sha256_file
-    from navcrafter.models.synthesis.camcontrol import CONTROL_CONFIG, CONTROL_WEIGHTS, CameraControlledWan
-
-    base_dir = Path(base_dir)
-    for sub in ("transformer", "vae", "image_encoder", "text_encoder", "tokenizer"):
-        if not (base_dir / sub).is_dir():
-            raise FileNotFoundError(f"{base_dir}: no {sub}/ folder; expected a diffusers-format Wan2.1 I2V "
-                                    f"directory (transformer, vae, image_encoder, text_encoder, tokenizer)")
-    dit = CameraControlledWan.from_pretrained(base_dir, control_dir, torch_dtype=torch.float32).eval()
     vae = AutoencoderKLWan.from_pretrained(base_dir, subfolder="vae", torch_dtype=torch.float32,
                                            use_safetensors=True).eval()
     clip = CLIPVisionModel.from_pretrained(base_dir, subfolder="image_encoder", dtype=torch.float32,
@@ -311,6 +360,30 @@ def load_components(base_dir: str | Path, control_dir: str | Path | None = None,
         shortest = s.get("shortest_edge", s.get("height", size)) if isinstance(s, dict) else int(s)
         crop = c.get("height", size) if isinstance(c, dict) else int(c)
         mean, std = p.get("image_mean", CLIP_MEAN), p.get("image_std", CLIP_STD)
+    return vae, clip, text, _preprocess_params(shortest, crop, mean, std)
+
+
+def _check_base_dir(base_dir: Path, subs: tuple[str, ...]) -> None:
+    for sub in subs:
+        if not (base_dir / sub).is_dir():
+            raise FileNotFoundError(f"{base_dir}: no {sub}/ folder; expected a diffusers-format Wan2.1 I2V "
+                                    f"directory ({', '.join(subs)})")
+
+
+def load_components(base_dir: str | Path, control_dir: str | Path | None = None, prompt: str = "",
+                    negative_prompt: str = DEFAULT_NEGATIVE_PROMPT) -> SynthesisComponents:
+    """Real components from a diffusers-format Wan2.1 I2V directory (+ camera-control weights).
+
+    ``base_dir`` holds ``transformer/``, ``vae/``, ``image_encoder/``, ``text_encoder/``, ``tokenizer/`` and
+    optionally ``image_processor/`` (CLIPImageProcessor config). Only safetensors weights are read.
+    """
+    from navcrafter.models.runtime.onnxio import sha256_file
+    from navcrafter.models.synthesis.camcontrol import CONTROL_CONFIG, CONTROL_WEIGHTS, CameraControlledWan
+
+    base_dir = Path(base_dir)
+    _check_base_dir(base_dir, ("transformer", "vae", "image_encoder", "text_encoder", "tokenizer"))
+    dit = CameraControlledWan.from_pretrained(base_dir, control_dir, torch_dtype=torch.float32).eval()
+    vae, clip, text, preprocess = _load_encoders(base_dir, prompt, negative_prompt)
 
     sources = {}
     for sub in ("transformer", "vae", "image_encoder", "text_encoder", "tokenizer", "image_processor"):
@@ -325,8 +398,38 @@ def load_components(base_dir: str | Path, control_dir: str | Path | None = None,
     else:
         weights["control"] = {"source": "zero-init (no control_dir given: the camera is ignored)"}
     return SynthesisComponents(dit=dit, vae=vae, image_encoder=clip, text_embeddings=text,
-                               image_preprocess=_preprocess_params(shortest, crop, mean, std), weights=weights,
+                               image_preprocess=preprocess, weights=weights,
                                prompt=prompt, negative_prompt=negative_prompt, sources=sources)
+
+
+def load_fun_camera_components(checkpoint_dir: str | Path, base_dir: str | Path, prompt: str = "",
+                               negative_prompt: str = DEFAULT_NEGATIVE_PROMPT) -> SynthesisComponents:
+    """A fun-camera synthesizer: the DiT from the official Wan2.1-Fun-V1.1-*-Control-Camera folder
+    (``funcamera.load_fun_camera``: ``config.json`` + ``diffusion_pytorch_model*.safetensors``), the VAE, CLIP image
+    encoder and UMT5 from a diffusers-format Wan2.1 I2V directory ``base_dir`` (the Fun folder ships the same
+    Wan2.1 VAE, open-clip ViT-H/14 and umt5-xxl as ``.pth`` pickles in Wan's original format, which are not read)."""
+    from navcrafter.models.runtime.onnxio import sha256_file
+    from navcrafter.models.synthesis.funcamera import _transformer_dir, load_fun_camera
+
+    checkpoint_dir, base_dir = Path(checkpoint_dir), Path(base_dir)
+    _check_base_dir(base_dir, ("vae", "image_encoder", "text_encoder", "tokenizer"))
+    dit = load_fun_camera(checkpoint_dir)
+    vae, clip, text, preprocess = _load_encoders(base_dir, prompt, negative_prompt)
+    tdir = _transformer_dir(checkpoint_dir)
+    sources = {f"transformer/{f.name}": sha256_file(f) for f in sorted(tdir.iterdir())
+               if f.is_file() and f.suffix in (".safetensors", ".json")}
+    encoders = {}
+    for sub in ("vae", "image_encoder", "text_encoder", "tokenizer", "image_processor"):
+        if (base_dir / sub).is_dir():
+            encoders.update(_hash_dir(base_dir / sub, base_dir))
+    weights: dict[str, Any] = {
+        "source": "checkpoint", "model": "fun-camera", "path": str(tdir.resolve()), "files": sources,
+        "encoders": {"path": str(base_dir.resolve()), "files": encoders},
+        # the camera control is the checkpoint's own trained adapter (not flagged CAMERA CONTROL UNTRAINED)
+        "control": {"source": "checkpoint (control_adapter.*, trained by VideoX-Fun)", "path": str(tdir.resolve())}}
+    return SynthesisComponents(dit=dit, vae=vae, image_encoder=clip, text_embeddings=text,
+                               image_preprocess=preprocess, weights=weights, prompt=prompt,
+                               negative_prompt=negative_prompt, sources={**sources, **encoders})
 
 
 # --------------------------------------------------------------------------------------------------
@@ -378,6 +481,14 @@ def _export_one(name: str, module: nn.Module, out: Path, sh: _Shapes):
     dyn = sh.dynamic
     batch = Dim("batch", min=1, max=64)
     hh, ww = Dim("latent_height", min=1, max=1024), Dim("latent_width", min=1, max=1024)
+    if name == "dit" and getattr(module, "model_name", "navcrafter") == "fun-camera":
+        from navcrafter.models.synthesis.funcamera import export_fun_camera_dit
+
+        p_h, p_w = module.config.patch_size[1:]
+        example = ((2, 2, min(sh.latent_height, 2 * p_h), min(sh.latent_width, 2 * p_w)) if dyn
+                   else (2, sh.latent_frames, sh.latent_height, sh.latent_width))
+        return export_fun_camera_dit(module, out / "dit.onnx", example_shape=example, image_tokens=sh.image_tokens,
+                                     dynamic=dyn)
     if name == "dit":
         if dyn:  # camcontrol's exporter; example = one CFG pair at a small size
             p_h, p_w = module.base.config.patch_size[1:]
@@ -439,7 +550,10 @@ def export_components(components: SynthesisComponents, out_dir: str | Path, *, n
     graphs = {name: _export_one(name, module, out, sh) for name, module in tasks}
     np.save(out / TEXT_EMBEDDINGS, np.ascontiguousarray(components.text_embeddings, dtype=np.float32))
     config = components.config(num_frames, height, width, dynamic)
-    write_manifest(out, kind=KIND, architecture=ARCHITECTURE, config=config, weights=components.weights,
+    architecture = ARCHITECTURE
+    if getattr(components.dit, "model_name", "navcrafter") == "fun-camera":
+        from navcrafter.models.synthesis.funcamera import ARCHITECTURE as architecture
+    write_manifest(out, kind=KIND, architecture=architecture, config=config, weights=components.weights,
                    graphs=graphs, extra_files=[TEXT_EMBEDDINGS])
     return out
 
@@ -467,5 +581,26 @@ def export_synthesizer(out_dir: str | Path, *, base_dir: str | Path | None = Non
         components = tiny_components(seed, prompt, negative_prompt, control_dir=control_dir)
     else:
         components = load_components(base_dir, control_dir, prompt, negative_prompt)
+    return export_components(components, out_dir, num_frames=num_frames, height=height, width=width,
+                             dynamic=(not tiny) if dynamic is None else bool(dynamic))
+
+
+def export_fun_camera_synthesizer(out_dir: str | Path, *, checkpoint_dir: str | Path | None = None,
+                                  base_dir: str | Path | None = None, tiny: bool = False, num_frames: int,
+                                  height: int, width: int, prompt: str = "",
+                                  negative_prompt: str = DEFAULT_NEGATIVE_PROMPT, seed: int = 0,
+                                  dynamic: bool | None = None) -> Path:
+    """The fun-camera synthesizer (``funcamera.py``) exported to ``out_dir`` like ``export_synthesizer``: tiny random
+    (``tiny=True``) or the official DiT in ``checkpoint_dir`` with the encoders of the diffusers Wan2.1 I2V
+    ``base_dir``. Manifest architecture ``wan2.1-fun-v1.1-control-camera``, ``config.model = "fun-camera"``."""
+    if tiny == (checkpoint_dir is not None):
+        raise ValueError("export_fun_camera_synthesizer: pass exactly one of tiny=True or checkpoint_dir=...")
+    if tiny:
+        components = tiny_fun_camera_components(seed, prompt, negative_prompt)
+    else:
+        if base_dir is None:
+            raise ValueError("export_fun_camera_synthesizer: checkpoint_dir needs base_dir, a diffusers-format "
+                             "Wan2.1 I2V directory for the VAE, CLIP image encoder and UMT5 text encoder")
+        components = load_fun_camera_components(checkpoint_dir, base_dir, prompt, negative_prompt)
     return export_components(components, out_dir, num_frames=num_frames, height=height, width=width,
                              dynamic=(not tiny) if dynamic is None else bool(dynamic))

@@ -19,6 +19,12 @@
 * the request image, and the text embeddings stored in the model directory at export time;
 
 and runs ``pipeline.sample_video`` with an ``OrtRunner``, seeded with ``request.seed``.
+
+**fun-camera** (``synthesis.model = "fun-camera"``; ``funcamera.py``): the manifest must record ``config.model``
+``"fun-camera"`` (architecture ``wan2.1-fun-v1.1-control-camera``) and the run's ``synthesis.model`` must name the
+model the directory holds, else ``SynthesizerModelError``. Its rays are ``funcamera.fun_camera_plucker`` (VideoX-Fun's
+convention, recorded as ``"videox-fun"``; ``synthesis.plucker_convention`` must stay unset), and it takes neither
+point-cloud renders nor the extra reference frame (``request.cloud_*`` and ``request.reference_*`` are unused).
 """
 
 from __future__ import annotations
@@ -41,6 +47,10 @@ POINT_SIZE_FACTOR = 1.5
 
 class PluckerConventionError(SynthesisShapeError):
     """The model directory's Plücker convention is missing, unknown or not the run's (the message names the fix)."""
+
+
+class SynthesizerModelError(SynthesisShapeError):
+    """The model directory holds another synthesizer model than the run's ``synthesis.model``."""
 
 _SPACING_SAMPLE = 20_000
 
@@ -89,14 +99,47 @@ class OnnxSynthesizer:
                 f"width={have[2]}, but the run config asks for num_frames={want[0]}, height={want[1]}, "
                 f"width={want[2]}: set synthesis.num_frames/height/width to the exported values or re-export "
                 f"with export_synthesizer(..., num_frames={want[0]}, height={want[1]}, width={want[2]})")
+        self.model_name = self._model(mcfg, getattr(synthesis_config, "model", "navcrafter"))
         self.convention = self._convention(mcfg, getattr(synthesis_config, "plucker_convention", None))
         self.text_emb, self.neg_text_emb = self.runner.text_embeddings()
+
+    def _model(self, mcfg: dict, wanted: str) -> str:
+        """The model the directory holds (manifest ``config.model``; absent: NavCrafter's), which must be the run's
+        ``synthesis.model``."""
+        from navcrafter.models.synthesis import funcamera
+
+        have = mcfg.get("model", "navcrafter")
+        architecture = self.runner.manifest.get("architecture")
+        if (have == funcamera.MODEL_NAME) != (architecture == funcamera.ARCHITECTURE) or have not in (
+                "navcrafter", funcamera.MODEL_NAME):
+            raise SynthesizerModelError(f"the synthesizer in {self.model_dir} records model {have!r} with "
+                                        f"architecture {architecture!r}: re-export it with this navcrafter version")
+        if have != wanted:
+            export = ("export_fun_camera (models/runtime/exporters.py)" if wanted == funcamera.MODEL_NAME
+                      else "navcrafter models export-synthesizer")
+            raise SynthesizerModelError(
+                f"the run config asks for synthesis.model={wanted!r}, but the synthesizer in {self.model_dir} is "
+                f"{have!r} (architecture {architecture!r}): set synthesis.model={have!r} or export a {wanted!r} "
+                f"synthesizer there ({export})")
+        return have
 
     def _convention(self, mcfg: dict, wanted: str | None) -> str:
         """The weights' recorded Plücker convention (manifest), checked against the run's when it sets one."""
         from navcrafter.models.camera.cameras import PLUCKER_CONVENTIONS
+        from navcrafter.models.synthesis import funcamera
 
         have = mcfg.get("plucker_convention")
+        if self.model_name == funcamera.MODEL_NAME:
+            if have != funcamera.PLUCKER_CONVENTION:
+                raise PluckerConventionError(f"the fun-camera synthesizer in {self.model_dir} records "
+                                             f"plucker_convention={have!r}, not {funcamera.PLUCKER_CONVENTION!r}: "
+                                             f"re-export it with this navcrafter version")
+            if wanted is not None:
+                raise PluckerConventionError(
+                    f"synthesis.plucker_convention={wanted!r} selects the rays of NavCrafter's camera control; the "
+                    f"fun-camera model in {self.model_dir} takes VideoX-Fun's own ({funcamera.PLUCKER_CONVENTION!r}, "
+                    f"funcamera.fun_camera_plucker): unset synthesis.plucker_convention")
+            return have
         if have is None:
             raise PluckerConventionError(
                 f"the synthesizer in {self.model_dir} records no plucker_convention in its manifest config, so the "
@@ -164,6 +207,11 @@ class OnnxSynthesizer:
         T, H, W = self._check(request)
         K = request.intrinsics.K
         traj = np.asarray(request.trajectory, dtype=np.float64)
+        if self.model_name == "fun-camera":  # rays only: no render condition, no reference frame (funcamera.py)
+            from navcrafter.models.synthesis.funcamera import fun_camera_plucker
+
+            return (fun_camera_plucker(traj, K, H, W), np.zeros((T, H, W, 3), dtype=np.uint8),
+                    np.zeros((T, H, W), dtype=bool), None, None)
         plucker = plucker_rays(traj, K, H, W, convention=self.convention)
         ref_image = ref_plucker = None
         if request.reference_image is not None:

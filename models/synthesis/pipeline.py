@@ -33,6 +33,11 @@ Sampling (``sample_video``), following diffusers' ``WanImageToVideoPipeline`` wh
    cancels the camera (a camera-free uncond branch would make CFG extrapolate the camera signal 6.5x);
 7. the final latents are VAE-decoded, mapped from [-1, 1] to uint8.
 
+A **fun-camera** model directory (manifest ``config.condition_layout = "fun-camera"``, ``funcamera.py``) is sampled by
+the same loop with its own conditions (``_fun_camera_conditions``): ``hidden_states = [noisy (16) | start-image
+latents (16)]`` (latent frame 0 = the image, later frames zero, no mask), CLIP features, the rays; no render
+condition and no reference frame (those DiT inputs are None and the graph has none).
+
 Precision: fp32 everywhere. onnxruntime's CPU EP has no bf16 kernels (fp16 is emulated and slower), and the CUDA
 EP runs the same fp32 graphs (TF32 matmuls where the GPU allows; bf16 has kernel gaps in the CUDA EP, see
 ``models/runtime/onnxio.py``). The scheduler arithmetic always runs in fp32 torch on the CPU.
@@ -202,7 +207,7 @@ class OrtRunner:
     def dit(self, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
             lora_scale, image_reference, image_reference_plucker) -> np.ndarray:
         names = {i.name for i in self.graphs.session("dit").get_inputs()}
-        if "image_reference" not in names:
+        if "image_reference" not in names and condition_layout(self.config) == "navcrafter":
             raise SynthesisShapeError(f"{self.model_dir}: its DiT graph has no image_reference input (exported before "
                                       f"extra reference frames), so the reference would be dropped; re-export the "
                                       f"model with this navcrafter version")
@@ -246,6 +251,17 @@ def i2v_mask(num_latent_frames: int, h: int, w: int, temporal: int = 4) -> np.nd
     m = np.zeros((temporal, num_latent_frames, h, w), dtype=np.float32)
     m[:, 0] = 1.0
     return m
+
+
+def condition_layout(config: dict) -> str:
+    """The DiT's input layout a model directory's manifest ``config`` records: ``"navcrafter"`` (absent: NavCrafter's
+    camera control, the I2V mask layout with render condition and reference frame) or ``"fun-camera"``
+    (``funcamera.py``: ``[noisy | start-image latents]``, camera rays only)."""
+    layout = config.get("condition_layout", "navcrafter")
+    if layout not in ("navcrafter", "fun-camera"):
+        raise SynthesisShapeError(f"unknown condition_layout {layout!r} in the model's manifest: re-export it with "
+                                  f"this navcrafter version")
+    return layout
 
 
 def check_inputs(runner: Runner, image: np.ndarray, plucker: np.ndarray, renders: np.ndarray,
@@ -357,6 +373,8 @@ def prepare_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray, r
     T, H, W = check_inputs(runner, image, plucker, renders, masks, reference_image, reference_plucker)
     cfg = runner.config
     st = int(cfg["vae_scale_factor_temporal"])
+    if condition_layout(cfg) == "fun-camera":
+        return _fun_camera_conditions(runner, image, plucker, reference_image, T)
     condition = _first_frame_video(image, T)
     videos = [condition, _to_video(renders)]
     if reference_image is not None:
@@ -385,6 +403,25 @@ def prepare_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray, r
     return {"hidden_cond": hidden_cond, "cond": cond, "image_embeds": clip, "plucker": plk,
             "image_reference": np.ascontiguousarray(ref_lat, dtype=np.float32), "image_reference_plucker": ref_plk,
             "latent_shape": np.array([F, h, w])}
+
+
+def _fun_camera_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray,
+                           reference_image: np.ndarray | None, T: int) -> dict[str, np.ndarray]:
+    """Conditions of a fun-camera DiT (VideoX-Fun ``pipeline_wan_fun_control.py`` with ``control_camera_video`` and
+    ``start_image``): the start image VAE-encoded as a one-frame video into latent frame 0 of otherwise **zero**
+    latents (no mask; the causal VAE's latent frame 0 of ``[image, 0, ...]`` is that one-frame encoding), CLIP
+    features of the same image, the rays. No render condition, no reference frames (renders and masks unused)."""
+    if reference_image is not None:
+        raise SynthesisShapeError("the fun-camera model has no extra reference frame: pass no reference_image")
+    cfg = runner.config
+    lat = _vae_encode(runner, [_first_frame_video(image, T)])  # [1, 16, F, h, w]
+    start = np.zeros_like(lat)
+    start[:, :, :1] = lat[:, :, :1]
+    F, h, w = lat.shape[2:]
+    clip = runner.encode_image_clip(clip_preprocess(image, cfg["image_encoder"]))
+    plk = np.ascontiguousarray(np.asarray(plucker, dtype=np.float32).transpose(3, 0, 1, 2)[None])
+    return {"hidden_cond": start.astype(np.float32), "cond": None, "image_embeds": clip, "plucker": plk,
+            "image_reference": None, "image_reference_plucker": None, "latent_shape": np.array([F, h, w])}
 
 
 def initial_noise(seed: int, channels: int, F: int, h: int, w: int) -> np.ndarray:
@@ -416,10 +453,12 @@ def sample_latents(runner: Runner, image: np.ndarray, plucker: np.ndarray, rende
     channels = int(mcfg["latent_channels"])
     latents = torch.from_numpy(initial_noise(cfg.seed, channels, F, h, w))
 
-    pair = lambda a: np.concatenate([a, a], axis=0)  # noqa: E731  (CFG pair: same conditions both rows)
+    def pair(a):  # CFG pair: the same conditions in both rows (None: an input the model does not have)
+        return None if a is None else np.concatenate([a, a], axis=0)
+
     text = np.stack([pos, neg])
     image_embeds, plucker2 = pair(c["image_embeds"]), pair(c["plucker"])
-    cond2 = None if c["cond"] is None else pair(c["cond"])
+    cond2 = pair(c["cond"])
     hidden_cond2 = pair(c["hidden_cond"])
     ref2, ref_plucker2 = pair(c["image_reference"]), pair(c["image_reference_plucker"])
     lora = np.asarray(cfg.lora_scale, dtype=np.float32)

@@ -28,6 +28,10 @@ def test_preflight_names_what_is_missing(tiny_models, tmp_path):
     assert len(problems) == 1 and "does not exist" in problems[0] and "export-all" in problems[0]
     wrong = _onnx_config(tiny_models, synthesis=TINY.synthesis.model_copy(update={"num_frames": 13}))
     assert any("exported for 5 frames" in p and "synthesis.num_frames" in p for p in onnx_problems(wrong))
+    fun = _onnx_config(tiny_models, synthesis=TINY.synthesis.model_copy(update={
+        "num_frames": TINY_MODELS_SIZE[0], "height": TINY_MODELS_SIZE[1], "width": TINY_MODELS_SIZE[2],
+        "model": "fun-camera"}))
+    assert any("is 'navcrafter', the run asks for synthesis.model='fun-camera'" in p for p in onnx_problems(fun))
     (tmp_path / "geometry").mkdir()
     problems = onnx_problems(_onnx_config(tmp_path))
     assert any("export-synthesizer" in p for p in problems) and any("export-geometry" in p for p in problems)
