@@ -52,6 +52,17 @@ class _LazyRole:
                 self._obj = self._factory()
             return self._obj
 
+    @property
+    def loaded(self) -> bool:
+        return self._obj is not None
+
+    def release(self) -> bool:
+        """Forget the role object (its onnxruntime sessions are freed once no caller holds it); True if one was
+        loaded. The next use creates it again (checksums are verified once per process)."""
+        with self._lock:
+            was, self._obj = self._obj is not None, None
+            return was
+
     def __getattr__(self, name):
         return getattr(self._get(), name)
 

@@ -108,3 +108,14 @@ class Backend:
     @property
     def is_simulation(self) -> bool:
         return self.name == "simulation"
+
+    def release(self) -> list[str]:
+        """Drop the loaded models of every role that can reload itself (the onnx backend's lazily created roles),
+        so only the running step's models stay in memory; returns the roles released. A role in use by another
+        thread finishes with its own reference; the next use loads it again."""
+        out = []
+        for name in ("synthesizer", "geometry", "mono_depth", "refiner"):
+            role = getattr(self, name)
+            if hasattr(role, "release") and role.release():
+                out.append(name)
+        return out

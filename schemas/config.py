@@ -415,6 +415,10 @@ class RunConfig(BaseModel):
         "of which each model-running step (geometry, synthesize, lift, fit) occupies one slot; "
         "None: unbounded, and no API call per step.",
     )
+    release_models: bool = Field(
+        True, description="onnx backend: release a step's models (their onnxruntime sessions) when it ends, so a "
+        "process holds one step's models at a time (a 24 GB GPU holds one role at a time; reloading costs seconds "
+        "per step); False keeps every loaded role for the process (faster on a large GPU, more memory).")
     ingest: IngestConfig = IngestConfig()
     synthesis: SynthesisConfig = SynthesisConfig()
     plan: PlanConfig = PlanConfig()
@@ -433,7 +437,8 @@ class RunConfig(BaseModel):
     # (tests/schemas/test_cache_keys.py checks every other field keys some step)
     NOT_KEYING: ClassVar[dict[str, str]] = {
         "max_parallel_scenes": "how many scenes run at once", "gpu_limit": "which concurrency limit steps wait on",
-        "fit.threads": "the compiled rasterizer's threads (its results do not depend on them)"}
+        "fit.threads": "the compiled rasterizer's threads (its results do not depend on them)",
+        "release_models": "when loaded models are freed (outputs do not depend on it)"}
 
     @model_validator(mode="after")
     def _check(self) -> RunConfig:

@@ -151,8 +151,13 @@ def _execute_locked(store: Store, scene_id: str, spec: StepSpec, k: int | None, 
     try:
         prepared = prepare() if prepare is not None else None
         writer = scene.begin(spec, k, key, config.backend)
+        ctx = StepContext(scene, k, config, seed_from_key(key), writer, run_id, prepared)
         with StepPeaks() as peaks:
-            attrs = body(StepContext(scene, k, config, seed_from_key(key), writer, run_id, prepared)) or {}
+            try:
+                attrs = body(ctx) or {}
+            finally:  # one step's models at a time (the peak above includes loading them)
+                if config.release_models and "backend" in ctx.__dict__:
+                    ctx.backend.release()
         seconds = time.perf_counter() - t0
         attrs = {**peaks.attrs(), **attrs}  # the step's own figure (the fit's: its training alone) wins
         writer.commit(seconds, **attrs)

@@ -77,6 +77,12 @@ def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, t
     scene = Store(str(store)).scene(result.scene_id)
     frames = scene.read(SYNTHESIZE, 1, "frames")
     assert frames.shape == (*TINY_MODELS_SIZE, 3) and frames.dtype == np.uint8 and frames.std() > 0
+    assert scene.status(SYNTHESIZE, 1).attrs["synthesizer_model"] == "navcrafter"
+    # release_models (default): each step's models were released when it ended (the process's cached backend)
+    from navcrafter.models.backends import create_backend
+
+    backend = create_backend(_onnx_config(tiny_models))
+    assert not any(getattr(backend, r).loaded for r in ("synthesizer", "geometry", "mono_depth"))
     geo, lift = scene.status(GEOMETRY).attrs, scene.status(LIFT, 1).attrs
     assert geo["n_points"] > 0 and lift["n_points"] >= 1 and np.isfinite(lift["scale"])
     summary = (store / run.summary).read_text()
@@ -84,3 +90,26 @@ def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, t
     exports = store / result.outputs
     assert json.loads((exports / "trajectory.json").read_text())["label"] == RANDOM_WEIGHTS_LABEL
     assert RANDOM_WEIGHTS_LABEL.encode() in (exports / "cloud.ply").read_bytes()[:2000]
+
+
+def test_a_lazy_role_is_released_and_loads_again():
+    from navcrafter.models.backends import _LazyRole
+    from navcrafter.models.roles import Backend
+
+    made = []
+
+    class Role:
+        def predict(self, x):
+            return x + 1
+
+    def factory():
+        made.append(1)
+        return Role()
+
+    role = _LazyRole("onnx", factory)
+    backend = Backend(name="onnx", synthesizer=object(), geometry=role, mono_depth=object())
+    assert not role.loaded and backend.release() == []
+    assert role.predict(1) == 2 and role.loaded and len(made) == 1
+    assert role.predict(2) == 3 and len(made) == 1  # kept while loaded
+    assert backend.release() == ["geometry"] and not role.loaded
+    assert role.predict(3) == 4 and len(made) == 2  # created again on the next use
