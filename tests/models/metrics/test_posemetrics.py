@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
 import pytest
 
 from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, look_at, make_pose
-from navcrafter.models.metrics.pose import camera_guidance_precision, pose_errors, recover_poses
+from navcrafter.models.metrics import pose as pose_module
+from navcrafter.models.metrics.pose import Attempt, camera_guidance_precision, pose_errors, recover_poses
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import UP, generate_scene
 
@@ -176,3 +178,129 @@ def test_unknown_intrinsics_are_estimated(sim_clip, tmp_path):
     assert out["n_registered"] >= 0.8 * N_FRAMES
     assert rec["camera_params"][0] == pytest.approx(K.fx, rel=0.15)
     assert out["R_err_deg_mean"] < 1.5 and out["T_err_mean"] < 0.05 * 2 * HALF_SWEEP
+
+
+# --------------------------------------------------------------------------------------------------
+# the retry ladder, the pure-rotation model, the intrinsics of the dataset clips
+# --------------------------------------------------------------------------------------------------
+def test_rad_mean_is_the_deg_mean_in_radians():
+    gt = random_trajectory(6, seed=3)
+    est = gt.copy()
+    est[2] = est[2] @ make_pose(axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.deg2rad(6.0)), np.zeros(3))
+    e = pose_errors(est, gt)
+    assert e["R_err_rad_mean"] == pytest.approx(np.deg2rad(e["R_err_deg_mean"]))
+    assert e["R_err_rad_mean"] == pytest.approx(np.deg2rad(6.0) / 5)
+
+
+def test_a_failing_rung_is_retried_and_recorded(sim_clip, tmp_path):
+    """A rung that cannot initialise (an impossible inlier count) is followed by the next one, which is
+    upscaled x2: its camera is still reported in pixels of the input frames."""
+    frames, poses, K = sim_clip
+    ladder = (Attempt("starved", init_min_num_inliers=10**6), Attempt("x2", upscale=2))
+    rec = recover_poses(frames, K.K, tmp_path, num_threads=THREADS, attempts=ladder)
+    assert [a["name"] for a in rec.attempts] == ["starved", "x2", "rotation-only"]
+    assert rec.attempts[2]["reason"].startswith("rejected")  # the sideways move is no pure rotation
+    assert rec.attempts[0]["n_registered"] == 0 and rec.attempts[0]["reason"]
+    assert rec.attempt == "x2" and rec.model == "sfm" and rec.n_registered == N_FRAMES
+    np.testing.assert_allclose(rec.camera_params, [K.fx, K.fy, K.cx, K.cy])
+    assert rec.to_dict()["attempts"][1]["n_registered"] == N_FRAMES
+    e = pose_errors(rec.c2w, poses, rec.registered, scale="farthest")
+    assert e["R_err_deg_mean"] < 0.5 and e["T_err_mean"] < 0.03
+    # the ladder stops once MIN_RUNGS (2) rungs ran and one registered every frame well
+    ladder = (Attempt("a"), Attempt("b", global_sfm=True), Attempt("c"))
+    first = recover_poses(frames, K.K, tmp_path, num_threads=THREADS, attempts=ladder)
+    assert [a["name"] for a in first.attempts] == ["a", "b", "rotation-only"] and first.attempt in ("a", "b")
+    stock = recover_poses(frames, K.K, tmp_path, num_threads=THREADS, attempts="stock", rotation_fallback=False)
+    assert [a["name"] for a in stock.attempts] == ["stock"] and stock.model == "sfm"
+
+
+@pytest.fixture(scope="module")
+def pan_clip():
+    """A pure rotation in place (35 deg of yaw, 5 deg of pitch) in the room scene: nothing to triangulate."""
+    scene = generate_scene("room", 1)
+    K = Intrinsics.from_fov(scene.camera_fov_x_deg, SIZE, SIZE)
+    c0 = scene.camera_c2w
+    poses = []
+    for t in np.linspace(0.0, 1.0, 15):
+        R = axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.deg2rad(35.0) * t)  # yaw about the world up (z)
+        p = make_pose(R @ c0[:3, :3], c0[:3, 3])
+        poses.append(p @ make_pose(axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]), np.deg2rad(5.0) * t), np.zeros(3)))
+    poses = np.array(poses)
+    return [render(scene, p, K).rgb for p in poses], poses, K
+
+
+def test_a_pure_rotation_is_recovered_by_the_rotation_model(pan_clip, tmp_path):
+    frames, poses, K = pan_clip
+    stock = recover_poses(frames, K.K, tmp_path / "stock", num_threads=THREADS, attempts="stock",
+                          rotation_fallback=False)
+    # the global mapper registers a pan at a low error, so the ladder stops after the stock rung and the
+    # rotation fallback follows
+    rec = recover_poses(frames, K.K, tmp_path / "robust", num_threads=THREADS,
+                        attempts=(Attempt("global", global_sfm=True), Attempt("stock"), Attempt("never")))
+    print(f"pan: stock {stock.n_registered}/15 ({stock.reason}); with the rotation model {rec.n_registered}/15, "
+          f"{rec.mean_reprojection_error:.2f} px; attempts {[(a['name'], a['n_registered']) for a in rec.attempts]}")
+    assert stock.n_registered < 15  # COLMAP cannot reconstruct a pure rotation
+    assert rec.model == "rotation" and rec.attempt == "rotation-only" and rec.n_registered == 15
+    assert [a["name"] for a in rec.attempts] == ["global", "stock", "rotation-only"]
+    e = pose_errors(rec.c2w, poses, rec.registered, scale="farthest")
+    assert e["R_err_deg_mean"] < 0.1
+    assert e["T_err_mean"] == 0.0  # one centre for every camera, as requested
+    assert np.allclose(rec.c2w[:, :3, 3], 0.0)
+
+
+def test_the_rotation_model_is_rejected_when_the_camera_moves(sim_clip, tmp_path):
+    """The sideways move has parallax: the pure-rotation fit must say so rather than replace COLMAP's result."""
+    frames, _, K = sim_clip
+    recover_poses(frames, K.K, tmp_path, num_threads=THREADS, attempts="stock", rotation_fallback=False)
+    names = [f"frame_{i:05d}.png" for i in range(len(frames))]
+    rot = pose_module._rotation_only(tmp_path / "database.db", names, K.K, len(frames))
+    assert rot.n_registered == 0 and rot.reason.startswith("rejected"), rot.reason
+
+
+def test_reader_intrinsics_after_resize_and_crop_match_the_renderer(tmp_path):
+    """A 16:9 RealEstate10K-format sequence read back at 256²: re-rendering the scene with the reader's K
+    reproduces the reader's frames, and K off by one pixel (or 1 % in focal length) does not."""
+    from navcrafter.models.simulation.datasets import write_dataset
+    from navcrafter.schemas.datasets import open_dataset
+
+    write_dataset(tmp_path, "re10k", sequences=1, frames=15, resolution=(180, 320), seed=5, depth=False,
+                  trajectories=("orbit",), scene_kinds=("room",))
+    doc = json.loads((tmp_path / "simulation.json").read_text())["sequences"][0]
+    scene = generate_scene(doc["scene"]["kind"], doc["scene"]["seed"])
+    sample = next(iter(open_dataset("re10k", tmp_path, num_frames=14, resolution=128, split=None)))
+    i = 7
+    K = sample.K[i]
+    assert K[0, 2] == pytest.approx(64.0) and K[1, 2] == pytest.approx(64.0)
+    assert K[0, 0] == pytest.approx(doc["K"][0][0] * 128 / 180)  # the short side (180) is scaled to 128
+
+    def diff(Km: np.ndarray) -> float:
+        img = render(scene, sample.c2w[i], Intrinsics.from_matrix(Km, 128, 128)).rgb
+        return float(np.abs(img.astype(float) - sample.images[i].astype(float)).mean())
+
+    base = diff(K)
+    for d in ((1.0, 0.0, 1.0), (0.0, -1.0, 1.0), (0.0, 0.0, 1.01)):
+        Kp = K.copy()
+        Kp[0, 2] += d[0]
+        Kp[1, 2] += d[1]
+        Kp[:2, :2] *= d[2]
+        assert diff(Kp) > 1.3 * base, d
+
+
+def test_the_rotation_model_never_replaces_a_whole_incremental_reconstruction(sim_clip, tmp_path, monkeypatch):
+    """Even a rotation fit that passes its residual test is not used when an incremental rung registered every
+    frame: that mapper initialises only from a pair with enough triangulation angle, so the clip has parallax."""
+    frames, poses, K = sim_clip
+    n = len(frames)
+
+    def accepted(database, names, K, n, upscale=1):
+        c2w = np.repeat(np.eye(4)[None], n, axis=0)
+        return pose_module.PoseRecovery(c2w, np.ones(n, dtype=bool), n, n, mean_reprojection_error=0.1,
+                                        attempt="rotation-only", model="rotation")
+
+    monkeypatch.setattr(pose_module, "_rotation_only", accepted)
+    rec = recover_poses(frames, K.K, tmp_path / "a", num_threads=THREADS, attempts=(Attempt("stock"),))
+    assert rec.model == "sfm" and rec.attempt == "stock" and rec.n_registered == n
+    assert rec.attempts[-1]["name"] == "rotation-only" and rec.attempts[-1]["reason"].startswith("not used")
+    # a global rung alone proves nothing about parallax (it registers pans too): the rotation model is used
+    rec = recover_poses(frames, K.K, tmp_path / "b", num_threads=THREADS, attempts=(Attempt("g", global_sfm=True),))
+    assert rec.model == "rotation" and rec.attempt == "rotation-only"
