@@ -24,6 +24,7 @@ import hashlib
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -302,3 +303,69 @@ class GraphRunner:
         sess = self.session(graph)
         names = [o.name for o in sess.get_outputs()]
         return dict(zip(names, sess.run(names, feeds)))
+
+
+# --------------------------------------------------------------------------------------------------
+# fp16 graphs for the CUDA execution provider
+# --------------------------------------------------------------------------------------------------
+#: Operators an fp16 graph keeps in fp32: the normalisations (LayerNorm / RMSNorm, whether exported as one operator or
+#: decomposed into a mean of squares and its root), on top of onnxruntime's own list of operators without fp16 kernels.
+FP32_OPS = ("LayerNormalization", "SimplifiedLayerNormalization", "RMSNormalization", "ReduceMean", "Pow", "Sqrt",
+            "Reciprocal")
+
+
+def convert_graph_fp16(src: Path, dst: Path) -> GraphInfo:
+    """Write an fp16 copy of graph ``src`` to ``dst`` (+ ``dst.data``): weights and activations in fp16, the
+    normalisations (``FP32_OPS``) in fp32, inputs and outputs kept fp32 (casts inside), so callers feed it as before.
+    onnxruntime's ``transformers.float16`` converter does the rewrite; on the CPU, onnxruntime runs the fp16 nodes
+    it has no kernel for through inserted casts (slow, but the same graph), on CUDA in fp16."""
+    import onnx
+    from onnxruntime.transformers.float16 import DEFAULT_OP_BLOCK_LIST, convert_float_to_float16
+
+    src, dst = Path(src), Path(dst)
+    model = onnx.load(str(src))  # with its external data
+    big = model.ByteSize() > 2**31 - 2**26 if hasattr(model, "ByteSize") else True
+    half = convert_float_to_float16(model, keep_io_types=True, disable_shape_infer=big,
+                                    op_block_list=sorted(set(DEFAULT_OP_BLOCK_LIST) | set(FP32_OPS)))
+    data_name = dst.name + ".data"
+    for stale in (dst, dst.parent / data_name):
+        stale.unlink(missing_ok=True)
+    onnx.save_model(half, str(dst), save_as_external_data=True, all_tensors_to_one_file=True, location=data_name)
+    saved = onnx.load(str(dst), load_external_data=False)
+    dynamic = {v.name: [d.dim_param if d.dim_param else "" for d in v.type.tensor_type.shape.dim]
+               for v in saved.graph.input}
+    return GraphInfo(file=dst.name, inputs=[v.name for v in saved.graph.input],
+                     outputs=[v.name for v in saved.graph.output], dynamic=dynamic)
+
+
+def convert_model_dir_fp16(directory: Path, graphs: Sequence[str] = ("dit",)) -> dict:
+    """Convert ``graphs`` of an exported model directory to fp16 in place (``<name>.fp16.onnx`` replaces the fp32
+    graph and its data, which are removed) and rewrite its manifest: the graph's new file, ``precision`` per graph
+    (``"fp32"`` unless converted) and every checksum. Converting a graph that is already fp16 is refused."""
+    directory = Path(directory)
+    path = directory / MANIFEST
+    if not path.is_file():
+        raise ModelDirError(f"{directory} is not an exported model directory (no {MANIFEST})")
+    manifest = json.loads(path.read_text())
+    precision = dict(manifest.get("precision") or {name: "fp32" for name in manifest["graphs"]})
+    unknown = [g for g in graphs if g not in manifest["graphs"]]
+    if unknown:
+        raise ModelDirError(f"{directory}: no graph {unknown} (has {sorted(manifest['graphs'])})")
+    done = [g for g in graphs if precision.get(g) == "fp16"]
+    if done:
+        raise ModelDirError(f"{directory}: graph(s) {done} are fp16 already")
+    for g in graphs:
+        old = manifest["graphs"][g]["file"]
+        info = convert_graph_fp16(directory / old, directory / (Path(old).stem + ".fp16.onnx"))
+        for name in (old, old + ".data"):
+            (directory / name).unlink(missing_ok=True)
+            manifest["files"].pop(name, None)
+        manifest["graphs"][g] = {**manifest["graphs"][g], "file": info.file}
+        for name in (info.file, info.file + ".data"):
+            manifest["files"][name] = sha256_file(directory / name)
+        precision[g] = "fp16"
+    manifest["precision"] = {name: precision.get(name, "fp32") for name in manifest["graphs"]}
+    tmp = directory / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+    return manifest

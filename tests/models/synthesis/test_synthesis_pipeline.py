@@ -291,3 +291,56 @@ def test_a_control_trained_without_render_conditioning_samples(tmp_path, inputs)
     lat = pl.sample_latents(runner, **inputs, text_emb=pos, neg_text_emb=neg,
                             cfg=pl.sampler_settings(SynthesisConfig(steps=2), seed=3), conditions=conds)
     assert lat.shape == (1, 16, 2, H // 8, W // 8) and np.isfinite(lat).all()
+
+
+def test_an_fp16_dit_agrees_with_fp32_and_samples(tiny_export, tmp_path):
+    """``models convert-fp16``: the DiT's weights and activations in fp16, normalisations in fp32, fp32 inputs and
+    outputs; the manifest names the new graph with its checksums and precision; the sampler runs it unchanged."""
+    import json
+    import shutil
+    from collections import Counter
+
+    import onnx
+    import onnxruntime as ort
+    from typer.testing import CliRunner
+
+    from navcrafter.flows.cli import app
+    from navcrafter.models.runtime.onnxio import FP32_OPS, ModelDirError, convert_model_dir_fp16, load_manifest
+    from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer
+
+    src, half = tiny_export[0], tmp_path / "fp16"
+    shutil.copytree(src, half)
+    res = CliRunner().invoke(app, ["models", "convert-fp16", str(half)])
+    assert res.exit_code == 0, res.output
+    manifest = load_manifest(half, "synthesizer")  # every checksum verified
+    assert manifest["precision"] == {"dit": "fp16", "image_encoder": "fp32", "vae_decoder": "fp32",
+                                     "vae_encoder": "fp32"}
+    assert manifest["graphs"]["dit"]["file"] == "dit.fp16.onnx" and not (half / "dit.onnx").exists()
+    graph = onnx.load(str(half / "dit.fp16.onnx"), load_external_data=False).graph
+    kinds = Counter(onnx.TensorProto.DataType.Name(t.data_type) for t in graph.initializer)
+    assert kinds["FLOAT16"] > 10 * kinds["FLOAT"]
+    assert all(v.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for v in [*graph.input, *graph.output])
+    produced = {o: n for n in graph.node for o in n.output}
+    norm_inputs = [produced.get(i) for n in graph.node if n.op_type in FP32_OPS for i in n.input[:1]]
+    assert norm_inputs and not any(p is not None and p.op_type == "Cast" and any(
+        a.name == "to" and a.i == onnx.TensorProto.FLOAT16 for a in p.attribute) for p in norm_inputs)
+    with pytest.raises(ModelDirError, match="fp16 already"):
+        convert_model_dir_fp16(half)
+    # the DiT: fp16 within 2 % (mean) of fp32 on the same inputs
+    runs = {}
+    for name, d in (("fp32", src), ("fp16", half)):
+        m = json.loads((d / "manifest.json").read_text())
+        runs[name] = ort.InferenceSession(str(d / m["graphs"]["dit"]["file"]), providers=CPU)
+    rng = np.random.default_rng(0)
+    feeds = {i.name: (0.5 * rng.standard_normal([d if isinstance(d, int) else 2 for d in i.shape])).astype(np.float32)
+             for i in runs["fp32"].get_inputs()}
+    feeds.update(timestep=np.array([500.0, 500.0], np.float32), lora_scale=np.array(0.7, np.float32))
+    a, b = (runs[k].run(None, feeds)[0] for k in ("fp32", "fp16"))
+    assert b.dtype == np.float32 and np.abs(a - b).mean() < 0.02 * np.abs(a).mean() and not np.array_equal(a, b)
+    # the sampler is unchanged: the same request, frames close to the fp32 model's
+    config = SynthesisConfig(num_frames=T, height=H, width=W, steps=2)
+    request = _request()
+    f32 = OnnxSynthesizer(src, config, providers=CPU).synthesize(request)
+    f16 = OnnxSynthesizer(half, config, providers=CPU).synthesize(request)
+    assert f16.shape == f32.shape and f16.dtype == np.uint8
+    assert np.abs(f16.astype(int) - f32.astype(int)).mean() < 3.0
