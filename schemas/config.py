@@ -56,6 +56,10 @@ class SynthesisConfig(_Section):
         "models.camera.cameras.plucker_rays); None: the exported weights' recorded convention. When set, a model "
         "recorded with another convention is refused (re-export the matching weights).")
 
+    offload: bool = Field(
+        False, description="onnx backend: hold one graph of the synthesizer at a time (VAE encoder, image encoder, "
+        "DiT, VAE decoder in turn; the others released and reloaded when next needed): less GPU memory, a few "
+        "session loads per clip; the frames are the same.")
     model: Literal["navcrafter", "fun-camera"] = Field(
         "navcrafter", description="Synthesizer model (onnx backend): 'navcrafter' (NavCrafter's camera control on "
         "Wan2.1 I2V, models/synthesis/camcontrol.py) or 'fun-camera' (VideoX-Fun's Wan2.1-Fun-V1.1-Control-Camera, "
@@ -438,7 +442,8 @@ class RunConfig(BaseModel):
     NOT_KEYING: ClassVar[dict[str, str]] = {
         "max_parallel_scenes": "how many scenes run at once", "gpu_limit": "which concurrency limit steps wait on",
         "fit.threads": "the compiled rasterizer's threads (its results do not depend on them)",
-        "release_models": "when loaded models are freed (outputs do not depend on it)"}
+        "release_models": "when loaded models are freed (outputs do not depend on it)",
+        "synthesis.offload": "whether the synthesizer's graphs are held one at a time (the frames do not change)"}
 
     @model_validator(mode="after")
     def _check(self) -> RunConfig:

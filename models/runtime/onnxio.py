@@ -299,6 +299,14 @@ class GraphRunner:
             self._sessions[graph] = create_session(self.directory / info["file"], self.providers)
         return self._sessions[graph]
 
+    def release(self, keep: str | None = None) -> list[str]:
+        """Drop every session but ``keep``'s (their weights leave the device once no run holds them); the next
+        ``session`` call creates one again. Returns the graphs released."""
+        gone = [g for g in self._sessions if g != keep]
+        for g in gone:
+            del self._sessions[g]
+        return gone
+
     def run(self, graph: str, feeds: dict[str, Any]) -> dict[str, Any]:
         sess = self.session(graph)
         names = [o.name for o in sess.get_outputs()]

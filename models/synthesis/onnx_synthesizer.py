@@ -87,7 +87,7 @@ class OnnxSynthesizer:
     def __init__(self, model_dir: str | Path, synthesis_config, providers: list[str] | None = None,
                  point_size: float | None = None) -> None:
         self.model_dir = Path(model_dir)
-        self.runner = OrtRunner(self.model_dir, providers)
+        self.runner = OrtRunner(self.model_dir, providers, offload=bool(getattr(synthesis_config, "offload", False)))
         self.config = synthesis_config
         self.point_size = point_size
         mcfg = self.runner.config

@@ -165,11 +165,15 @@ class OrtRunner:
     is fp32 (see the module docstring). Inputs are cast to each graph input's declared element type.
     """
 
-    def __init__(self, model_dir: str | Path, providers: list[str] | None = None, verify: bool = True) -> None:
+    def __init__(self, model_dir: str | Path, providers: list[str] | None = None, verify: bool = True,
+                 offload: bool = False) -> None:
         from navcrafter.models.runtime.onnxio import GraphRunner, load_manifest
         from navcrafter.models.synthesis.onnx_export import KIND
 
         self.model_dir = Path(model_dir)
+        # offload: one graph's session at a time (VAE encoder, image encoder, DiT, VAE decoder in turn): the others'
+        # weights are off the device, reloaded (from the page cache) when next needed; outputs are unchanged
+        self.offload = offload
         self.manifest = load_manifest(self.model_dir, KIND, verify=verify)
         self.config = self.manifest["config"]
         self.fixed_num_frames = int(self.config["vae_num_frames"])
@@ -184,8 +188,13 @@ class OrtRunner:
         emb = np.load(self.model_dir / self.config["text"]["file"])
         return emb[0], emb[1]
 
+    def _session(self, graph: str):
+        if self.offload:
+            self.graphs.release(keep=graph)
+        return self.graphs.session(graph)
+
     def _call(self, graph: str, values: dict[str, np.ndarray]) -> np.ndarray:
-        sess = self.graphs.session(graph)
+        sess = self._session(graph)
         feeds = {}
         for inp in sess.get_inputs():
             if inp.name not in values:
@@ -206,7 +215,7 @@ class OrtRunner:
 
     def dit(self, hidden_states, timestep, encoder_hidden_states, encoder_hidden_states_image, plucker, cond,
             lora_scale, image_reference, image_reference_plucker) -> np.ndarray:
-        names = {i.name for i in self.graphs.session("dit").get_inputs()}
+        names = {i.name for i in self._session("dit").get_inputs()}
         if "image_reference" not in names and condition_layout(self.config) == "navcrafter":
             raise SynthesisShapeError(f"{self.model_dir}: its DiT graph has no image_reference input (exported before "
                                       f"extra reference frames), so the reference would be dropped; re-export the "

@@ -111,7 +111,8 @@ def test_every_config_field_keys_some_step(tmp_path):
 @pytest.mark.parametrize("path", sorted(RunConfig.NOT_KEYING))
 def test_declared_not_keying_fields_really_key_nothing(path):
     base = RunConfig.load(overrides=BOTH)
-    other = {"max_parallel_scenes": 5, "gpu_limit": "navcrafter-gpu", "fit.threads": 1, "release_models": False}[path]
+    other = {"max_parallel_scenes": 5, "gpu_limit": "navcrafter-gpu", "fit.threads": 1, "release_models": False,
+             "synthesis.offload": True}[path]
     assert all_keys(RunConfig.load(overrides={**BOTH, path: other})) == all_keys(base)
 
 

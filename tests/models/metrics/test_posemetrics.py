@@ -199,7 +199,7 @@ def test_a_failing_rung_is_retried_and_recorded(sim_clip, tmp_path):
     ladder = (Attempt("starved", init_min_num_inliers=10**6), Attempt("x2", upscale=2))
     rec = recover_poses(frames, K.K, tmp_path, num_threads=THREADS, attempts=ladder)
     assert [a["name"] for a in rec.attempts] == ["starved", "x2", "rotation-only"]
-    assert rec.attempts[2]["reason"].startswith("rejected")  # the sideways move is no pure rotation
+    assert "rejected" in rec.attempts[2]["reason"]  # the sideways move is no pure rotation
     assert rec.attempts[0]["n_registered"] == 0 and rec.attempts[0]["reason"]
     assert rec.attempt == "x2" and rec.model == "sfm" and rec.n_registered == N_FRAMES
     np.testing.assert_allclose(rec.camera_params, [K.fx, K.fy, K.cx, K.cy])
@@ -229,12 +229,13 @@ def pan_clip():
     return [render(scene, p, K).rgb for p in poses], poses, K
 
 
-def test_a_pure_rotation_is_recovered_by_the_rotation_model(pan_clip, tmp_path):
+def test_a_pure_rotation_is_recovered_by_the_rotation_model(pan_clip, tmp_path, monkeypatch):
     frames, poses, K = pan_clip
     stock = recover_poses(frames, K.K, tmp_path / "stock", num_threads=THREADS, attempts="stock",
                           rotation_fallback=False)
-    # the global mapper registers a pan at a low error, so the ladder stops after the stock rung and the
-    # rotation fallback follows
+    # the global mapper registers a pan (at 0.3-0.7 px): with the "good" threshold raised the ladder stops after
+    # the stock rung (MIN_RUNGS) and the rotation fallback follows a ladder that did not run to its end
+    monkeypatch.setattr(pose_module, "GOOD_REPROJECTION_PX", 10.0)
     rec = recover_poses(frames, K.K, tmp_path / "robust", num_threads=THREADS,
                         attempts=(Attempt("global", global_sfm=True), Attempt("stock"), Attempt("never")))
     print(f"pan: stock {stock.n_registered}/15 ({stock.reason}); with the rotation model {rec.n_registered}/15, "

@@ -344,3 +344,26 @@ def test_an_fp16_dit_agrees_with_fp32_and_samples(tiny_export, tmp_path):
     f16 = OnnxSynthesizer(half, config, providers=CPU).synthesize(request)
     assert f16.shape == f32.shape and f16.dtype == np.uint8
     assert np.abs(f16.astype(int) - f32.astype(int)).mean() < 3.0
+
+
+def test_offload_holds_one_graph_at_a_time_and_changes_nothing(tiny_export):
+    from navcrafter.models.synthesis.onnx_synthesizer import OnnxSynthesizer
+
+    request = _request()
+    plain = OnnxSynthesizer(tiny_export[0], SynthesisConfig(num_frames=T, height=H, width=W, steps=2), providers=CPU)
+    light = OnnxSynthesizer(tiny_export[0], SynthesisConfig(num_frames=T, height=H, width=W, steps=2, offload=True),
+                            providers=CPU)
+    seen = []
+    session = light.runner.graphs.session
+
+    def spy(graph):
+        out = session(graph)
+        seen.append(sorted(light.runner.graphs._sessions))
+        return out
+
+    light.runner.graphs.session = spy
+    frames = light.synthesize(request)
+    assert np.array_equal(frames, plain.synthesize(request))
+    assert seen and all(len(s) == 1 for s in seen)  # never two graphs' sessions at once
+    assert {s[0] for s in seen} == {"vae_encoder", "image_encoder", "dit", "vae_decoder"}
+    assert len(plain.runner.graphs._sessions) == 4  # without offload every graph stays loaded
