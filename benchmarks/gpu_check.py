@@ -11,8 +11,10 @@ its own time cap (a failure, a crash or a timeout of one is recorded and the nex
 * ``gsplat``: ``benchmarks/gsplat_fit.py``'s ``run`` (its quick size): iterations/s of the gsplat-backed fit,
   first-call kernel build, parity of our renderer vs gsplat; skipped with its reason without gsplat.
 * ``dit``: one denoising step (CFG pair) of the camera-controlled Wan DiT at Wan2.1-1.3B width, 81 frames at
-  256² (``benchmarks/synthesis.py``'s ``build``/``make_inputs``): torch bf16 vs onnxruntime CUDA EP on an fp16
-  export of the same module (``onnxio.export_graph``), step times, peak memory (``torch.cuda.max_memory_allocated``;
+  256² (``benchmarks/synthesis.py``'s ``build``/``make_inputs``): torch bf16 vs onnxruntime CUDA EP on the
+  product's fp16 graph of the same module (fp32 ``onnxio.export_graph``, then ``onnxio.convert_graph_fp16`` as
+  ``navcrafter models convert-fp16`` does: fp32 normalisations and IO), step times, peak memory
+  (``torch.cuda.max_memory_allocated``;
   onnxruntime: NVML process memory, which includes the process's CUDA context), and the fp16-ORT vs bf16-torch
   output difference. Without onnxruntime's CUDA execution provider (``onnxruntime-gpu``) only torch is timed.
 * ``fun-camera``: the Fun-Camera DiT (``navcrafter.models.synthesis.funcamera``, 1.3B config, same latent grid)
@@ -188,15 +190,18 @@ def _ort_timed(sess, feeds: dict, device: str, repeats: int) -> dict:
 def _torch_vs_ort(make_module, inputs: dict, names: list[str], outputs: list[str], ctx: dict, tag: str,
                   meta: dict) -> dict:
     """One module (``make_module()``; built here so that no caller keeps it alive while onnxruntime runs): torch
-    (bf16 on CUDA, fp32 in a dry run) timing, then an ONNX export (fp16 on CUDA) of the same weights on ORT."""
+    (bf16 on CUDA, fp32 in a dry run) timing, then an ONNX export of the same weights on ORT: on CUDA the product's
+    fp16 path (an fp32 export converted by ``onnxio.convert_graph_fp16``, as ``navcrafter models convert-fp16`` does:
+    fp16 with fp32 normalisations and inputs/outputs), in a dry run the fp32 export."""
     import torch
 
-    from navcrafter.models.runtime.onnxio import export_graph
+    from navcrafter.models.runtime.onnxio import convert_graph_fp16, export_graph
 
     device, repeats = ctx["device"], 2 if ctx["quick"] or ctx["dry_run"] else 3
     tdtype = torch.bfloat16 if device == "cuda" else torch.float32
-    odtype = torch.float16 if device == "cuda" else torch.float32
-    res: dict = {**meta, "torch_dtype": str(tdtype).split(".")[-1], "onnx_dtype": str(odtype).split(".")[-1]}
+    half = device == "cuda"
+    res: dict = {**meta, "torch_dtype": str(tdtype).split(".")[-1],
+                 "onnx_dtype": "float16 (convert-fp16: fp32 norms and IO)" if half else "float32"}
 
     def cast(dtype):
         return [inputs[n].to(device=device, dtype=dtype) if inputs[n].is_floating_point() else inputs[n].to(device)
@@ -221,13 +226,20 @@ def _torch_vs_ort(make_module, inputs: dict, names: list[str], outputs: list[str
             res["ort"] = {"status": "skipped", "reason": f"onnxruntime {onnxruntime.__version__} has no CUDA "
                           "execution provider here (install onnxruntime-gpu matching the CUDA version)"}
             return res
-    holder["module"] = holder["module"].to(dtype=odtype)
-    holder["args"] = cast(odtype)
+    holder["module"] = holder["module"].to(dtype=torch.float32)
+    holder["args"] = cast(torch.float32)
     path = Path(ctx["work"]) / f"{tag}.onnx"
     t0 = time.perf_counter()
     export_graph(holder["module"], tuple(holder["args"]), path, input_names=names, output_names=outputs)
     res["export_s"] = time.perf_counter() - t0
     save_partial(ctx, res)
+    if half:
+        holder["module"] = None  # the weights leave the GPU while the graph is converted on the CPU
+        _free(device)
+        t0 = time.perf_counter()
+        path = Path(ctx["work"]) / convert_graph_fp16(path, path.with_name(f"{tag}.fp16.onnx")).file
+        res["convert_fp16_s"] = time.perf_counter() - t0
+        save_partial(ctx, res)
     feeds = {n: a.cpu().numpy() for n, a in zip(names, holder["args"])}
     holder.clear()
     _free(device)
@@ -674,8 +686,9 @@ def markdown(report: dict) -> str:
         summary += f"; explore flow: {ex.get('status')}"
     row("scene", summary, "—")
     lines += ["", "Notes: DiT = one call on the classifier-free-guidance pair (batch 2), 81 frames at 256² "
-              "(21 × 16 × 16 latent tokens per sample); onnxruntime runs an fp16 export of the same module on the "
-              "CUDA execution provider, so its output differs from bf16 torch by rounding. The composed scene time is "
+              "(21 × 16 × 16 latent tokens per sample); onnxruntime runs the fp16 graph `models convert-fp16` makes "
+              "of the same module (fp32 norms) on the CUDA execution provider, so its output differs from bf16 torch "
+              "by rounding. The composed scene time is "
               "a lower bound (N × steps × DiT step + VGGT per lift + MoGe + fit iterations / it/s; no VAE, no CLIP) at "
               "the 1.3B width, not the 14B base's. Random weights: no number here says anything about quality.", ""]
     return "\n".join(lines)
