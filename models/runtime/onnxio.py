@@ -331,8 +331,10 @@ def convert_graph_fp16(src: Path, dst: Path) -> GraphInfo:
     from onnxruntime.transformers.float16 import DEFAULT_OP_BLOCK_LIST, convert_float_to_float16
 
     src, dst = Path(src), Path(dst)
+    # onnx's shape inference serialises the model: impossible past protobuf's 2 GB (so is asking its size)
+    size = src.stat().st_size + sum((src.parent / loc).stat().st_size for loc in external_data_files(src))
+    big = size > 2**31 - 2**26
     model = onnx.load(str(src))  # with its external data
-    big = model.ByteSize() > 2**31 - 2**26 if hasattr(model, "ByteSize") else True
     half = convert_float_to_float16(model, keep_io_types=True, disable_shape_infer=big,
                                     op_block_list=sorted(set(DEFAULT_OP_BLOCK_LIST) | set(FP32_OPS)))
     data_name = dst.name + ".data"
