@@ -39,7 +39,6 @@ if TYPE_CHECKING:
     from navcrafter.schemas.store import SceneStore
 
 FORMATS = ("nerfstudio", "colmap")
-CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: OpenCV (x right, y down, z forward) -> OpenGL (y up, z back)
 WORLD_CONVENTION = ("world = the input camera's frame, OpenCV axes (x right, y down, z forward; world up is -y for "
                     "an upright photo)")
 ICP_DISTANCE_FACTOR = 5.0  # evaluate-cloud: default ICP max correspondence distance, in thresholds
@@ -99,32 +98,20 @@ def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
     return scene
 
 
-def _export_record(scene: SceneStore) -> dict:
-    """The export step's ``trajectory.json``: the frames (with their iterations), backend and label of the run."""
-    from navcrafter.schemas.layout import EXPORT
-
-    files = scene.require_complete(EXPORT).attrs.get("files", {})
-    doc = files.get("trajectory.json")
-    return json.loads(scene.store.read_bytes(doc["path"])) if doc else {}
-
-
 def scene_config(scene: SceneStore) -> RunConfig:
     """The parts of the run's config that the export reads, from the scene (a store keeps no config): the iterations
     its export covered and the synthesis size (the ingested working image's)."""
-    from navcrafter.schemas.config import RunConfig
-    from navcrafter.schemas.layout import INGEST, LIFT
+    from navcrafter.schemas.layout import LIFT
+    from navcrafter.tasks.readers import export_record, scene_run_config
 
-    width, height = scene.require_complete(INGEST).attrs["work_size"]
-    frames = _export_record(scene).get("frames", [])
+    frames = export_record(scene).get("frames", [])
     if frames:
         iterations = max(int(f["iteration"]) for f in frames)
     else:  # an export without its trajectory: the complete lift steps from 1 on
         iterations = 0
         while scene.status(LIFT, iterations + 1).complete:
             iterations += 1
-    base = RunConfig()
-    synthesis = base.synthesis.model_copy(update={"width": int(width), "height": int(height)})
-    return base.model_copy(update={"iterations": iterations, "synthesis": synthesis})
+    return scene_run_config(scene, iterations)
 
 
 def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
@@ -151,10 +138,11 @@ def _labels(scene: SceneStore, config: RunConfig | None) -> tuple[str, str | Non
     from ``config``."""
     from navcrafter.models.backends import run_label
     from navcrafter.schemas.layout import EXPORT
+    from navcrafter.tasks.readers import export_record
 
     st = scene.status(EXPORT)
     backend = st.attrs.get("backend") or (config.backend if config is not None else "unknown")
-    label = st.attrs.get("label") or _export_record(scene).get("label")
+    label = st.attrs.get("label") or export_record(scene).get("label")
     if not label and config is not None:
         label = run_label(config)
     return backend, label or None
@@ -243,7 +231,9 @@ def _manifest(scene: SceneStore, fmt: str, frames: ExportFrames, backend: str, l
 # --------------------------------------------------------------------------------------------------
 def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     """Camera-to-world with OpenCV camera axes -> with OpenGL's (nerfstudio, Blender): y and z axes negated."""
-    return np.asarray(c2w, dtype=np.float64) @ CV_TO_GL
+    from navcrafter.models.camera.trajectories import GL_CV_FLIP
+
+    return np.asarray(c2w, dtype=np.float64) @ GL_CV_FLIP
 
 
 def nerfstudio_transforms(frames: ExportFrames, ply_name: str = "sparse_pc.ply") -> dict:

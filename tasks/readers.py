@@ -4,6 +4,7 @@ stored Gaussians and the fit's views."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,7 +16,7 @@ from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
 from navcrafter.models.planning.planners import scene_centre
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import FIT, GEOMETRY, LIFT, PLAN, REFINE, SYNTHESIZE, StepSpec
+from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE, StepSpec
 from navcrafter.schemas.store import SceneStore
 
 
@@ -59,6 +60,24 @@ class CameraPath:
 
     def intrinsics(self, f: int) -> Intrinsics:
         return Intrinsics.from_matrix(self.K[f], self.width, self.height)
+
+
+def scene_run_config(scene: SceneStore, iterations: int | None = None) -> RunConfig:
+    """The parts of a run's config that the readers need, from the scene itself (a store keeps no config): the
+    synthesis size is the ingested working image's; ``iterations`` when given, else the default."""
+    width, height = scene.require_complete(INGEST).attrs["work_size"]
+    base = RunConfig()
+    synthesis = base.synthesis.model_copy(update={"width": int(width), "height": int(height)})
+    return base.model_copy(update={"synthesis": synthesis,
+                                   **({} if iterations is None else {"iterations": int(iterations)})})
+
+
+def export_record(scene: SceneStore) -> dict:
+    """The export step's ``trajectory.json`` (the frames with their iterations, backend, label of the run); ``{}``
+    before the export completed or when it wrote none."""
+    st = scene.status(EXPORT)
+    doc = st.attrs.get("files", {}).get("trajectory.json") if st.complete else None
+    return json.loads(scene.store.read_bytes(doc["path"])) if doc else {}
 
 
 def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = None,

@@ -40,27 +40,25 @@ class SceneResult:
         return asdict(self)
 
 
-def step_timings(scene: SceneStore, config: RunConfig) -> dict[str, float]:
-    """Execution seconds of every completed step of a scene, from the groups' attributes."""
-    out = {}
-    for step in scene_steps(config):
-        st = scene.status(step.spec, step.k)
-        if st.complete:
-            out[st.path] = float(st.attrs.get("seconds", 0.0))
-    st = scene.status(EVALUATE)
-    if st.complete:
-        out[st.path] = float(st.attrs.get("seconds", 0.0))
-    return out
+def _completed(scene: SceneStore, config: RunConfig) -> list:
+    """The statuses of a scene's completed steps: its run's steps in order, then evaluate."""
+    statuses = [*(scene.status(step.spec, step.k) for step in scene_steps(config)), scene.status(EVALUATE)]
+    return [st for st in statuses if st.complete]
 
 
-def step_peaks(scene: SceneStore, config: RunConfig) -> dict[str, dict[str, float | None]]:
+def step_timings(scene: SceneStore, config: RunConfig, completed: list | None = None) -> dict[str, float]:
+    """Execution seconds of every completed step of a scene, from the groups' attributes (``completed``: their
+    statuses, when the caller has read them)."""
+    return {st.path: float(st.attrs.get("seconds", 0.0))
+            for st in (_completed(scene, config) if completed is None else completed)}
+
+
+def step_peaks(scene: SceneStore, config: RunConfig, completed: list | None = None
+               ) -> dict[str, dict[str, float | None]]:
     """Peak memory of every completed step of a scene (``peak_rss_mb``, ``peak_gpu_mb``: ``tasks/memory.StepPeaks``),
     stored beside its seconds; steps committed before the figure existed have none."""
-    out = {}
-    for st in [*(scene.status(step.spec, step.k) for step in scene_steps(config)), scene.status(EVALUATE)]:
-        if st.complete and "peak_rss_mb" in st.attrs:
-            out[st.path] = {m: st.attrs.get(m) for m in ("peak_rss_mb", "peak_gpu_mb")}
-    return out
+    return {st.path: {m: st.attrs.get(m) for m in ("peak_rss_mb", "peak_gpu_mb")}
+            for st in (_completed(scene, config) if completed is None else completed) if "peak_rss_mb" in st.attrs}
 
 
 def last_step(scene: SceneStore, config: RunConfig) -> str | None:
@@ -75,9 +73,11 @@ def last_step(scene: SceneStore, config: RunConfig) -> str | None:
 def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, status: str,
                  **fields: Any) -> SceneResult:
     """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
-    timings = step_timings(scene, config)
+    done = _completed(scene, config)  # read once for the timings and the peaks
+    timings = step_timings(scene, config, done)
     result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
-                         seconds=sum(timings.values()), timings=timings, peaks=step_peaks(scene, config), **fields)
+                         seconds=sum(timings.values()), timings=timings, peaks=step_peaks(scene, config, done),
+                         **fields)
     fit = scene.status(FIT) if config.fit.enabled else None
     fitted = scene.status(REFINE) if fit is not None and config.refine.enabled else fit
     if fitted is not None and fitted.complete:

@@ -18,7 +18,6 @@ is the input camera's -y (``set_up_direction("-y")``).
 
 from __future__ import annotations
 
-import json
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from navcrafter.models.camera.cameras import matrix_to_quat, quat_wxyz_to_matrix
-from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
+from navcrafter.schemas.layout import FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore, Store
 
 # RGB of each kind of camera
@@ -108,14 +107,12 @@ def scene_label(scene: SceneStore) -> str | None:
     for spec in (INGEST, GEOMETRY, FIT):
         if scene.status(spec).attrs.get("backend") == "simulation":
             return LABEL
-    st = scene.status(EXPORT)
-    doc = st.attrs.get("files", {}).get("trajectory.json") if st.complete else None
-    if doc:
-        try:
-            return json.loads(scene.store.read_bytes(doc["path"])).get("label") or None
-        except (OSError, ValueError):
-            return None
-    return None
+    from navcrafter.tasks.readers import export_record
+
+    try:
+        return export_record(scene).get("label") or None
+    except (OSError, ValueError):
+        return None
 
 
 # --------------------------------------------------------------------------------------------------

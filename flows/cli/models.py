@@ -18,6 +18,11 @@ _RANDOM = typer.Option(help="Random weights instead of a checkpoint: 'tiny' (tes
                             "sizes, for timing). Outputs of runs using them are labelled RANDOM WEIGHTS.")
 # what an exporter raises for a missing or wrong checkpoint, or an unsupported option
 _EXPORT_ERRORS = (ValueError, FileNotFoundError, NotImplementedError)
+# the clip size and prompt a synthesizer is exported for (both synthesizer models)
+_Frames = Annotated[int, typer.Option(help="Frames per clip (synthesis.num_frames; 4k+1).")]
+_Height = Annotated[int, typer.Option(help="synthesis.height (multiple of 16).")]
+_Width = Annotated[int, typer.Option(help="synthesis.width (multiple of 16).")]
+_Prompt = Annotated[str, typer.Option(help="Text prompt whose embedding is precomputed.")]
 
 
 def _done(path: Path) -> None:
@@ -93,10 +98,10 @@ def export_synthesizer_cmd(
     control: Annotated[Optional[Path], typer.Option(help="Camera-control weights directory (safetensors + "
                                                           "config.json); none: zero-initialised control.")] = None,
     random: Annotated[Optional[str], _RANDOM] = None,
-    frames: Annotated[int, typer.Option(help="Frames per clip (synthesis.num_frames; 4k+1).")] = 81,
-    height: Annotated[int, typer.Option(help="synthesis.height (multiple of 16).")] = 256,
-    width: Annotated[int, typer.Option(help="synthesis.width (multiple of 16).")] = 256,
-    prompt: Annotated[str, typer.Option(help="Text prompt whose embedding is precomputed.")] = "",
+    frames: _Frames = 81,
+    height: _Height = 256,
+    width: _Width = 256,
+    prompt: _Prompt = "",
     seed: int = 0,
 ) -> None:
     """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
@@ -118,10 +123,10 @@ def export_fun_camera_cmd(
                                                        "encoder and text encoder (with --checkpoint).")] = None,
     random: Annotated[Optional[str], typer.Option(help="'tiny': tiny random weights (tests); outputs of runs using "
                                                        "them are labelled RANDOM WEIGHTS.")] = None,
-    frames: Annotated[int, typer.Option(help="Frames per clip (synthesis.num_frames; 4k+1).")] = 81,
-    height: Annotated[int, typer.Option(help="synthesis.height (multiple of 16).")] = 256,
-    width: Annotated[int, typer.Option(help="synthesis.width (multiple of 16).")] = 256,
-    prompt: Annotated[str, typer.Option(help="Text prompt whose embedding is precomputed.")] = "",
+    frames: _Frames = 81,
+    height: _Height = 256,
+    width: _Width = 256,
+    prompt: _Prompt = "",
     seed: int = 0,
 ) -> None:
     """The public camera-controlled Wan2.1-Fun-V1.1 Control-Camera (synthesis.model=fun-camera) as ONNX."""

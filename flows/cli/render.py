@@ -59,7 +59,7 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     centre. ``scene_id`` may be a unique prefix; None picks the store's only scene."""
     from navcrafter.schemas.layout import FIT, PLAN, REFINE
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.readers import camera_path, load_gaussians, load_refined_gaussians
+    from navcrafter.tasks.readers import camera_path, load_gaussians, load_refined_gaussians, scene_run_config
 
     store = Store(store_uri, create=False)
     ids = store.scene_ids()
@@ -81,36 +81,22 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
         raise ValueError(f"scene {sid} has no fitted Gaussians; run explore with fit.enabled=true")
     refined = scene.status(REFINE).complete
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
-    path = camera_path(scene, _path_config(scene), iterations=1)
+    path = camera_path(scene, scene_run_config(scene), iterations=1)
     return Source(model, f"scene {sid[:12]}{' (refined)' if refined else ''}", path.c2w[0], path.intrinsics(0),
                   np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), _scene_band(scene))
-
-
-def _path_config(scene: SceneStore):
-    """The parts of the run's config that ``camera_path`` reads, from the scene itself (a store keeps no
-    config): the synthesis size is the ingested working image's."""
-    from navcrafter.schemas.config import RunConfig
-    from navcrafter.schemas.layout import INGEST
-
-    width, height = scene.require_complete(INGEST).attrs["work_size"]
-    base = RunConfig()
-    return base.model_copy(update={"synthesis": base.synthesis.model_copy(update={"width": int(width),
-                                                                                  "height": int(height)})})
 
 
 def _scene_band(scene: SceneStore) -> str | None:
     """The band of a labelled run: the simulation backend (recorded by the fit), or the label its export wrote."""
     from navcrafter.models.backends import BANDS
-    from navcrafter.schemas.layout import EXPORT, FIT
+    from navcrafter.schemas.layout import FIT
+    from navcrafter.tasks.readers import export_record
 
     if scene.status(FIT).attrs.get("backend") == "simulation":
         return "SIMULATION"
-    st = scene.status(EXPORT)
-    doc = st.attrs.get("files", {}).get("trajectory.json") if st.complete else None
-    if doc:
-        label = json.loads(scene.store.read_bytes(doc["path"])).get("label")
-        if label:
-            return BANDS.get(label, "SIMULATION" if label.startswith("SIMULATION") else label.split(":")[0][:32])
+    label = export_record(scene).get("label")
+    if label:
+        return BANDS.get(label, "SIMULATION" if label.startswith("SIMULATION") else label.split(":")[0][:32])
     return None
 
 

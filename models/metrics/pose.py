@@ -328,9 +328,8 @@ def _ladder(frames, K, work: Path, matcher: MatcherMode, num_threads: int, seed:
     assert best is not None
     if rotation_fallback and K is not None:
         t0 = time.perf_counter()
-        db = databases[ladder[0].features_key(matcher if ladder[0].matcher == "auto" else ladder[0].matcher)]
-        up = ladder[0].upscale
-        rot = _rotation_only(db, images[up][1], K * _scale_matrix(up), n, upscale=up)
+        up = ladder[0].upscale  # the first rung's matches: always its own fresh database, work/database.db
+        rot = _rotation_only(work / "database.db", images[up][1], K * _scale_matrix(up), n, upscale=up)
         tried.append({"name": "rotation-only", "model": "rotation", "matcher": best.matcher,
                       "n_registered": rot.n_registered, "mean_reprojection_error": rot.mean_reprojection_error,
                       "n_points3d": 0, "seconds": time.perf_counter() - t0, "reason": rot.reason})

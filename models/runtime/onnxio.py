@@ -138,6 +138,12 @@ def write_manifest(directory: Path, *, kind: str, architecture: str, config: dic
         "files": files, "opset": OPSET, "torch": torch.__version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **(extra or {}),
     }
+    return _save_manifest(directory, manifest)
+
+
+def _save_manifest(directory: Path, manifest: dict) -> Path:
+    """``directory/manifest.json``, written last and whole (temp file + rename): a directory with a manifest is a
+    finished export."""
     tmp = directory / (MANIFEST + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True))
     os.replace(tmp, directory / MANIFEST)
@@ -375,7 +381,5 @@ def convert_model_dir_fp16(directory: Path, graphs: Sequence[str] = ("dit",)) ->
             manifest["files"][name] = sha256_file(directory / name)
         precision[g] = "fp16"
     manifest["precision"] = {name: precision.get(name, "fp32") for name in manifest["graphs"]}
-    tmp = directory / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    _save_manifest(directory, manifest)
     return manifest

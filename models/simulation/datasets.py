@@ -68,6 +68,7 @@ import numpy as np
 from PIL import Image
 
 from navcrafter.models.camera.cameras import Intrinsics, invert_pose, look_at
+from navcrafter.models.camera.trajectories import GL_CV_FLIP  # OpenCV <-> OpenGL camera axes (its own inverse)
 from navcrafter.models.simulation import LABEL
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import GENERATOR_VERSION, KINDS, UP, SimScene, generate_scene
@@ -80,7 +81,6 @@ CLEARANCE = 0.2  # metres between any camera centre on a path and the nearest su
 MAX_ATTEMPTS = 10
 NBV_WAYPOINTS = 4
 FPS = 30
-GL_CV_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV <-> OpenGL camera axes (its own inverse)
 
 
 def depth_path(image_path: str | Path) -> Path:

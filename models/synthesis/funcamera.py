@@ -49,6 +49,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from diffusers.models.transformers.transformer_wan import WanTransformer3DModel
 
+from navcrafter.models.synthesis.camcontrol import _short  # the same shortened key listing in both loaders
+
 MODEL_NAME = "fun-camera"  # synthesis.model
 ARCHITECTURE = "wan2.1-fun-v1.1-control-camera"  # manifest architecture
 PLUCKER_CONVENTION = "videox-fun"  # manifest config.plucker_convention (fun_camera_plucker)
@@ -545,10 +547,6 @@ def read_key_list(path: str | os.PathLike = KEY_LIST_1_3B) -> tuple[dict[str, An
     d = json.loads(Path(path).read_text())
     layout = {k: tuple(int(s) for s in shape) for k, shape in d["keys"]}
     return {k: v for k, v in d.items() if k != "keys"}, layout
-
-
-def _short(items: list[str], n: int = 10) -> str:
-    return ", ".join(items[:n]) + (f" ... (+{len(items) - n} more)" if len(items) > n else "")
 
 
 def check_layout(found: dict[str, Sequence[int]], expected: dict[str, Sequence[int]], source: str) -> None:

@@ -150,8 +150,19 @@ class SynthesisComponents:
         requires and checks against ``synthesis.plucker_convention``."""
         if getattr(self.dit, "model_name", "navcrafter") == "fun-camera":
             return self._fun_camera_config(num_frames, height, width, dynamic)
-        base = self.dit.base.config
         control = self.dit.config
+        return {
+            **self._shared_config(num_frames, height, width, dynamic),
+            "control": control.to_dict(),
+            # the loaded weights' own (load_camera_control replaces the model's config with the saved one)
+            "plucker_convention": control.plucker_convention,
+            "cond_layout": "render latents (16) + packed visibility mask (4), camcontrol.make_render_condition",
+        }
+
+    def _shared_config(self, num_frames: int, height: int, width: int, dynamic: bool) -> dict[str, Any]:
+        """The manifest ``config`` entries both synthesizer models have: sizes, the base DiT's and the VAE's
+        configs, the image encoder's preprocessing, the scheduler, the text embeddings."""
+        base = self.dit.base.config
         vae = self.vae.config
         return {
             "num_frames": int(num_frames), "height": int(height), "width": int(width),
@@ -167,10 +178,6 @@ class SynthesisComponents:
             "vae": _jsonable(dict(vae)),
             "image_encoder": {**self.image_preprocess, "hidden_size": int(self.image_encoder.config.hidden_size),
                               "features": "hidden_states[-2]"},
-            "control": control.to_dict(),
-            # the loaded weights' own (load_camera_control replaces the model's config with the saved one)
-            "plucker_convention": control.plucker_convention,
-            "cond_layout": "render latents (16) + packed visibility mask (4), camcontrol.make_render_condition",
             "scheduler": dict(SCHEDULER_DEFAULTS),
             "text": {"file": TEXT_EMBEDDINGS, "prompt": self.prompt, "negative_prompt": self.negative_prompt,
                      "shape": list(self.text_embeddings.shape), "rows": ["prompt", "negative_prompt"]},
@@ -182,24 +189,11 @@ class SynthesisComponents:
         extra reference frames; ``condition_layout`` tells the sampler to build ``[noisy | start-image latents]``."""
         from navcrafter.models.synthesis import funcamera
 
-        base = self.dit.base.config
         fun = self.dit.config
-        vae = self.vae.config
         return {
+            **self._shared_config(num_frames, height, width, dynamic),
             "model": funcamera.MODEL_NAME, "condition_layout": funcamera.CONDITION_LAYOUT,
-            "num_frames": int(num_frames), "height": int(height), "width": int(width),
-            "vae_num_frames": int(num_frames), "dynamic_shapes": bool(dynamic),
-            "latent_channels": int(vae.z_dim),
-            "vae_scale_factor_temporal": int(vae.scale_factor_temporal),
-            "vae_scale_factor_spatial": int(vae.scale_factor_spatial),
-            "patch_size": [int(p) for p in base.patch_size],
-            "in_channels": int(base.in_channels), "text_dim": int(base.text_dim),
-            "image_dim": int(base.image_dim), "text_tokens": TEXT_TOKENS,
-            "transformer": _jsonable(dict(base)),
             "official_config": fun.official_config(),
-            "vae": _jsonable(dict(vae)),
-            "image_encoder": {**self.image_preprocess, "hidden_size": int(self.image_encoder.config.hidden_size),
-                              "features": "hidden_states[-2]"},
             "control": {"cond_channels": 0, "adapter": "VideoX-Fun SimpleAdapter (control_adapter.*)",
                         "in_dim_control_adapter": fun.in_dim_control_adapter,
                         "downscale_factor_control_adapter": fun.downscale_factor_control_adapter},
@@ -207,10 +201,6 @@ class SynthesisComponents:
             "plucker": "funcamera.fun_camera_plucker: (o x d, d), poses relative to the first camera (identity), "
                        "no translation normalisation, pixel centres +0.5; packed 4 frames per latent frame",
             "cond_layout": "[noisy latents (16) | start-image latents (16): frame 0 = the image, others zero]",
-            "scheduler": dict(SCHEDULER_DEFAULTS),
-            "text": {"file": TEXT_EMBEDDINGS, "prompt": self.prompt, "negative_prompt": self.negative_prompt,
-                     "shape": list(self.text_embeddings.shape), "rows": ["prompt", "negative_prompt"]},
-            "cfg_uncond_camera": "on",
         }
 
 
