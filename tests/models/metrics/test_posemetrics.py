@@ -242,7 +242,8 @@ def test_a_pure_rotation_is_recovered_by_the_rotation_model(pan_clip, tmp_path, 
           f"{rec.mean_reprojection_error:.2f} px; attempts {[(a['name'], a['n_registered']) for a in rec.attempts]}")
     assert stock.n_registered < 15  # COLMAP cannot reconstruct a pure rotation
     assert rec.model == "rotation" and rec.attempt == "rotation-only" and rec.n_registered == 15
-    assert [a["name"] for a in rec.attempts] == ["global", "stock", "rotation-only"]
+    stopped = rec.attempts[0]["n_registered"] == 15  # COLMAP's global mapper may fail on a pan (not repeatable)
+    assert [a["name"] for a in rec.attempts] == ["global", "stock", *([] if stopped else ["never"]), "rotation-only"]
     e = pose_errors(rec.c2w, poses, rec.registered, scale="farthest")
     assert e["R_err_deg_mean"] < 0.1
     assert e["T_err_mean"] == 0.0  # one centre for every camera, as requested
@@ -305,3 +306,27 @@ def test_the_rotation_model_never_replaces_a_whole_incremental_reconstruction(si
     # a global rung alone proves nothing about parallax (it registers pans too): the rotation model is used
     rec = recover_poses(frames, K.K, tmp_path / "b", num_threads=THREADS, attempts=(Attempt("g", global_sfm=True),))
     assert rec.model == "rotation" and rec.attempt == "rotation-only"
+
+
+def test_the_rotation_fallback_follows_a_ladder_that_stopped_early(sim_clip, tmp_path, monkeypatch):
+    """Deterministic (COLMAP's results stubbed): a global rung registers every frame at a good error, so the ladder
+    stops after MIN_RUNGS; the rotation model is then judged against the rungs that ran, not the ladder's next one."""
+    frames, _, K = sim_clip
+    n = len(frames)
+
+    def recover(folder, names, K_, home, database, fresh, att, matcher, *args):
+        if not att.global_sfm:
+            return pose_module._failed(n, "stubbed: no reconstruction", attempt=att.name, model="sfm")
+        return pose_module.PoseRecovery(np.repeat(np.eye(4)[None], n, axis=0), np.ones(n, dtype=bool), n, n,
+                                        mean_reprojection_error=0.1, attempt=att.name, model="sfm", matcher=matcher)
+
+    def rotation(database, names, K_, n_, upscale=1):
+        return pose_module.PoseRecovery(np.repeat(np.eye(4)[None], n_, axis=0), np.ones(n_, dtype=bool), n_, n_,
+                                        mean_reprojection_error=0.2, attempt="rotation-only", model="rotation")
+
+    monkeypatch.setattr(pose_module, "_recover", recover)
+    monkeypatch.setattr(pose_module, "_rotation_only", rotation)
+    rec = recover_poses(frames, K.K, tmp_path, num_threads=THREADS,
+                        attempts=(Attempt("global", global_sfm=True), Attempt("stock"), Attempt("never")))
+    assert [a["name"] for a in rec.attempts] == ["global", "stock", "rotation-only"]
+    assert rec.model == "rotation" and rec.n_registered == n
