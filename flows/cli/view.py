@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-import time
+import os
+import signal
+import sys
+import threading
 from typing import Annotated, Optional
 
 import typer
@@ -34,6 +37,7 @@ def view(
     import viser
 
     server = viser.ViserServer(host=host, port=port, verbose=False)
+    stop = stop_signal()
     try:
         viewer = build_viewer(server, st, sid)
         data = viewer.view.data
@@ -44,9 +48,35 @@ def view(
         shown = "localhost" if host in ("0.0.0.0", "::") else host
         console.print(f"navcrafter view: scene {sid[:12]} of {store} at http://{shown}:{server.get_port()} "
                       "(Ctrl-C to stop)", soft_wrap=True)
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        console.print("navcrafter view: stopped")
-    finally:
-        server.stop()
+    except BaseException:
+        stop_server(server)
+        raise
+    while not stop.wait(0.5):  # a timed wait: the signal handlers run in the main thread between waits
+        pass
+    console.print("navcrafter view: stopped")
+    stop_server(server)
+    # The viewer writes nothing, so nothing is lost by ending the process here, and it must end here: viser runs
+    # client callbacks on a ThreadPoolExecutor whose worker threads are not daemons and are joined at interpreter
+    # exit, so one callback that never returns (a client's message handled while its connection closes) kept
+    # `navcrafter view` alive after Ctrl-C for ever (tests/flows/test_viewer.py reproduces it with a blocked worker).
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(0)
+
+
+def stop_signal() -> threading.Event:
+    """An event set by SIGINT (Ctrl-C) or SIGTERM."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def stop_server(server, timeout_s: float = 10.0) -> None:
+    """Stop a viser server, waiting at most ``timeout_s`` for it (its own joins are bounded; this bounds the rest)."""
+    stopper = threading.Thread(target=server.stop, daemon=True)
+    stopper.start()
+    stopper.join(timeout_s)

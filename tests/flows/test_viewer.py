@@ -195,3 +195,38 @@ def test_browser_draws_the_scene(viewer_store, tmp_path):
     left = slice(200, 640), slice(0, 600)
     diff = np.abs(scene[left] - blank[left]).max(axis=-1)
     assert (diff > 40).mean() > 0.01, f"only {(diff > 40).mean():.4f} of the canvas differs from an empty viewer"
+
+
+@pytest.mark.system  # starts the viewer as a subprocess
+def test_ctrl_c_stops_the_viewer_even_with_a_callback_that_never_returns(viewer_store):
+    """viser's callback pool has non-daemon worker threads that the interpreter joins at exit: one stuck callback
+    used to keep `navcrafter view` alive after Ctrl-C for ever. The viewer must end within seconds regardless."""
+    store, _ = viewer_store
+    code = (
+        "import sys, threading, viser\n"
+        "class Stuck(viser.ViserServer):\n"
+        "    def __init__(self, *a, **k):\n"
+        "        super().__init__(*a, **k)\n"
+        "        self._thread_executor.submit(threading.Event().wait)  # a callback that never returns\n"
+        "viser.ViserServer = Stuck\n"
+        "from navcrafter.flows.cli import main\n"
+        f"sys.argv = ['navcrafter', 'view', {store!r}, 'tabletop-0', '--port', '{free_port()}']\n"
+        "main()\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "COLUMNS": "200"})
+    try:
+        deadline = time.monotonic() + 60
+        out = ""
+        while time.monotonic() < deadline and "Ctrl-C to stop" not in out:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            out += line
+        assert "Ctrl-C to stop" in out, out
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+        assert "navcrafter view: stopped" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
