@@ -51,7 +51,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from navcrafter.schemas.config import SynthesisConfig
+from navcrafter.models.synthesis.config import SynthesisConfig
 
 
 class SynthesisShapeError(ValueError):
