@@ -24,11 +24,11 @@ from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.flows import dashboard, dispatch
-from navcrafter.models.backends import onnx_problems
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import STEPS, StepSpec
 from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
 from navcrafter.tasks import ingest, steps
+from navcrafter.tasks.backends import onnx_problems
 from navcrafter.tasks.common import StepError, logger, open_store
 from navcrafter.tasks.report import (
     SceneResult,

@@ -86,7 +86,7 @@ def settings(config: RunConfig) -> dict[str, Any]:
 
 
 def _backend(config: RunConfig, doc: dict[str, Any], key: str, height: int, width: int, K: np.ndarray):
-    from navcrafter.models.backends import create_backend
+    from navcrafter.tasks.backends import create_backend
 
     if config.backend != "simulation":
         return create_backend(config)

@@ -11,12 +11,12 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any
 
-from navcrafter.models.backends import create_backend
 from navcrafter.models.reconstruction.pointcloud import Cloud
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, INGEST, cloud_step
 from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.tasks.backends import create_backend
 
 _log = logging.getLogger("navcrafter")
 

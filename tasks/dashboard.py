@@ -16,9 +16,9 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, ImageDraw
 
-from navcrafter.models.backends import run_band, run_label
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
+from navcrafter.tasks.backends import run_band, run_label
 from navcrafter.tasks.common import open_store
 from navcrafter.tasks.steps import scene_steps
 

@@ -20,11 +20,11 @@ import tempfile
 
 import numpy as np
 
-from navcrafter.models.backends import run_band, run_label
 from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.layout import FIT, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
+from navcrafter.tasks.backends import run_band, run_label
 from navcrafter.tasks.readers import CameraPath, camera_path, load_gaussians, load_refined_gaussians
 from navcrafter.tasks.steps import StepContext
 

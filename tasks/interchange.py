@@ -136,8 +136,8 @@ def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
 def _labels(scene: SceneStore, config: RunConfig | None) -> tuple[str, str | None]:
     """The run's backend and label: as its export step recorded them (``run_label`` of the run's config), else
     from ``config``."""
-    from navcrafter.models.backends import run_label
     from navcrafter.schemas.layout import EXPORT
+    from navcrafter.tasks.backends import run_label
     from navcrafter.tasks.readers import export_record
 
     st = scene.status(EXPORT)

@@ -9,12 +9,12 @@ from typing import Any
 
 import pyarrow as pa
 
-from navcrafter.models.backends import run_label
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, FIT, REFINE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
+from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
 from navcrafter.tasks.steps import scene_steps
 

@@ -129,7 +129,7 @@ def export_cache(request):
 def tiny_models(tmp_path_factory, export_cache) -> Path:
     """All three learned roles exported with random weights (seed 0, tiny configs):
     MODEL_DIR/{synthesizer,geometry,monodepth}. Tests must not modify it (copy it first)."""
-    from navcrafter.models.runtime.exporters import export_all
+    from navcrafter.models.zoo.exporters import export_all
 
     root = tmp_path_factory.mktemp("models")
     T, H, W = TINY_MODELS_SIZE

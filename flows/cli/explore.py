@@ -66,7 +66,7 @@ def explore(
     if cfg.backend == "simulation":
         console.print(f"[bold yellow]{LABEL}.[/bold yellow]")
     elif cfg.backend == "onnx" and cfg.model_dir is not None and Path(cfg.model_dir).is_dir():
-        from navcrafter.models.backends import run_label
+        from navcrafter.tasks.backends import run_label
 
         if label := run_label(cfg):
             console.print(f"[bold yellow]{label}.[/bold yellow]")

@@ -44,7 +44,7 @@ def export_geometry_cmd(
     seed: int = 0,
 ) -> None:
     """VGGT-architecture multi-view geometry (frames -> cameras, depth, points) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_geometry
+    from navcrafter.models.zoo.exporters import export_geometry
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_geometry(out, checkpoint=checkpoint, random=random, seed=seed))
@@ -59,7 +59,7 @@ def export_monodepth_cmd(
     seed: int = 0,
 ) -> None:
     """MoGe-2-architecture monocular geometry (image -> points, mask, metric scale) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_monodepth
+    from navcrafter.models.zoo.exporters import export_monodepth
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_monodepth(out, checkpoint=checkpoint, random=random, seed=seed))
@@ -83,7 +83,7 @@ def export_refiner_cmd(
     seed: int = 0,
 ) -> None:
     """Difix-architecture single-step diffusion refiner (render + reference view -> refined view) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_refiner
+    from navcrafter.models.zoo.exporters import export_refiner
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_refiner(out, checkpoint=checkpoint, random=random, seed=seed, base=base,
@@ -105,7 +105,7 @@ def export_synthesizer_cmd(
     seed: int = 0,
 ) -> None:
     """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_synthesizer
+    from navcrafter.models.zoo.exporters import export_synthesizer
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_synthesizer(out, num_frames=frames, height=height, width=width, base_dir=base,
@@ -130,7 +130,7 @@ def export_fun_camera_cmd(
     seed: int = 0,
 ) -> None:
     """The public camera-controlled Wan2.1-Fun-V1.1 Control-Camera (synthesis.model=fun-camera) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_fun_camera
+    from navcrafter.models.zoo.exporters import export_fun_camera
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_fun_camera(out, checkpoint_dir=checkpoint, base_dir=base, random=random, num_frames=frames,
@@ -161,7 +161,7 @@ def export_all_cmd(
     seed: int = 0,
 ) -> None:
     """All three models with random weights (tests, demos of the onnx path, timing)."""
-    from navcrafter.models.runtime.exporters import export_all
+    from navcrafter.models.zoo.exporters import export_all
 
     s = run_config(preset).synthesis
     with usage_errors(*_EXPORT_ERRORS):
@@ -176,8 +176,8 @@ def show_cmd(
     verify: Annotated[bool, typer.Option(help="Check every file's sha256.")] = True,
 ) -> None:
     """What a model directory holds, with checksum verification."""
-    from navcrafter.models.backends import ROLE_DIRS
     from navcrafter.models.runtime.onnxio import ModelDirError, load_manifest
+    from navcrafter.models.zoo.modeldir import ROLE_DIRS
 
     dirs = [model_dir] if (model_dir / "manifest.json").is_file() else [model_dir / d for d in ROLE_DIRS.values()]
     for d in dirs:
@@ -211,7 +211,7 @@ def pull_cmd(
                                              "'paper' or 'tiny'.")] = "paper",
 ) -> None:
     """Download the official checkpoints with huggingface_hub, verify their sizes and sha256, export them."""
-    from navcrafter.models.runtime.hub import HubError, pull
+    from navcrafter.models.zoo.hub import HubError, pull
 
     s = run_config(preset).synthesis
     with usage_errors(HubError):

@@ -88,8 +88,8 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
 
 def _scene_band(scene: SceneStore) -> str | None:
     """The band of a labelled run: the simulation backend (recorded by the fit), or the label its export wrote."""
-    from navcrafter.models.backends import BANDS
     from navcrafter.schemas.layout import FIT
+    from navcrafter.tasks.backends import BANDS
     from navcrafter.tasks.readers import export_record
 
     if scene.status(FIT).attrs.get("backend") == "simulation":

@@ -320,11 +320,11 @@ def test_novel_cameras_move_sideways_and_keep_clear():
 
 
 def test_simulation_refiner_moves_renders_toward_the_truth(demo_photos, tmp_path):
-    from navcrafter.models.backends import create_backend
     from navcrafter.models.simulation.render import render
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.store import Store
     from navcrafter.tasks import steps
+    from navcrafter.tasks.backends import create_backend
     from navcrafter.tasks.common import simulation_truth
     from navcrafter.tasks.ingest import ingest
 
@@ -394,8 +394,8 @@ def test_refine_step_trains_on_refined_views_and_feeds_the_exports(demo_photos, 
 
 
 def test_refine_needs_fit_and_a_refiner(tmp_path):
-    from navcrafter.models.backends import onnx_problems
     from navcrafter.schemas.config import RunConfig
+    from navcrafter.tasks.backends import onnx_problems
 
     with pytest.raises(ValueError, match="refine.enabled needs fit.enabled"):  # the config's own rule
         RunConfig.load(preset="tiny", overrides={"refine.enabled": True})

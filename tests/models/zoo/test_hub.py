@@ -1,4 +1,4 @@
-"""``navcrafter models pull`` (models/runtime/hub.py), offline only: each test lays out a Hugging Face hub cache
+"""``navcrafter models pull`` (models/zoo/hub.py), offline only: each test lays out a Hugging Face hub cache
 itself (``models--org--name/{refs/main, snapshots/<commit>/..., blobs/}``, tiny files) and never touches the
 network (``HF_HUB_OFFLINE=1``; the online path is exercised with the hub calls replaced)."""
 
@@ -13,8 +13,8 @@ from types import SimpleNamespace
 import pytest
 from typer.testing import CliRunner
 
-from navcrafter.models.runtime import hub
-from navcrafter.models.runtime.hub import SOURCES, HubError, pull, record_snapshot, repo_folder
+from navcrafter.models.zoo import hub
+from navcrafter.models.zoo.hub import SOURCES, HubError, pull, record_snapshot, repo_folder
 
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
 
@@ -57,7 +57,7 @@ def tiny_moge_checkpoint() -> bytes:
 
 
 def test_table_matches_the_loaders():
-    from navcrafter.models.backends import ROLE_DIRS
+    from navcrafter.tasks.backends import ROLE_DIRS
 
     assert set(hub.DEFAULT_ROLES) <= set(SOURCES)
     for src in SOURCES.values():
@@ -82,7 +82,7 @@ def test_offline_pull_exports_monodepth(tmp_path):
     manifest = load_manifest(model_dir / "monodepth", "monodepth")  # what the runtime checks at load
     assert manifest["weights"]["source"] == "checkpoint"
     assert manifest["config"]["embed_dim"] == 32  # the checkpoint's own model_config, not ViT-L
-    from navcrafter.models.backends import model_manifests
+    from navcrafter.tasks.backends import model_manifests
 
     assert set(model_manifests(model_dir)) == {"monodepth"}
 
