@@ -23,8 +23,9 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.tables import utcnow
-from navcrafter.tasks import clip_reconstruction, score
-from navcrafter.tasks import clips as clip_tasks
+from navcrafter.tasks import score
+from navcrafter.tasks.clips import dataset as clip_tasks
+from navcrafter.tasks.clips import reconstruction as clip_reconstruction
 from navcrafter.tasks.common import open_store
 from navcrafter.tasks.report import read_manifest
 
@@ -109,8 +110,8 @@ def evaluate_store_local(store: str, config: RunConfig) -> EvaluationRun:
 @flow(name="evaluate-clips", persist_result=False)
 def evaluate_clips(clips: str, generated: str, out: str, config: RunConfig, reconstruction: bool = True
                    ) -> EvaluationRun:
-    """Score the frames a generator made for dataset clips (``tasks/clips.py``: Tables I-III; with
-    ``reconstruction``, Table IV: a 3DGS fit per clip, ``tasks/clip_reconstruction.py``, with ``config.fit``);
+    """Score the frames a generator made for dataset clips (``tasks/clips/dataset.py``: Tables I-III; with
+    ``reconstruction``, Table IV: a 3DGS fit per clip, ``tasks/clips/reconstruction.py``, with ``config.fit``);
     writes ``out/evaluations.parquet`` (the evaluations schema) and ``out/report.{md,json}``."""
     from pathlib import Path
 

@@ -22,6 +22,8 @@ from navcrafter.models.reconstruction.config import LiftConfig
 from navcrafter.models.settings import Section as _Section
 from navcrafter.models.simulation.config import SimulationConfig
 from navcrafter.models.synthesis.config import SynthesisConfig
+from navcrafter.schemas.keys import stable_hash, step_config
+from navcrafter.schemas.layout import STEPS
 
 Backend = Literal["simulation", "onnx"]
 
@@ -112,16 +114,11 @@ class RunConfig(BaseModel):
     # -- hashing ---------------------------------------------------------------------------------
     def step_config(self, step: str) -> dict[str, Any]:
         """The part of the config that a step's output depends on (``schemas.keys.step_config``)."""
-        from navcrafter.schemas.keys import step_config
-        from navcrafter.schemas.layout import STEPS
-
         if step not in STEPS:
             raise KeyError(f"unknown step {step!r}; known: {sorted(STEPS)}")
         return step_config(STEPS[step], self)
 
     def config_hash(self) -> str:
-        from navcrafter.schemas.keys import stable_hash
-
         return stable_hash(self.model_dump(mode="json"))
 
     # -- loading ---------------------------------------------------------------------------------

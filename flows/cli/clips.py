@@ -102,8 +102,8 @@ def generate_clips(
     """Generate each clip's video with the configured synthesizer (4k + 1 frames: 17 for 15 cameras, the first 15
     kept); score them with `navcrafter evaluate-clips CLIPS OUT`. Reruns skip finished clips."""
     from navcrafter.models.simulation import LABEL
-    from navcrafter.tasks.clip_generation import generation_frames
     from navcrafter.tasks.clips import clip_keys, load_clip
+    from navcrafter.tasks.clips.generation import generation_frames
 
     with usage_errors(FileNotFoundError):
         keys = clip_keys(clips)

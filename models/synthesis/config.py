@@ -8,6 +8,8 @@ from pydantic import Field
 
 from navcrafter.models.settings import Section as _Section
 
+WAN_FLOW_SHIFT = 3.0  # Wan2.1's scheduler shift: exported models record it; used when a manifest has none
+
 
 class SynthesisConfig(_Section):
     """Video synthesis (paper: Wan2.1 DiT sampled with DPM-solver, 81-frame 256x256 clips)."""

@@ -65,7 +65,7 @@ def test_table_matches_the_loaders():
         assert src.target in (*ROLE_DIRS, hub.EVAL_DIR), src.role
         assert (src.repo_id is None) == bool(src.urls), src.role
     # the file names the evaluation networks look up are the ones the eval role fetches
-    from navcrafter.models.metrics.evalnets.weights import known_weight_files
+    from navcrafter.models.metrics.evalnets import known_weight_files
 
     assert {w.filename for w in known_weight_files().values()} == {u.filename for u in SOURCES["eval"].urls}
     assert SOURCES["geometry"].required == ("model.safetensors",) and SOURCES["monodepth"].required == ("model.pt",)
@@ -210,7 +210,7 @@ def test_eval_role_downloads_urls_records_and_exports(tmp_path, monkeypatch):
     hash-in-name), recorded, verified offline, and copied to MODEL_DIR/eval, where the metrics look them up."""
     from dataclasses import replace
 
-    from navcrafter.models.metrics.evalnets.weights import find_weights, known_weight_files
+    from navcrafter.models.metrics.evalnets import find_weights, known_weight_files
 
     known_weight_files()  # registers the networks' files
     monkeypatch.delenv("HF_HUB_OFFLINE")

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from navcrafter.schemas.clips import CLOUD
 from navcrafter.schemas.config import RunConfig
-from navcrafter.tasks.clip_generation import CLOUD
-from navcrafter.tasks.clips import load_clip, load_generated
+from navcrafter.tasks.clips.dataset import load_clip, load_generated
 from navcrafter.tasks.score import row
 
 INIT_POINTS, NEAR, FAR = 20_000, 0.5, 5.0

@@ -1,6 +1,6 @@
 """Generate frames for dataset clips with the configured synthesizer (``navcrafter generate-clips``).
 
-A dataset clip (``tasks/clips.py``: a conditioning image, the 14 ground-truth frames after it and the 15
+A dataset clip (``tasks/clips/dataset.py``: a conditioning image, the 14 ground-truth frames after it and the 15
 cameras) asks for a video along its cameras. Wan-based synthesizers make ``4k + 1`` frames, so the camera path is
 extended to ``generation_frames(T)`` poses, the smallest ``4k + 1 >= T`` (17 for the paper's 15: the conditioning
 frame + 14): the poses after the clip's last continue its last relative motion (constant velocity, the last
@@ -42,12 +42,9 @@ import numpy as np
 from PIL import Image
 
 from navcrafter.models.camera.cameras import Intrinsics, invert_pose
+from navcrafter.schemas.clips import CLOUD, GENERATION, GENERATION_VERSION
 from navcrafter.schemas.config import RunConfig
-from navcrafter.tasks.clips import load_clip
-
-GENERATION = "generation.json"
-CLOUD = "cloud.npz"
-VERSION = 1
+from navcrafter.tasks.clips.dataset import load_clip
 
 
 def generation_frames(n: int) -> int:
@@ -76,7 +73,7 @@ def clip_seed(key: str, seed: int) -> int:
 
 def settings(config: RunConfig) -> dict[str, Any]:
     """What decides a clip's frames: the backend and its model settings (``generation.json`` records them)."""
-    out: dict[str, Any] = {"version": VERSION, "backend": config.backend, "seed": config.seed}
+    out: dict[str, Any] = {"version": GENERATION_VERSION, "backend": config.backend, "seed": config.seed}
     if config.backend == "simulation":
         out["simulation"] = config.simulation.model_dump(mode="json")
     else:
