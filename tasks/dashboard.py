@@ -20,7 +20,7 @@ from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
 from navcrafter.tasks.backends import run_band, run_label
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 THUMB = 256  # longer side of a thumbnail (input image, top-down plots), pixels
 GRID_MAX = 512  # longer side of the render grid, pixels

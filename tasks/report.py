@@ -16,7 +16,7 @@ from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 
 @dataclass

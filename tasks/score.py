@@ -37,7 +37,7 @@ import numpy as np
 
 from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
-from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SYNTHESIZE
+from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, STEPS, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import open_store, simulation_truth
@@ -319,7 +319,8 @@ def score(ctx: StepContext) -> dict[str, Any]:
 
 def score_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> list[dict[str, Any]]:
     """Run (or read back) the score step of an explored scene: its rows."""
-    return [dict(r) for r in steps.run_attrs(store_uri, scene_id, "score", config, run_id)["rows"]]
+    attrs = steps.execute_attrs(store_uri, scene_id, STEPS["score"], config, run_id, score)
+    return [dict(r) for r in attrs["rows"]]
 
 
 # -- table II: over all scenes ---------------------------------------------------------------------

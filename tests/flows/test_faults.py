@@ -43,7 +43,7 @@ from helpers import (
 
 from navcrafter.schemas.store import Store
 from navcrafter.tasks.report import read_manifest
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 pytestmark = [
     pytest.mark.system,  # outages of real servers under flows run in subprocesses and by workers

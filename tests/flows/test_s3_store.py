@@ -126,7 +126,7 @@ def test_explore_collection_on_s3_matches_local(s3_endpoint, prefect_api_url, de
     from navcrafter.flows.explore import explore_collection
     from navcrafter.models.reconstruction.pointcloud import read_ply
     from navcrafter.tasks.report import read_manifest
-    from navcrafter.tasks.steps import scene_steps
+    from navcrafter.tasks.runner import scene_steps
 
     photos = tmp_path / "photos"
     photos.mkdir()

@@ -23,7 +23,7 @@ def viewer_store(tmp_path_factory):
     from navcrafter.models.simulation.demo import write_demo_collection
     from navcrafter.schemas.config import RunConfig
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     root = tmp_path_factory.mktemp("viewer")
     write_demo_collection(root / "photos", width=320, height=240, supersample=1)

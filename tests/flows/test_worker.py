@@ -33,7 +33,7 @@ from helpers import (
 
 from navcrafter.schemas.store import Store
 from navcrafter.tasks.report import read_manifest
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 GPU_POOL = "navcrafter-test-gpu"  # process pool standing in for the GPU machines
 SCENE_DEPLOYMENT = "explore-scene/test"

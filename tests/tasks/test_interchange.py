@@ -23,7 +23,7 @@ def explored(demo_photos, tmp_path_factory):
     """A store with a tiny explored scene with the fit (5 iterations), one without it, and one only ingested."""
     from navcrafter.schemas.config import RunConfig
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     store = str(tmp_path_factory.mktemp("interchange") / "store")
     fit_cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "fit.iterations": 5})

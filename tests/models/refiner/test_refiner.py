@@ -339,7 +339,7 @@ def test_onnx_backend_serves_the_refiner_and_the_refine_step_runs_it(exported, d
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.backends import _onnx_backend, onnx_problems
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     models = tmp_path / "models"
     shutil.copytree(exported, models / "refiner")
