@@ -20,6 +20,7 @@ from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.task_runners import ThreadPoolTaskRunner
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.tables import utcnow
@@ -27,7 +28,6 @@ from navcrafter.tasks import score
 from navcrafter.tasks.clips import dataset as clip_tasks
 from navcrafter.tasks.clips import reconstruction as clip_reconstruction
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.report import read_manifest
 
 
 @dataclass

@@ -24,13 +24,7 @@ from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.flows import dashboard, dispatch
-from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import STEPS, StepSpec
-from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
-from navcrafter.tasks import ingest, runner
-from navcrafter.tasks.backends import onnx_problems
-from navcrafter.tasks.common import StepError, logger, open_store
-from navcrafter.tasks.report import (
+from navcrafter.flows.tools.report import (
     SceneResult,
     manifest_rows_for,
     plan_artifact_markdown,
@@ -39,6 +33,12 @@ from navcrafter.tasks.report import (
     write_manifest,
     write_summary,
 )
+from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import STEPS, StepSpec
+from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
+from navcrafter.tasks import ingest, runner
+from navcrafter.tasks.backends import onnx_problems
+from navcrafter.tasks.common import StepError, logger, open_store
 from navcrafter.tasks.runner import scene_steps
 
 TRANSIENT = (OSError, TimeoutError, ConnectionError, StoreUnavailable)

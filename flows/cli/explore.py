@@ -87,7 +87,7 @@ def explore(
     flow_ = explore_collection.with_options(task_runner=ThreadPoolTaskRunner(max_workers=cfg.max_parallel_scenes))
     run = flow_(photos, store, cfg, scene_deployment=scene_deployment)
     results = run.scenes
-    from navcrafter.tasks.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
+    from navcrafter.flows.tools.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
 
     table = Table(title="navcrafter run summary")
     columns = (*SUMMARY_COLUMNS[:4], "median dist.", "cover.", "noise", "F", "coll.", "3DGS", "sec", "error")

@@ -24,8 +24,8 @@ def status(
     """Show the manifest (one row per image: status, last step, metrics, error) beside the Prefect
     state of its flow run, and flag scenes that need action (stale, possibly dead worker)."""
     from navcrafter.flows.runstates import run_states
+    from navcrafter.flows.tools.report import read_manifest
     from navcrafter.schemas.store import Store, StoreError
-    from navcrafter.tasks.report import read_manifest
 
     with usage_errors(StoreError):
         st = Store(store, create=False)

@@ -41,8 +41,8 @@ from helpers import (
     tail,
 )
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.report import read_manifest
 from navcrafter.tasks.runner import scene_steps
 
 pytestmark = [

@@ -216,7 +216,7 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     assert a["lpips"] is None and "weights are missing" in a["lpips_note"]
     assert a["renderer"] == "cpu" and a["peak_rss_mb"] > 50  # the compiled kernels; the step's sampled peak
     # the run summary reports the fit and says that the LPIPS term was skipped
-    from navcrafter.tasks.report import scene_result, summary_markdown
+    from navcrafter.flows.tools.report import scene_result, summary_markdown
 
     result = scene_result(scene, ["tabletop-0.png"], cfg, "done")
     assert result.metrics["gs_psnr"] == a["psnr"] and result.metrics["gs_gaussians"] == G

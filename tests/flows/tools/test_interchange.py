@@ -1,6 +1,6 @@
-"""``navcrafter export`` (tasks/interchange.py, flows/cli/export.py): a finished scene as a nerfstudio dataset and a
-COLMAP text model (read back with pycolmap), at the fit's cameras or the estimated path; and the export step's
-``gaussians.ply`` as splat viewers read it (plyfile, the INRIA 3DGS layout)."""
+"""``navcrafter export`` (flows/tools/interchange.py, flows/cli/export.py): a finished scene as a nerfstudio dataset
+and a COLMAP text model (read back with pycolmap), at the fit's cameras or the estimated path; and the export
+step's ``gaussians.ply`` as splat viewers read it (plyfile, the INRIA 3DGS layout)."""
 
 from __future__ import annotations
 
@@ -57,10 +57,10 @@ def _check_images(scene, out: Path, refs, width, height):
 def test_nerfstudio_export_at_the_fit_cameras(explored, tmp_path):
     import open3d as o3d
 
+    from navcrafter.flows.tools.interchange import export_nerfstudio
     from navcrafter.models.simulation import LABEL
     from navcrafter.schemas.layout import FIT
     from navcrafter.tasks.common import load_cloud
-    from navcrafter.tasks.interchange import export_nerfstudio
     from navcrafter.tasks.readers import camera_path
 
     scene, cfg = _scene(explored, "fitted"), explored["fit_cfg"]
@@ -151,8 +151,8 @@ def test_colmap_export_reads_back_with_pycolmap(explored, tmp_path):
 def test_export_without_the_fit_uses_the_estimated_path(explored, tmp_path):
     import pycolmap
 
+    from navcrafter.flows.tools.interchange import export_colmap, export_nerfstudio
     from navcrafter.schemas.layout import FIT
-    from navcrafter.tasks.interchange import export_colmap, export_nerfstudio
     from navcrafter.tasks.readers import camera_path
 
     scene, cfg = _scene(explored, "plain"), explored["plain_cfg"]

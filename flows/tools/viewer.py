@@ -54,7 +54,7 @@ class SceneNotFound(ValueError):
 # --------------------------------------------------------------------------------------------------
 def scene_sources(store: Store) -> dict[str, list[str]]:
     """Source paths of each scene id: the manifest's rows, else the ingest step's ``source``."""
-    from navcrafter.tasks.report import read_manifest
+    from navcrafter.flows.tools.report import read_manifest
 
     out: dict[str, list[str]] = {sid: [] for sid in store.scene_ids()}
     for r in read_manifest(store).to_pylist():  # empty for scenes run outside a flow
