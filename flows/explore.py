@@ -201,6 +201,7 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     metrics: dict[str, float] = {}
     failure: Exception | None = None
     try:
+        runner.record_run_config(store, scene_id, config, run_id)  # the tools read it (render, view, export)
         for step in order:
             STEP_TASKS[step.spec.name](store, scene_id, config, run_id, **step.kwargs())
             progress.advance()

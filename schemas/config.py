@@ -175,3 +175,31 @@ def _dotted_to_nested(dotted: str, value: Any) -> dict[str, Any]:
     for k in reversed(keys[:-1]):
         nested = {k: nested}
     return nested
+
+
+# -- the run configuration stored with each scene ------------------------------------------------------------------
+RUN_CONFIG_FILE = "run_config.json"  # scenes/<scene_id>/run_config.json (schemas.layout.scene_group)
+RUN_CONFIG_FORMAT = "navcrafter-run-config"
+RUN_CONFIG_HISTORY = 20  # the last runs' config hashes kept beside the latest config
+
+
+class StoredRunConfig(BaseModel):
+    """What a scene run stores before its first step: the resolved ``RunConfig`` it runs with.
+
+    Written at the start of every run of the scene (``tasks.runner.record_run_config``), so it is the latest run's
+    config: every step that run completed was skipped (its cache key, hence the config part it reads, unchanged) or
+    recomputed with it. ``history`` lists the earlier runs' config hashes (newest last): a scene resumed with a
+    different config says so. Tools that read a finished scene (render, view, export) take the config from here.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    format: Literal["navcrafter-run-config"] = RUN_CONFIG_FORMAT
+    version: int = 1
+    scene_id: str
+    run_id: str
+    written_at: str
+    config_hash: str
+    config: RunConfig
+    history: list[dict[str, str]] = Field(default_factory=list, description="earlier runs: run_id, config_hash, "
+                                          "written_at (newest last, at most RUN_CONFIG_HISTORY)")

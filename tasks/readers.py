@@ -15,9 +15,21 @@ from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
 from navcrafter.models.planning.planners import scene_centre
-from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE, StepSpec
+from navcrafter.schemas.config import RUN_CONFIG_FILE, RunConfig, StoredRunConfig
+from navcrafter.schemas.layout import (
+    EXPORT,
+    FIT,
+    GEOMETRY,
+    INGEST,
+    LIFT,
+    PLAN,
+    REFINE,
+    SYNTHESIZE,
+    StepSpec,
+    scene_group,
+)
 from navcrafter.schemas.store import SceneStore
+from navcrafter.tasks.common import logger
 
 
 @dataclass(frozen=True)
@@ -62,9 +74,27 @@ class CameraPath:
         return Intrinsics.from_matrix(self.K[f], self.width, self.height)
 
 
+def stored_run_config(scene: SceneStore) -> StoredRunConfig | None:
+    """The run configuration the scene's latest run stored before its first step (``schemas.config
+    .StoredRunConfig``), or None for a scene written before runs stored it."""
+    rel = f"{scene_group(scene.scene_id)}/{RUN_CONFIG_FILE}"
+    try:
+        data = scene.store.read_bytes(rel)
+    except FileNotFoundError:
+        return None
+    return StoredRunConfig.model_validate_json(data)
+
+
 def scene_run_config(scene: SceneStore, iterations: int | None = None) -> RunConfig:
-    """The parts of a run's config that the readers need, from the scene itself (a store keeps no config): the
-    synthesis size is the ingested working image's; ``iterations`` when given, else the default."""
+    """The config the scene's latest run ran with (stored with the scene). A scene written before runs stored their
+    config (before navcrafter stored ``run_config.json``) falls back, with a warning, to the defaults with the
+    synthesis size of its ingested working image and ``iterations`` (when given) as a reconstruction."""
+    stored = stored_run_config(scene)
+    if stored is not None:
+        return stored.config
+    logger().warning(f"scene {scene.scene_id[:12]}: written before runs stored their config ({RUN_CONFIG_FILE}); "
+                     "the default config with the scene's image size is assumed (rerun `navcrafter explore` with "
+                     "the same config to store it: nothing is recomputed)")
     width, height = scene.require_complete(INGEST).attrs["work_size"]
     base = RunConfig()
     synthesis = base.synthesis.model_copy(update={"width": int(width), "height": int(height)})

@@ -12,11 +12,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.config import RUN_CONFIG_FILE, RUN_CONFIG_HISTORY, RunConfig, StoredRunConfig
 from navcrafter.schemas.keys import runs
-from navcrafter.schemas.layout import STEPS, StepSpec, scene_steps_in_order
+from navcrafter.schemas.layout import STEPS, StepSpec, scene_group, scene_steps_in_order
+from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.bodies import BODIES
-from navcrafter.tasks.common import StepRef
+from navcrafter.tasks.common import StepRef, logger, open_store
+from navcrafter.tasks.readers import stored_run_config
 from navcrafter.tasks.steps import Body, execute, execute_attrs
 
 
@@ -78,7 +80,28 @@ def scene_steps(config: RunConfig) -> list[Step]:
     return steps
 
 
+def record_run_config(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StoredRunConfig:
+    """Store the resolved config of this run with the scene (``scenes/<id>/run_config.json``) before its first step;
+    the earlier runs' config hashes move to its history. A run with another config than the scene's last is logged
+    (its steps whose keys changed are recomputed, as always)."""
+    store = open_store(store_uri)
+    scene = store.scene(scene_id)
+    with store.scene_lock(scene_id):
+        previous = stored_run_config(scene)
+        history = [] if previous is None else [*previous.history, {
+            "run_id": previous.run_id, "config_hash": previous.config_hash, "written_at": previous.written_at}]
+        doc = StoredRunConfig(scene_id=scene_id, run_id=run_id, written_at=utcnow().isoformat(),
+                              config_hash=config.config_hash(), config=config,
+                              history=history[-RUN_CONFIG_HISTORY:])
+        if previous is not None and previous.config_hash != doc.config_hash:
+            logger().info(f"scene {scene_id[:12]}: this run's config differs from its last run's "
+                          f"({previous.config_hash[:12]} -> {doc.config_hash[:12]}); steps whose keys changed rerun")
+        store.write_bytes(f"{scene_group(scene_id)}/{RUN_CONFIG_FILE}", doc.model_dump_json(indent=1).encode())
+    return doc
+
+
 def run_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> list[StepRef]:
-    """All steps of an ingested scene in this process, without Prefect."""
+    """All steps of an ingested scene in this process, without Prefect (the run's config stored first)."""
+    record_run_config(store_uri, scene_id, config, run_id)
     return [s.run(store_uri, scene_id, config, run_id) for s in scene_steps(config)]
 

@@ -100,11 +100,13 @@ def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
 
 
 def scene_config(scene: SceneStore) -> RunConfig:
-    """The parts of the run's config that the export reads, from the scene (a store keeps no config): the iterations
-    its export covered and the synthesis size (the ingested working image's)."""
+    """The config the scene's run stored (``readers.scene_run_config``). For a scene written before runs stored it,
+    the fallback reconstruction takes the iterations its export covered (a warning says so)."""
     from navcrafter.schemas.layout import LIFT
-    from navcrafter.tasks.readers import export_record, scene_run_config
+    from navcrafter.tasks.readers import export_record, scene_run_config, stored_run_config
 
+    if stored_run_config(scene) is not None:
+        return scene_run_config(scene)
     frames = export_record(scene).get("frames", [])
     if frames:
         iterations = max(int(f["iteration"]) for f in frames)
