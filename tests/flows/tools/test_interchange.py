@@ -230,3 +230,30 @@ def test_gaussians_ply_reads_as_the_inria_layout_with_plyfile(explored):
                        model.log_scales.double().exp().numpy())
     q = cols("rot_0", "rot_1", "rot_2", "rot_3")
     assert np.array_equal(q, m["quats"]) and (np.linalg.norm(q, axis=1) > 0).all()
+
+
+def test_scene_run_config_is_the_stored_one(explored, caplog):
+    """A run stores its resolved config with the scene; the tools read it back (not defaults); a rerun with another
+    config keeps the earlier one's hash in the history; a scene without the file falls back with a warning."""
+    from navcrafter.flows.tools.interchange import scene_config
+    from navcrafter.schemas.config import RUN_CONFIG_FILE, RunConfig
+    from navcrafter.schemas.store import Store
+    from navcrafter.tasks.readers import scene_run_config, stored_run_config
+    from navcrafter.tasks.runner import record_run_config
+
+    store = Store(explored["store"], create=False)
+    fitted = store.scene(explored["fitted"])
+    assert scene_run_config(fitted) == explored["fit_cfg"] and scene_config(fitted) == explored["fit_cfg"]
+    assert scene_run_config(fitted) != RunConfig()  # not rebuilt from defaults (tiny preset, fit on)
+    other = RunConfig.load(preset="tiny", overrides={"seed": 7})
+    record_run_config(explored["store"], explored["plain"], other, "t2")
+    doc = stored_run_config(store.scene(explored["plain"]))
+    assert doc.config == other and doc.run_id == "t2"
+    assert [h["config_hash"] for h in doc.history] == [explored["plain_cfg"].config_hash()]
+    record_run_config(explored["store"], explored["plain"], explored["plain_cfg"], "t3")  # as the other tests expect
+    unfinished = store.scene(explored["unfinished"])  # only ingested: as a scene of a store written before
+    assert stored_run_config(unfinished) is None
+    assert Path(store.path(f"scenes/{explored['fitted']}/{RUN_CONFIG_FILE}")).is_file()
+    with caplog.at_level("WARNING"):
+        legacy = scene_run_config(unfinished)
+    assert legacy.iterations == RunConfig().iterations and "written before runs stored their config" in caplog.text
