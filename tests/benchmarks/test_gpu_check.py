@@ -3,23 +3,16 @@ numbers are not measurements)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def gpu_check():
-    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "benchmarks" / "gpu_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_check"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    from benchmarks import gpu_check
+
+    return gpu_check
 
 
 def test_refuses_without_cuda(gpu_check, tmp_path, monkeypatch, capsys):
@@ -70,6 +63,7 @@ def test_dit_torch_vs_onnxruntime_dry_run(gpu_check, tmp_path):
     assert res["torch"]["median_s"] > 0 and res["export_s"] > 0
 
 
+@pytest.mark.subprocess  # gpu_check runs each item in a child Python
 def test_item_subprocess_failure_and_timeout_are_recorded(gpu_check, tmp_path):
     ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path)}
     r = gpu_check.run_item_subprocess("training", ctx, 120)
