@@ -71,6 +71,15 @@ def run_label(config: RunConfig) -> str | None:
     return None
 
 
+def label_band(label: str | None) -> str | None:
+    """The short form of a run label burnt into frames and figures ("SIMULATION", "RANDOM WEIGHTS", ...)."""
+    if not label:
+        return None
+    if label.startswith("SIMULATION") or label == SIMULATION_LABEL:
+        return "SIMULATION"
+    return BANDS.get(label, label.split(":")[0][:32])
+
+
 def run_band(config: RunConfig) -> str | None:
     """The short form of ``run_label`` burnt into the frames of videos and figures ("SIMULATION", ...)."""
     label = run_label(config)

@@ -15,6 +15,7 @@ from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
 from navcrafter.models.planning.planners import scene_centre
+from navcrafter.models.simulation import LABEL as SIMULATION_LABEL
 from navcrafter.schemas.config import RUN_CONFIG_FILE, RunConfig, StoredRunConfig
 from navcrafter.schemas.layout import (
     EXPORT,
@@ -29,6 +30,7 @@ from navcrafter.schemas.layout import (
     scene_group,
 )
 from navcrafter.schemas.store import SceneStore
+from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import logger
 
 
@@ -108,6 +110,25 @@ def export_record(scene: SceneStore) -> dict:
     st = scene.status(EXPORT)
     doc = st.attrs.get("files", {}).get("trajectory.json") if st.complete else None
     return json.loads(scene.store.read_bytes(doc["path"])) if doc else {}
+
+
+def scene_label(scene: SceneStore) -> str | None:
+    """The label every output of the scene's run carries (SIMULATION, RANDOM WEIGHTS, CAMERA CONTROL UNTRAINED;
+    ``tasks.backends.run_label``), or None: the one its export recorded, else the stored run config's, else (a scene
+    written before runs stored their config) the simulation's when its steps recorded that backend."""
+    try:
+        label = export_record(scene).get("label")
+    except (OSError, ValueError):
+        label = None
+    if label:
+        return label
+    stored = stored_run_config(scene)
+    if stored is not None:
+        return run_label(stored.config)
+    for spec in (INGEST, GEOMETRY, FIT):
+        if scene.status(spec).attrs.get("backend") == "simulation":
+            return SIMULATION_LABEL
+    return None
 
 
 def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = None,

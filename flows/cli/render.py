@@ -21,7 +21,6 @@ from navcrafter.flows.cli.options import console, err, fail, usage_errors
 if TYPE_CHECKING:
     from navcrafter.models.camera.cameras import Intrinsics
     from navcrafter.models.gaussians.model import GaussianModel
-    from navcrafter.schemas.store import SceneStore
 
 DEFAULT_SIZE = 512  # a bare PLY's default width and height
 BANDS_IN_COMMENTS = ("SIMULATION", "RANDOM WEIGHTS", "CAMERA CONTROL UNTRAINED")
@@ -59,7 +58,14 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     centre. ``scene_id`` may be a unique prefix; None picks the store's only scene."""
     from navcrafter.schemas.layout import FIT, PLAN, REFINE
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.readers import camera_path, load_gaussians, load_refined_gaussians, scene_run_config
+    from navcrafter.tasks.backends import label_band
+    from navcrafter.tasks.readers import (
+        camera_path,
+        load_gaussians,
+        load_refined_gaussians,
+        scene_label,
+        scene_run_config,
+    )
 
     store = Store(store_uri, create=False)
     ids = store.scene_ids()
@@ -83,21 +89,7 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
     path = camera_path(scene, scene_run_config(scene), iterations=1)
     return Source(model, f"scene {sid[:12]}{' (refined)' if refined else ''}", path.c2w[0], path.intrinsics(0),
-                  np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), _scene_band(scene))
-
-
-def _scene_band(scene: SceneStore) -> str | None:
-    """The band of a labelled run: the simulation backend (recorded by the fit), or the label its export wrote."""
-    from navcrafter.schemas.layout import FIT
-    from navcrafter.tasks.backends import BANDS
-    from navcrafter.tasks.readers import export_record
-
-    if scene.status(FIT).attrs.get("backend") == "simulation":
-        return "SIMULATION"
-    label = export_record(scene).get("label")
-    if label:
-        return BANDS.get(label, "SIMULATION" if label.startswith("SIMULATION") else label.split(":")[0][:32])
-    return None
+                  np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), label_band(scene_label(scene)))
 
 
 def _triple(text: str, option: str) -> np.ndarray:

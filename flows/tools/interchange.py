@@ -137,15 +137,15 @@ def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
 
 
 def _labels(scene: SceneStore, config: RunConfig | None) -> tuple[str, str | None]:
-    """The run's backend and label: as its export step recorded them (``run_label`` of the run's config), else
-    from ``config``."""
+    """The run's backend and label: as its export step recorded them, else from ``config``
+    (``readers.scene_label``: the one label reader)."""
     from navcrafter.schemas.layout import EXPORT
     from navcrafter.tasks.backends import run_label
-    from navcrafter.tasks.readers import export_record
+    from navcrafter.tasks.readers import scene_label
 
     st = scene.status(EXPORT)
     backend = st.attrs.get("backend") or (config.backend if config is not None else "unknown")
-    label = st.attrs.get("label") or export_record(scene).get("label")
+    label = st.attrs.get("label") or scene_label(scene)
     if not label and config is not None:
         label = run_label(config)
     return backend, label or None

@@ -28,6 +28,7 @@ import numpy as np
 from navcrafter.models.camera.cameras import matrix_to_quat, quat_wxyz_to_matrix
 from navcrafter.schemas.layout import FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.tasks.readers import scene_label
 
 # RGB of each kind of camera
 COLOURS = {
@@ -97,22 +98,6 @@ def resolve_scene(store: Store, scene: str | None) -> str:
                             f"source name); {hint}")
     raise SceneNotFound(f"scene {scene!r} matches {len(matches)} scenes of {store.uri} "
                         f"({', '.join(m[:12] for m in matches[:5])}); give more characters of the id ({hint})")
-
-
-def scene_label(scene: SceneStore) -> str | None:
-    """The label every output of the scene's run carries (``models.backends.run_label``): the simulation's,
-    from the backend each step records, or the one the export wrote (e.g. random weights); None for none."""
-    from navcrafter.models.simulation import LABEL
-
-    for spec in (INGEST, GEOMETRY, FIT):
-        if scene.status(spec).attrs.get("backend") == "simulation":
-            return LABEL
-    from navcrafter.tasks.readers import export_record
-
-    try:
-        return export_record(scene).get("label") or None
-    except (OSError, ValueError):
-        return None
 
 
 # --------------------------------------------------------------------------------------------------
