@@ -23,7 +23,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
-from navcrafter.schemas.tables import utcnow
+from navcrafter.schemas.tables import to_table, utcnow
 from navcrafter.tasks import score
 from navcrafter.tasks.clips import dataset as clip_tasks
 from navcrafter.tasks.clips import reconstruction as clip_reconstruction
@@ -117,7 +117,6 @@ def evaluate_clips(clips: str, generated: str, out: str, config: RunConfig, reco
 
     import pyarrow.parquet as pq
 
-    from navcrafter.schemas.tables import to_table
 
     evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
     keys = clip_tasks.clip_keys(clips)

@@ -27,6 +27,7 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.store import Store
 
 SCENE_FLOW = "explore-scene"
@@ -271,7 +272,6 @@ def run_states(
     ``api_url``: the Prefect API (default: PREFECT_API_URL / the active profile); never starts one.
     Never raises for an unreachable API: the result says ``reachable=False`` and why.
     """
-    from navcrafter.flows.tools.report import read_manifest
 
     st = store if isinstance(store, Store) else Store(store, create=False)
     rows = read_manifest(st).to_pylist() if rows is None else rows

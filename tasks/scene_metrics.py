@@ -40,6 +40,7 @@ from navcrafter.models.metrics.cloud import (
     unit,
 )
 from navcrafter.models.planning.planners import search_space
+from navcrafter.models.simulation.reference import reference_points
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, STEPS, SYNTHESIZE
 from navcrafter.schemas.tables import utcnow
@@ -85,7 +86,6 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
     scene.require_complete(EXPORT)
     cloud = load_cloud(scene, config.iterations)
     metrics: dict[str, float] = {"n_points": float(len(cloud))}
-    from navcrafter.models.simulation.reference import reference_points
 
     plan_attrs = [scene.status(PLAN, k).attrs for k in range(1, config.iterations + 1)]
     metrics["plan_seconds"] = float(sum(a.get("seconds", 0.0) for a in plan_attrs))

@@ -34,8 +34,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from navcrafter.models.camera.cameras import Intrinsics, invert_pose, matrix_to_quat
+from navcrafter.models.camera.trajectories import GL_CV_FLIP
 from navcrafter.models.metrics import cloud_files
 from navcrafter.models.metrics.cloud_files import MESH_POINTS
+from navcrafter.models.reconstruction.pointcloud import ply_bytes
+from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, LIFT, SYNTHESIZE
+from navcrafter.schemas.store import Store, StoreError
+from navcrafter.tasks.backends import run_label
+from navcrafter.tasks.common import load_cloud
+from navcrafter.tasks.readers import camera_path, export_record, scene_label, scene_run_config, stored_run_config
 
 if TYPE_CHECKING:
     from navcrafter.schemas.config import RunConfig
@@ -78,8 +86,6 @@ class ExportFrames:
 def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
     """The scene ``scene_id`` (or a unique prefix of it) of a store, which must have finished exploring (its
     export step complete)."""
-    from navcrafter.schemas.layout import EXPORT
-    from navcrafter.schemas.store import Store, StoreError
 
     try:
         store = Store(store_uri, create=False)
@@ -102,8 +108,6 @@ def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
 def scene_config(scene: SceneStore) -> RunConfig:
     """The config the scene's run stored (``readers.scene_run_config``). For a scene written before runs stored it,
     the fallback reconstruction takes the iterations its export covered (a warning says so)."""
-    from navcrafter.schemas.layout import LIFT
-    from navcrafter.tasks.readers import export_record, scene_run_config, stored_run_config
 
     if stored_run_config(scene) is not None:
         return scene_run_config(scene)
@@ -119,9 +123,6 @@ def scene_config(scene: SceneStore) -> RunConfig:
 
 def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
     """The frames to export at the fit's cameras (fit step complete), else at the estimated camera path."""
-    from navcrafter.models.camera.cameras import Intrinsics
-    from navcrafter.schemas.layout import FIT
-    from navcrafter.tasks.readers import camera_path
 
     W, H = int(config.synthesis.width), int(config.synthesis.height)
     st = scene.status(FIT)
@@ -139,9 +140,6 @@ def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
 def _labels(scene: SceneStore, config: RunConfig | None) -> tuple[str, str | None]:
     """The run's backend and label: as its export step recorded them, else from ``config``
     (``readers.scene_label``: the one label reader)."""
-    from navcrafter.schemas.layout import EXPORT
-    from navcrafter.tasks.backends import run_label
-    from navcrafter.tasks.readers import scene_label
 
     st = scene.status(EXPORT)
     backend = st.attrs.get("backend") or (config.backend if config is not None else "unknown")
@@ -156,7 +154,6 @@ def _write_images(scene: SceneStore, frames: ExportFrames, folder: Path, label: 
     from PIL import Image
     from PIL.PngImagePlugin import PngInfo
 
-    from navcrafter.schemas.layout import SYNTHESIZE
 
     folder.mkdir(parents=True, exist_ok=True)
     info = None
@@ -193,7 +190,6 @@ def _prepare(store_uri: str, scene_id: str, out: Path, config: RunConfig | None)
 
 
 def _cloud(scene: SceneStore, config: RunConfig):
-    from navcrafter.tasks.common import load_cloud
 
     return load_cloud(scene, config.iterations)
 
@@ -205,7 +201,6 @@ def _comments(scene: SceneStore, backend: str, label: str | None) -> list[str]:
 
 def _manifest(scene: SceneStore, fmt: str, frames: ExportFrames, backend: str, label: str | None, files: dict,
               n_points: int) -> dict:
-    from navcrafter.schemas.layout import GEOMETRY
 
     scale = scene.status(GEOMETRY).attrs.get("simulation_world_scale")
     units = "the geometry model's (metres for metric models)"
@@ -234,7 +229,6 @@ def _manifest(scene: SceneStore, fmt: str, frames: ExportFrames, backend: str, l
 # --------------------------------------------------------------------------------------------------
 def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     """Camera-to-world with OpenCV camera axes -> with OpenGL's (nerfstudio, Blender): y and z axes negated."""
-    from navcrafter.models.camera.trajectories import GL_CV_FLIP
 
     return np.asarray(c2w, dtype=np.float64) @ GL_CV_FLIP
 
@@ -256,7 +250,6 @@ def nerfstudio_transforms(frames: ExportFrames, ply_name: str = "sparse_pc.ply")
 def export_nerfstudio(store_uri: str, scene_id: str, out: str | Path, config: RunConfig | None = None) -> dict:
     """Write a nerfstudio dataset of a finished scene to ``out``; returns ``navcrafter_export.json``'s content.
     ``config`` (optional) gives the iterations and synthesis size; by default they are read from the scene."""
-    from navcrafter.models.reconstruction.pointcloud import ply_bytes
 
     scene, cfg, frames, backend, label, out = _prepare(store_uri, scene_id, out, config)
     cloud = _cloud(scene, cfg)
@@ -280,7 +273,6 @@ def _num(x: float) -> str:
 def colmap_model_text(frames: ExportFrames, points: np.ndarray, colors: np.ndarray, comment: str = ""
                       ) -> dict[str, str]:
     """The three files of a COLMAP text model: ``cameras.txt``, ``images.txt``, ``points3D.txt``."""
-    from navcrafter.models.camera.cameras import invert_pose, matrix_to_quat
 
     head = [f"# {line}" for line in comment.splitlines()]
     cams: list[tuple[float, ...]] = []

@@ -11,7 +11,7 @@ import pyarrow as pa
 
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EVALUATE, FIT, REFINE
+from navcrafter.schemas.layout import EVALUATE, FIT, PLAN, REFINE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.backends import run_label
@@ -187,7 +187,6 @@ def plan_artifact_markdown(store_uri: str, scene_id: str, k: int) -> str | None:
     """Dashboard view of a planner step: the top-down plot (embedded) and the candidates' table."""
     import base64
 
-    from navcrafter.schemas.layout import PLAN
 
     scene = open_store(store_uri).scene(scene_id)
     st = scene.status(PLAN, k)

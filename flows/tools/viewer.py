@@ -25,9 +25,12 @@ from typing import Any
 
 import numpy as np
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.models.camera.cameras import matrix_to_quat, quat_wxyz_to_matrix
+from navcrafter.models.gaussians.sh import SH_C0
 from navcrafter.schemas.layout import FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.tasks.common import load_cloud
 from navcrafter.tasks.readers import scene_label
 
 # RGB of each kind of camera
@@ -55,7 +58,6 @@ class SceneNotFound(ValueError):
 # --------------------------------------------------------------------------------------------------
 def scene_sources(store: Store) -> dict[str, list[str]]:
     """Source paths of each scene id: the manifest's rows, else the ingest step's ``source``."""
-    from navcrafter.flows.tools.report import read_manifest
 
     out: dict[str, list[str]] = {sid: [] for sid in store.scene_ids()}
     for r in read_manifest(store).to_pylist():  # empty for scenes run outside a flow
@@ -151,7 +153,6 @@ class SceneData:
 
     def cloud(self, k: int):
         """The fused cloud after iteration k (``tasks.common.load_cloud``), read once."""
-        from navcrafter.tasks.common import load_cloud
 
         if k not in self._clouds:
             self._clouds[k] = load_cloud(self.scene, k)
@@ -229,7 +230,6 @@ def gaussian_splat_arrays(model) -> dict[str, np.ndarray]:
     """``add_gaussian_splats``'s arrays from a ``GaussianModel`` (3DGS's raw parameters): centres, covariances
     ``R diag(s^2) R^T`` (``s = exp(log_scales)``, R from the normalised quaternion), RGB from the degree-0 SH
     term (``0.5 + C0 dc``, view-independent), opacities ``sigmoid(logit)`` as ``[N, 1]``."""
-    from navcrafter.models.gaussians.sh import SH_C0
 
     def arr(t) -> np.ndarray:
         return t.detach().cpu().numpy().astype(np.float64) if hasattr(t, "detach") else np.asarray(t, np.float64)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from navcrafter.models.simulation.datasets import MANIFEST
 from navcrafter.schemas.clips import CAMERAS, CONDITION, GENERATION, REFERENCE, clip_key
 from navcrafter.schemas.config import EvaluationConfig
 from navcrafter.tasks.score import frechet_rows, image_quality_rows, pose_error_rows, row
@@ -31,7 +32,6 @@ def _save_png(image: np.ndarray, path: Path) -> None:
 def simulation_sequences(root: str | Path | None) -> dict[str, dict[str, Any]]:
     """Per sequence name, the provenance record of a dataset written by the simulation data engine
     (``models/simulation/datasets.py``: ``<root>/simulation.json``); empty for any other dataset."""
-    from navcrafter.models.simulation.datasets import MANIFEST
 
     path = None if root is None else Path(root) / MANIFEST
     if path is None or not path.is_file():

@@ -42,9 +42,14 @@ import numpy as np
 from PIL import Image
 
 from navcrafter.models.camera.cameras import Intrinsics, invert_pose
+from navcrafter.models.roles import SynthesisRequest
+from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.models.simulation.backend import SimulationError, SimulationTruth
 from navcrafter.schemas.clips import CLOUD, GENERATION, GENERATION_VERSION
 from navcrafter.schemas.config import RunConfig
+from navcrafter.tasks.backends import create_backend
 from navcrafter.tasks.clips.dataset import load_clip
+from navcrafter.tasks.geometry import view_cloud
 
 
 def generation_frames(n: int) -> int:
@@ -83,11 +88,9 @@ def settings(config: RunConfig) -> dict[str, Any]:
 
 
 def _backend(config: RunConfig, doc: dict[str, Any], key: str, height: int, width: int, K: np.ndarray):
-    from navcrafter.tasks.backends import create_backend
 
     if config.backend != "simulation":
         return create_backend(config)
-    from navcrafter.models.simulation.backend import SimulationError, SimulationTruth
 
     sim = doc.get("simulation")
     if sim is None:
@@ -104,8 +107,6 @@ def _backend(config: RunConfig, doc: dict[str, Any], key: str, height: int, widt
 def generate_clip(clips: str | Path, generated: str | Path, key: str, config: RunConfig) -> dict[str, Any]:
     """Generate (or keep, when already made with the same settings) the frames of clip ``key``; returns its
     ``generation.json`` record (``"skipped": True`` when it was already there)."""
-    from navcrafter.models.roles import SynthesisRequest
-    from navcrafter.tasks.geometry import view_cloud
 
     folder = Path(generated) / key
     want = settings(config)
@@ -140,7 +141,6 @@ def generate_clip(clips: str | Path, generated: str | Path, key: str, config: Ru
     for i, frame in enumerate(frames[:T], start=1):
         Image.fromarray(frame).save(folder / f"{i:04d}.png")
     np.savez_compressed(folder / CLOUD, points=cloud.points.astype(np.float32), colors=cloud.colors)
-    from navcrafter.models.simulation import LABEL as SIM_LABEL
 
     rec = {"clip": key, "settings": want, "generated_frames": n, "kept_frames": T,
            "extension": f"cameras {T + 1}..{n} continue the clip's last relative motion; frames after {T} dropped",
