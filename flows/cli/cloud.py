@@ -31,6 +31,7 @@ def evaluate_cloud(
     out: Annotated[Optional[Path], typer.Option("--out", help="Write the results as JSON to this file.")] = None,
 ) -> None:
     """Score a point cloud against a reference: precision, recall, F-score, Coverage, Noise ratio."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.tools.interchange import InterchangeError, evaluate_cloud_files
 
     with usage_errors(InterchangeError):

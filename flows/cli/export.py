@@ -23,6 +23,7 @@ def export(
 ) -> None:
     """Export a finished scene's frames at the fit's cameras (the estimated camera path when the fit did not run)
     and its fused cloud as initial points, as a nerfstudio or COLMAP dataset, with navcrafter_export.json."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.tools.interchange import EXPORTERS, InterchangeError
     from navcrafter.schemas.store import StoreError
 

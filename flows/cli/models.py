@@ -26,6 +26,7 @@ _Prompt = Annotated[str, typer.Option(help="Text prompt whose embedding is preco
 
 
 def _done(path: Path) -> None:
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.runtime.onnxio import load_manifest
 
     manifest = json.loads((Path(path) / "manifest.json").read_text())
@@ -44,6 +45,7 @@ def export_geometry_cmd(
     seed: int = 0,
 ) -> None:
     """VGGT-architecture multi-view geometry (frames -> cameras, depth, points) as ONNX."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.exporters import export_geometry
 
     with usage_errors(*_EXPORT_ERRORS):
@@ -59,6 +61,7 @@ def export_monodepth_cmd(
     seed: int = 0,
 ) -> None:
     """MoGe-2-architecture monocular geometry (image -> points, mask, metric scale) as ONNX."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.exporters import export_monodepth
 
     with usage_errors(*_EXPORT_ERRORS):
@@ -83,6 +86,7 @@ def export_refiner_cmd(
     seed: int = 0,
 ) -> None:
     """Difix-architecture single-step diffusion refiner (render + reference view -> refined view) as ONNX."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.exporters import export_refiner
 
     with usage_errors(*_EXPORT_ERRORS):
@@ -105,6 +109,7 @@ def export_synthesizer_cmd(
     seed: int = 0,
 ) -> None:
     """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.exporters import export_synthesizer
 
     with usage_errors(*_EXPORT_ERRORS):
@@ -130,6 +135,7 @@ def export_fun_camera_cmd(
     seed: int = 0,
 ) -> None:
     """The public camera-controlled Wan2.1-Fun-V1.1 Control-Camera (synthesis.model=fun-camera) as ONNX."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.exporters import export_fun_camera
 
     with usage_errors(*_EXPORT_ERRORS):
@@ -145,6 +151,7 @@ def convert_fp16_cmd(
 ) -> None:
     """Convert graphs of a model directory to fp16 in place (normalisations and inputs/outputs stay fp32): half the
     memory and fp16 kernels on the CUDA execution provider; on the CPU it runs, slower."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.runtime.onnxio import ModelDirError, convert_model_dir_fp16
 
     with usage_errors(ModelDirError, *_EXPORT_ERRORS):
@@ -161,6 +168,7 @@ def export_all_cmd(
     seed: int = 0,
 ) -> None:
     """All three models with random weights (tests, demos of the onnx path, timing)."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.exporters import export_all
 
     s = run_config(preset).synthesis
@@ -176,6 +184,7 @@ def show_cmd(
     verify: Annotated[bool, typer.Option(help="Check every file's sha256.")] = True,
 ) -> None:
     """What a model directory holds, with checksum verification."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.runtime.onnxio import ModelDirError, load_manifest
     from navcrafter.models.zoo.modeldir import ROLE_DIRS
 
@@ -211,6 +220,7 @@ def pull_cmd(
                                              "'paper' or 'tiny'.")] = "paper",
 ) -> None:
     """Download the official checkpoints with huggingface_hub, verify their sizes and sha256, export them."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.zoo.hub import HubError, pull
 
     s = run_config(preset).synthesis

@@ -42,6 +42,7 @@ class Source:
 
 def ply_source(path: Path) -> Source:
     """A bare PLY (checked and normalised by ``load_gaussian_ply``); labelled when its header comments say so."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.gaussians.ply import load_gaussian_ply, read_ply_header
 
     if not path.is_file():
@@ -56,6 +57,7 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     """The fitted Gaussians of a scene (refined when the refine step ran, as its exports use), its input camera
     (the first camera of its stored path), that camera's intrinsics at the scene's resolution and the scene
     centre. ``scene_id`` may be a unique prefix; None picks the store's only scene."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.layout import FIT, PLAN, REFINE
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.backends import label_band
@@ -186,6 +188,7 @@ def render(
 
     Presets start from a framed view: for a PLY, one that fits its Gaussians; for a scene, its input camera.
     """
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.camera import trajectories as tr
     from navcrafter.models.camera.cameras import Intrinsics, invert_pose
 
@@ -198,6 +201,7 @@ def render(
         fail("--fov applies to a bare PLY; a scene renders with its own camera's intrinsics")
     if fov is not None and not 0 < fov < 180:
         fail(f"--fov must be in (0, 180) degrees, got {fov}")
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.store import StoreError
 
     with usage_errors(ValueError):
@@ -246,6 +250,7 @@ def _render(src: Source, c2w: np.ndarray, K: np.ndarray, width: int, height: int
     from PIL import Image
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.gaussians.renderer import resolve_backend, resolve_device
     from navcrafter.models.gaussians.train import render_model
     from navcrafter.models.media import encode_mp4, label_frames

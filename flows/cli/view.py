@@ -21,6 +21,7 @@ def view(
     """Serve a 3D viewer of a scene: its fitted Gaussians (when the fit ran), the fused cloud per iteration, the
     input photo, planned and estimated cameras, the plan's candidates (rejected by the collision detector G or
     not) and the video frames; a dropdown switches between the store's scenes. Serves until Ctrl-C."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.tools.viewer import NO_FIT, SceneNotFound, build_viewer, resolve_scene
     from navcrafter.schemas.store import Store, StoreError
 
