@@ -75,9 +75,9 @@ class SceneProgress:
             logger().warning("scene %s: progress artifact not updated: %s", self.scene_id[:12], exc)
 
 
-def publish_scene_dashboard(store: str, scene_id: str, config: RunConfig) -> None:
+def publish_scene_dashboard(store: str, scene_id: str, config: RunConfig, label: str | None = None) -> None:
     try:
-        markdown = scene_dashboard_markdown(store, scene_id, config)
+        markdown = scene_dashboard_markdown(store, scene_id, config, label)
         create_markdown_artifact(
             key=f"dashboard-{scene_id[:12]}",
             markdown=markdown,

@@ -226,7 +226,7 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     create_markdown_artifact(key=f"scene-{_short(scene_id)}", markdown=summary_markdown(run_id, config, [result]),
                              description=f"navcrafter scene {_short(scene_id)} ({config.backend})")
     progress.flush()
-    dashboard.publish_scene_dashboard(store, scene_id, config)
+    dashboard.publish_scene_dashboard(store, scene_id, config, result.label)  # the summary's label, read once
     if failure is not None:
         raise SceneFailed(result) from failure
     return result
