@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from navcrafter.models.camera.cameras import Intrinsics, interpolate_poses, invert_pose
+from navcrafter.models.camera.cameras import Intrinsics, estimated_clip_cameras
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
@@ -158,30 +158,6 @@ def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = N
     return CameraPath(np.asarray(ks, dtype=np.int64), np.asarray(idx, dtype=np.int64),
                       np.concatenate(c2w) if c2w else np.zeros((0, 4, 4)),
                       np.concatenate(K) if K else np.zeros((0, 3, 3)), int(width), int(height))
-
-
-def estimated_clip_cameras(planned: np.ndarray, view_index: np.ndarray, estimated: np.ndarray) -> np.ndarray:
-    """Cameras of every frame of a clip from the estimates of some (see ``camera_path``): the correction
-    ``E_i = est_i @ inv(plan_i)`` is known at frame 0 (identity) and at the estimated frames, and interpolated in
-    between (rotation by SLERP, translation linearly), then applied to the plan."""
-    T = len(planned)
-    known = {0: np.eye(4)}
-    for j, i in enumerate(np.asarray(view_index)):
-        known[int(i)] = np.asarray(estimated[j], dtype=np.float64) @ invert_pose(planned[int(i)])
-    at = sorted(known)
-    out = np.empty_like(planned)
-    for i in range(T):
-        if i in known:
-            out[i] = known[i] @ planned[i]
-            continue
-        hi = next((a for a in at if a > i), None)
-        lo = max(a for a in at if a < i)
-        if hi is None:
-            corr = known[lo]
-        else:
-            corr = interpolate_poses(known[lo], known[hi], hi - lo + 1)[i - lo]
-        out[i] = corr @ planned[i]
-    return out
 
 
 def frame_truth(scene: SceneStore, k: int, frames: np.ndarray) -> tuple[np.ndarray, list[np.ndarray | None]]:

@@ -190,7 +190,7 @@ def render(
     """
     # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.camera import trajectories as tr
-    from navcrafter.models.camera.cameras import Intrinsics, invert_pose
+    from navcrafter.models.camera.cameras import Intrinsics
 
     if (ply is None) == (store is None):
         fail("give either a PLY file or --store STORE [--scene ID], not both" if ply else
@@ -232,7 +232,7 @@ def render(
                 raise ValueError("--degrees / --amount size a preset, not a camera file")
             c2w = camfile.c2w
             if relative:
-                c2w = frame.c2w @ invert_pose(c2w[0]) @ c2w
+                c2w = tr.rebase_path(c2w, frame.c2w)
             K = camfile.intrinsics_at(w, h)
             K = np.repeat(base_K.K[None], len(c2w), axis=0) if K is None else K
     _render(src, c2w, K, w, h, bg, out, fps, device, renderer, trajectory)

@@ -529,3 +529,10 @@ def read_camera_file(path: str | Path, convention: str = "opencv") -> CameraFile
     of plain matrices (the other formats state their own)."""
     fmt = camera_file_format(path)
     return read_matrices(path, convention) if fmt == "matrices" else CAMERA_FILE_FORMATS[fmt](path)
+
+
+def rebase_path(c2w: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """A camera path re-based on its first camera and placed at ``start``: ``start @ inv(c2w[0]) @ c2w``
+    (``navcrafter render --relative``: a camera file's motion from the start view)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    return np.asarray(start, dtype=np.float64) @ invert_pose(c2w[0]) @ c2w
