@@ -53,6 +53,7 @@ def test_dry_run_plumbing(gpu_check, tmp_path):
     assert gpu_check.DRY_RUN_LABEL in md and "| vggt | ok |" in md and "| dit |" not in md
 
 
+@pytest.mark.slow
 def test_dit_torch_vs_onnxruntime_dry_run(gpu_check, tmp_path):
     """The DiT item end to end on the CPU: tiny config, torch fp32 vs its ONNX export on onnxruntime."""
     ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path), "cap": 100}
@@ -72,6 +73,7 @@ def test_item_subprocess_failure_and_timeout_are_recorded(gpu_check, tmp_path):
     assert r["status"] == "timeout" and r["cap_s"] == 0.5
 
 
+@pytest.mark.slow
 def test_full_size_dits_wire_up_on_the_meta_device(gpu_check, tmp_path):
     """The GPU run's own configs and inputs (Wan-1.3B width at 81 x 256², Fun-Camera 1.3B; below VGGT-1B on
     25 x 518², MoGe-2 ViT-L, Difix at SD-Turbo size) go through the items' forward passes on the meta device:
@@ -83,6 +85,7 @@ def test_full_size_dits_wire_up_on_the_meta_device(gpu_check, tmp_path):
     assert fun["status"] == "ok" and fun["output_shape"] == [2, 16, 21, 32, 32]
 
 
+@pytest.mark.slow
 def test_full_size_geometry_and_refiner_wire_up_on_the_meta_device(gpu_check, tmp_path):
     ctx = {"device": "meta", "dry_run": False, "quick": False, "work": str(tmp_path), "cap": 100}
     vggt = gpu_check.item_vggt(ctx)

@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from navcrafter.flows.cli import app
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
+              pytest.mark.slow]  # every test uses `explored`: three tiny scenes explored (~1 min on 2 idle cores)
 runner = CliRunner()
 
 

@@ -46,6 +46,7 @@ def viser_server():
     s.stop()
 
 
+@pytest.mark.slow
 def test_scene_nodes_gaussians_clouds_frustums_candidates(viewer_store, viser_server):
     import viser
 
@@ -113,6 +114,7 @@ def test_pose_and_gaussian_conversions():
                                                                                atol=1e-4)
 
 
+@pytest.mark.slow
 def test_viewer_gui_switches_scenes_and_says_when_there_is_no_fit(viewer_store, viser_server):
     from navcrafter.flows.tools.viewer import NO_FIT, ROOT, SceneNotFound, build_viewer, resolve_scene
     from navcrafter.schemas.store import Store
@@ -133,6 +135,7 @@ def test_viewer_gui_switches_scenes_and_says_when_there_is_no_fit(viewer_store, 
     assert viewer.view.iteration == 1 and "iteration 1" in viewer.gui["iteration_info"].content
 
 
+@pytest.mark.slow
 def test_cli_usage_errors(viewer_store, tmp_path):
     from typer.testing import CliRunner
 

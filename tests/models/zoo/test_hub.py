@@ -71,6 +71,7 @@ def test_table_matches_the_loaders():
     assert SOURCES["geometry"].required == ("model.safetensors",) and SOURCES["monodepth"].required == ("model.pt",)
 
 
+@pytest.mark.slow
 def test_offline_pull_exports_monodepth(tmp_path):
     from navcrafter.models.runtime.onnxio import load_manifest
 
