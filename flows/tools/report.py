@@ -35,7 +35,8 @@ class SceneResult:
     metrics: dict[str, float] = field(default_factory=dict)
     outputs: str | None = None
     notes: list[str] = field(default_factory=list)  # what a reader of the summary must know (e.g. a skipped term)
-    label: str | None = None  # the run's label (tasks.backends.run_label), read once per scene by scene_result
+    # the run's label (tasks.backends.run_label), read once per scene by scene_result; not in the manifest rows
+    label: str | None = field(default=None, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
