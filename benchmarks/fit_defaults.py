@@ -32,11 +32,11 @@ from navcrafter.models.simulation.scenes import KINDS
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import FIT
 from navcrafter.schemas.store import Store
-from navcrafter.tasks import steps
+from navcrafter.tasks import runner
 from navcrafter.tasks.common import simulation_truth
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.readers import load_gaussians
-from navcrafter.tasks.steps import run_scene
+from navcrafter.tasks.runner import run_scene
 
 
 def short_schedule(iterations: int) -> dict:
@@ -111,7 +111,7 @@ def main() -> None:
                     continue
                 cfg = RunConfig.load(preset="paper", overrides={"fit.enabled": True, **CANDIDATES[name]})
                 t0 = time.perf_counter()
-                steps.run(store, res.scene_id, "fit", cfg, "bench")
+                runner.run(store, res.scene_id, "fit", cfg, "bench")
                 step_s = time.perf_counter() - t0
                 a = scene.status(FIT).attrs
                 row = {"photo": photo.name, "kind": photo.name.split("-")[0], "candidate": name,

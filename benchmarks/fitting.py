@@ -51,11 +51,11 @@ from navcrafter.models.simulation.scenes import KINDS
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import FIT, REFINE
 from navcrafter.schemas.store import Store
-from navcrafter.tasks import steps
+from navcrafter.tasks import runner
 from navcrafter.tasks.common import load_cloud, simulation_truth
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.readers import load_fit_views, load_gaussians, load_refined_gaussians
-from navcrafter.tasks.steps import run_scene
+from navcrafter.tasks.runner import run_scene
 
 VARIANTS = {
     "none": {"fit.lambda_depth": 0.0, "fit.drop_gamma": 0.0},
@@ -148,11 +148,11 @@ def run(out: Path, quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...], 
                 cfg = RunConfig.load(preset="tiny" if quick else "paper",
                                      overrides={**base, "fit.enabled": True, **over})
                 t0 = time.perf_counter()
-                steps.run(store, res.scene_id, "fit", cfg, "bench")  # skipped when the previous variant fitted the same
+                runner.run(store, res.scene_id, "fit", cfg, "bench")  # skipped when the last variant fitted the same
                 if control:
                     a, model = longer_fit(scene, cfg)
                 elif cfg.refine.enabled:
-                    steps.run(store, res.scene_id, "refine", cfg, "bench")
+                    runner.run(store, res.scene_id, "refine", cfg, "bench")
                     a, model = scene.status(REFINE).attrs, load_refined_gaussians(scene)
                 else:
                     a, model = scene.status(FIT).attrs, load_gaussians(scene)

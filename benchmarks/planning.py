@@ -65,8 +65,8 @@ from navcrafter.schemas.config import PlanConfig, RunConfig
 from navcrafter.schemas.layout import GEOMETRY
 from navcrafter.schemas.store import Store
 from navcrafter.tasks.ingest import ingest
+from navcrafter.tasks.runner import run_scene
 from navcrafter.tasks.scene_metrics import evaluate_scene
-from navcrafter.tasks.steps import run_scene
 
 ITERATIONS = 3
 METHODS = {"baseline": "viewcrafter", "ours": "collision_aware"}  # result name -> plan.strategy

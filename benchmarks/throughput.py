@@ -32,8 +32,8 @@ from navcrafter.models.simulation.demo import write_demo_collection
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.store import Store
 from navcrafter.tasks.ingest import ingest
+from navcrafter.tasks.runner import run_scene
 from navcrafter.tasks.scene_metrics import evaluate_scene
-from navcrafter.tasks.steps import run_scene
 
 
 def task_seconds(store: Path) -> float:

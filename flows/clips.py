@@ -1,5 +1,5 @@
 """The ``generate-clips`` flow: the configured synthesizer on every clip of a folder of dataset clips, one task
-per clip (``tasks/clip_generation.py``); scoring them is the ``evaluate-clips`` flow (``flows/evaluate.py``)."""
+per clip (``tasks/clips/generation.py``); scoring them is the ``evaluate-clips`` flow (``flows/evaluate.py``)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from prefect import flow, task
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.schemas.config import RunConfig
-from navcrafter.tasks import clip_generation
 from navcrafter.tasks.clips import clip_keys
+from navcrafter.tasks.clips import generation as clip_generation
 
 
 @dataclass

@@ -6,7 +6,7 @@
   (and its evaluation) complete or are found complete (updated at most every 2 s, and at the end);
 * ``publish_scene_dashboard``: a Markdown artifact (``dashboard-<id12>``) with thumbnails of the input,
   the planner's top-down plots and a grid of synthesized frames, and the metrics
-  (``tasks.dashboard.scene_dashboard_markdown``).
+  (``flows.tools.dashboard.scene_dashboard_markdown``).
 
 All of it is best effort: a failure to publish is logged and never fails the scene.
 """
@@ -20,9 +20,9 @@ from prefect.artifacts import create_markdown_artifact, create_progress_artifact
 from prefect.runtime import flow_run
 
 from navcrafter.flows.runstates import scene_run_tags
+from navcrafter.flows.tools.dashboard import scene_dashboard_markdown
 from navcrafter.schemas.config import RunConfig
 from navcrafter.tasks.common import logger, open_store
-from navcrafter.tasks.dashboard import scene_dashboard_markdown
 
 
 def tag_scene_run(store: str, scene_id: str) -> None:
@@ -75,9 +75,9 @@ class SceneProgress:
             logger().warning("scene %s: progress artifact not updated: %s", self.scene_id[:12], exc)
 
 
-def publish_scene_dashboard(store: str, scene_id: str, config: RunConfig) -> None:
+def publish_scene_dashboard(store: str, scene_id: str, config: RunConfig, label: str | None = None) -> None:
     try:
-        markdown = scene_dashboard_markdown(store, scene_id, config)
+        markdown = scene_dashboard_markdown(store, scene_id, config, label)
         create_markdown_artifact(
             key=f"dashboard-{scene_id[:12]}",
             markdown=markdown,

@@ -17,9 +17,9 @@ from pathlib import Path
 from prefect.logging import get_run_logger
 from prefect.runtime import flow_run
 
+from navcrafter.flows.tools.report import SceneResult, manifest_rows_for, scene_result, write_manifest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.report import SceneResult, manifest_rows_for, scene_result, write_manifest
 
 POLL_SECONDS = 2.0  # how often the collection run reads the states of its scene runs
 FINAL_STATUSES = ("done", "failed")  # manifest statuses that only a finished scene run writes

@@ -20,13 +20,14 @@ from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.task_runners import ThreadPoolTaskRunner
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
-from navcrafter.schemas.tables import utcnow
-from navcrafter.tasks import clip_reconstruction, score
-from navcrafter.tasks import clips as clip_tasks
+from navcrafter.schemas.tables import to_table, utcnow
+from navcrafter.tasks import score
+from navcrafter.tasks.clips import dataset as clip_tasks
+from navcrafter.tasks.clips import reconstruction as clip_reconstruction
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.report import read_manifest
 
 
 @dataclass
@@ -109,14 +110,13 @@ def evaluate_store_local(store: str, config: RunConfig) -> EvaluationRun:
 @flow(name="evaluate-clips", persist_result=False)
 def evaluate_clips(clips: str, generated: str, out: str, config: RunConfig, reconstruction: bool = True
                    ) -> EvaluationRun:
-    """Score the frames a generator made for dataset clips (``tasks/clips.py``: Tables I-III; with
-    ``reconstruction``, Table IV: a 3DGS fit per clip, ``tasks/clip_reconstruction.py``, with ``config.fit``);
+    """Score the frames a generator made for dataset clips (``tasks/clips/dataset.py``: Tables I-III; with
+    ``reconstruction``, Table IV: a 3DGS fit per clip, ``tasks/clips/reconstruction.py``, with ``config.fit``);
     writes ``out/evaluations.parquet`` (the evaluations schema) and ``out/report.{md,json}``."""
     from pathlib import Path
 
     import pyarrow.parquet as pq
 
-    from navcrafter.schemas.tables import to_table
 
     evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
     keys = clip_tasks.clip_keys(clips)

@@ -5,7 +5,7 @@
   the manifest and never stops the others. With ``scene_deployment`` the scenes are flow runs of that
   deployment (e.g. on a GPU work pool) instead of in-process subflows (``flows/dispatch.py``).
 * ``explore_scene(store, scene_id, config, run_id, sources)``: the scene's steps in the order the step specs
-  give (``tasks.steps.scene_steps``: initial geometry, then N x (plan -> synthesize -> lift), then fit and
+  give (``tasks.runner.scene_steps``: initial geometry, then N x (plan -> synthesize -> lift), then fit and
   refine when enabled, and export), then the evaluation. Each step is a Prefect task derived from its spec
   (``STEP_TASKS``) whose body skips itself when its group in the store is already complete: rerunning after a
   crash resumes.
@@ -24,13 +24,7 @@ from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.flows import dashboard, dispatch
-from navcrafter.models.backends import onnx_problems
-from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import STEPS, StepSpec
-from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
-from navcrafter.tasks import ingest, steps
-from navcrafter.tasks.common import StepError, logger, open_store
-from navcrafter.tasks.report import (
+from navcrafter.flows.tools.report import (
     SceneResult,
     manifest_rows_for,
     plan_artifact_markdown,
@@ -39,7 +33,13 @@ from navcrafter.tasks.report import (
     write_manifest,
     write_summary,
 )
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.schemas.config import RunConfig
+from navcrafter.schemas.layout import STEPS, StepSpec
+from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem
+from navcrafter.tasks import ingest, runner
+from navcrafter.tasks.backends import onnx_problems
+from navcrafter.tasks.common import StepError, logger, open_store
+from navcrafter.tasks.runner import scene_steps
 
 TRANSIENT = (OSError, TimeoutError, ConnectionError, StoreUnavailable)
 
@@ -113,13 +113,13 @@ def in_gpu_slot(spec: StepSpec, config: RunConfig, call):
 
 
 def _step_task(spec: StepSpec):
-    """The Prefect task of a step, derived from its spec: runs ``tasks.steps.run`` (or ``run_attrs`` for a step
+    """The Prefect task of a step, derived from its spec: runs ``tasks.runner.run`` (or ``run_attrs`` for a step
     whose result is its attributes), inside a GPU slot when the spec says so."""
 
     def run(store_uri: str, scene_id: str, config: RunConfig, run_id: str, k: int | None = None):
         if spec.stage == "scene":
-            return in_gpu_slot(spec, config, lambda: steps.run(store_uri, scene_id, spec.name, config, run_id, k))
-        return in_gpu_slot(spec, config, lambda: steps.run_attrs(store_uri, scene_id, spec.name, config, run_id))
+            return in_gpu_slot(spec, config, lambda: runner.run(store_uri, scene_id, spec.name, config, run_id, k))
+        return in_gpu_slot(spec, config, lambda: runner.run_attrs(store_uri, scene_id, spec.name, config, run_id))
 
     run.__name__ = run.__qualname__ = spec.name
     run.__doc__ = spec.doc
@@ -201,6 +201,7 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     metrics: dict[str, float] = {}
     failure: Exception | None = None
     try:
+        runner.record_run_config(store, scene_id, config, run_id)  # the tools read it (render, view, export)
         for step in order:
             STEP_TASKS[step.spec.name](store, scene_id, config, run_id, **step.kwargs())
             progress.advance()
@@ -225,7 +226,7 @@ def explore_scene(store: str, scene_id: str, config: RunConfig, run_id: str,
     create_markdown_artifact(key=f"scene-{_short(scene_id)}", markdown=summary_markdown(run_id, config, [result]),
                              description=f"navcrafter scene {_short(scene_id)} ({config.backend})")
     progress.flush()
-    dashboard.publish_scene_dashboard(store, scene_id, config)
+    dashboard.publish_scene_dashboard(store, scene_id, config, result.label)  # the summary's label, read once
     if failure is not None:
         raise SceneFailed(result) from failure
     return result

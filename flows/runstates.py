@@ -27,6 +27,7 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.store import Store
 
 SCENE_FLOW = "explore-scene"
@@ -267,11 +268,10 @@ def run_states(
 ) -> RunStates:
     """Prefect's state of every manifest row's flow runs, and what needs acting on.
 
-    ``rows``: the manifest rows (``tasks.report.read_manifest(store).to_pylist()``; read when None).
+    ``rows``: the manifest rows (``flows.tools.report.read_manifest(store).to_pylist()``; read when None).
     ``api_url``: the Prefect API (default: PREFECT_API_URL / the active profile); never starts one.
     Never raises for an unreachable API: the result says ``reachable=False`` and why.
     """
-    from navcrafter.tasks.report import read_manifest
 
     st = store if isinstance(store, Store) else Store(store, create=False)
     rows = read_manifest(st).to_pylist() if rows is None else rows

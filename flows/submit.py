@@ -21,7 +21,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from navcrafter.flows.dispatch import DispatchError, check_scene_deployment
 from navcrafter.schemas.config import RunConfig
+from navcrafter.tasks import ingest
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 ENTRYPOINT = "flows/explore.py:explore_collection"
@@ -107,7 +109,6 @@ def read_list_file(path: Path) -> list[str]:
 def collection_items(photos: str | Path, per_image: bool) -> list[str]:
     """What each flow run is given: the folder itself, or each of its images (a list file: its images);
     an fsspec URL (``s3://bucket/photos/``): the prefix itself, or each object under it."""
-    from navcrafter.tasks import ingest
 
     if _is_url(str(photos)):
         try:
@@ -158,7 +159,6 @@ def submit_collection(photos: str | Path, store: str, config: RunConfig, deploym
     from prefect.deployments import run_deployment
     from prefect.exceptions import ObjectNotFound
 
-    from navcrafter.flows.dispatch import DispatchError, check_scene_deployment
 
     require_server()
     items = collection_items(photos, per_image)

@@ -19,9 +19,11 @@ from pathlib import Path
 from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_progress_artifact, update_progress_artifact
 
+from navcrafter.models.synthesis.training import STATE_FILE, latest_checkpoint
 from navcrafter.schemas.training import CLIP_STORE, CameraTrainingConfig
 from navcrafter.tasks.common import logger
 from navcrafter.tasks.training import train as training
+from navcrafter.tasks.training.clips import init_clip_store, plan_clips, precompute_clip
 
 
 def _key(run_dir: str) -> str:
@@ -30,7 +32,6 @@ def _key(run_dir: str) -> str:
 
 @task(name="plan-clips", persist_result=False)
 def plan_task(config: CameraTrainingConfig):
-    from navcrafter.tasks.training.clips import plan_clips
 
     refs = plan_clips(config)
     logger().info("drew %d clips (%d for validation)", len(refs),
@@ -42,7 +43,6 @@ def plan_task(config: CameraTrainingConfig):
 def precompute_task(run_dir: str, refs) -> int:
     """Write every clip's group of the clip store (complete ones are skipped; the root holds the null prompt's
     embeddings)."""
-    from navcrafter.tasks.training.clips import init_clip_store, precompute_clip
 
     config = training.load_run_config(run_dir)
     encoders = training.build_encoders(config)
@@ -94,7 +94,6 @@ def train_task(run_dir: str, nproc: int = 1) -> dict:
     if nproc > 1:
         training.launch(run_dir, nproc)
         return {"steps": config.steps, "processes": nproc}
-    from navcrafter.models.synthesis.training import latest_checkpoint
 
     ck = latest_checkpoint(run_dir)
     start = int(ck.name.split("-")[1]) if ck is not None else 0
@@ -109,7 +108,6 @@ def train_task(run_dir: str, nproc: int = 1) -> dict:
 def validate_task(run_dir: str) -> dict:
     import json
 
-    from navcrafter.models.synthesis.training import STATE_FILE, latest_checkpoint
 
     result = training.validate(run_dir)
     state = json.loads((latest_checkpoint(run_dir) / STATE_FILE).read_text())

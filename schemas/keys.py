@@ -17,12 +17,14 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
-from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import SCHEMA_VERSION, STEPS, Key, StepSpec, cloud_step
+
+if TYPE_CHECKING:  # the run config composes the keys' inputs; keys read it duck-typed
+    from navcrafter.schemas.config import RunConfig
 
 Dependency = tuple[StepSpec, int | None]
 
@@ -88,7 +90,7 @@ def step_config(spec: StepSpec, config: RunConfig) -> dict[str, Any]:
             if value:
                 out[key.name] = True
             continue
-        out[key.name] = _section(value, key) if isinstance(value, BaseModel) else _json(value)
+        out[key.name] = _section(value, key, config.NOT_KEYING) if isinstance(value, BaseModel) else _json(value)
     if spec.version > 1:
         out["outputs"] = spec.version
     return out
@@ -102,12 +104,12 @@ def _json(value: Any) -> Any:
     return value
 
 
-def _section(section: BaseModel, key: Key) -> dict[str, Any]:
+def _section(section: BaseModel, key: Key, not_keying: dict[str, str]) -> dict[str, Any]:
     dump = section.model_dump(mode="json")
     names = getattr(section, "key_names", {})
     unset = {f: default for f, default in getattr(section, "keyed_when_set", {}).items() if dump.get(f) == default}
     if isinstance(key.path, str):  # fields declared not to change any result (RunConfig.NOT_KEYING)
-        unset.update(dict.fromkeys(f for f in dump if f"{key.path}.{f}" in RunConfig.NOT_KEYING))
+        unset.update(dict.fromkeys(f for f in dump if f"{key.path}.{f}" in not_keying))
     out = {}
     for name, value in dump.items():
         if name in unset or (key.include is not None and name not in key.include):

@@ -36,7 +36,8 @@ k = 0): each step carries the cumulative cloud it produced, so resuming never ne
 Each step is declared once, here, by its ``StepSpec``: what it writes (arrays, attrs), what it reads
 (``reads``: the upstream steps whose keys enter its cache key), which config keys it (``keyed_by``, see
 ``schemas.keys``), whether it holds a GPU slot (``gpu``), when it runs (``stage``, ``runs_if``), its output
-version (``version``) and where its body lives (``body``: a plain function over a ``tasks.steps.StepContext``).
+version (``version``); its body (a plain function over a ``tasks.steps.StepContext``) is registered by name in
+``tasks/bodies.py``.
 Dependencies, cache keys, the order of a scene's steps and the Prefect tasks are derived from these specs
 (``schemas.keys``, ``tasks.steps``, ``flows.explore``).
 """
@@ -116,7 +117,6 @@ class StepSpec:
     iterative: bool = False
     extra: dict[str, str] = field(default_factory=dict)
     # -- how the step runs (derived from these: dependencies, cache keys, order, Prefect tasks) -------------
-    body: str = ""  # "module:function" under navcrafter.tasks: the step's body, ``fn(ctx: StepContext) -> attrs``
     reads: tuple[Read, ...] = ()
     keyed_by: tuple[Key, ...] = ()
     # model roles whose exported versions key the step (onnx backend), with backend, model_dir and seed;
@@ -168,7 +168,7 @@ INGEST = StepSpec(
     attrs=("source", "sha256", "original_size", "original_mode", "exif_orientation", "crop_box",
            "normalised_size", "work_size"),
     extra={"simulation_truth": "optional: hidden ground-truth record of demo images (simulation mode)"},
-    body="ingest:ingest_body", stage="ingest",
+    stage="ingest",
     keyed_by=(Key("ingest", "ingest"), Key("resolution", ("synthesis.height", "synthesis.width"))),
 )
 
@@ -184,7 +184,7 @@ GEOMETRY = StepSpec(
     ),
     attrs=("n_points",),
     extra={"simulation_world_scale": "simulation only: world units per metre (hidden truth)"},
-    body="geometry:initial_geometry", gpu=True, models=MODEL_ROLES,
+    gpu=True, models=MODEL_ROLES,
     reads=(Read("ingest"),),
     # the first cloud is filtered and fused like the lifts' clouds
     keyed_by=(_SIM, Key("lift", "lift", include=("pixel_stride", "confidence_threshold", "voxel_size", "max_depth"))),
@@ -211,7 +211,7 @@ PLAN = StepSpec(
     iterative=True,
     extra={"topdown.png": "file: top-down plot of cloud, candidates and trajectories"},
     # version 2: the search space is the quarter sphere about o, and iteration k starts at the estimated last camera
-    body="plan:plan", models=MODEL_ROLES, version=2,
+    models=MODEL_ROLES, version=2,
     reads=(Read("cloud", at="k-1"), Read("plan", at="k-1", otherwise="geometry")),
     keyed_by=(Key("plan", "plan"), Key("frames", ("synthesis.num_frames", "synthesis.height", "synthesis.width")),
               Key("point_size", "lift.voxel_size")),
@@ -232,7 +232,7 @@ SYNTHESIZE = StepSpec(
                       "pixels that show the true scene (1) rather than hallucinated or corrupted content",
                       optional=True)),
     iterative=True,
-    body="synthesize:synthesize", gpu=True, models=MODEL_ROLES,
+    gpu=True, models=MODEL_ROLES,
     # the conditioning image: the last frame of clip k-1, for k = 1 the working image (ingest); the reference
     # camera: the input pose (geometry)
     reads=(Read("ingest"), Read("plan", at="k"), Read("cloud", at="k-1"),
@@ -253,7 +253,7 @@ LIFT = StepSpec(
     ),
     attrs=("scale", "n_new_points", "n_points"),
     iterative=True,
-    body="lift:lift", gpu=True, models=MODEL_ROLES, version=2,  # 2: a bit-reproducible ICP of our own
+    gpu=True, models=MODEL_ROLES, version=2,  # 2: a bit-reproducible ICP of our own
     reads=(Read("ingest"), Read("geometry"), Read("plan", at="k"), Read("synthesize", at="k"), Read("cloud", at="k-1")),
     keyed_by=(Key("lift", "lift"), _SIM),
 )
@@ -290,7 +290,7 @@ FIT = StepSpec(
     attrs=("n_gaussians", "sh_degree", "resolution", "holdout_every", "n_train", "n_holdout", "psnr", "ssim",
            "lpips", "lpips_note", "init_psnr", "scene_scale", "train_seconds", "final_loss", "peak_rss_mb"),
     # version 2: the compiled CPU rasterizer under renderer 'auto', the paper's loss, peak memory in attrs
-    body="fit:fit", gpu=True, models=MODEL_ROLES, runs_if="fit.enabled", version=2,
+    gpu=True, models=MODEL_ROLES, runs_if="fit.enabled", version=2,
     reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION),
     keyed_by=(Key("fit", "fit"), _SIM, _LPIPS),
 )
@@ -321,7 +321,7 @@ REFINE = StepSpec(
     attrs=("psnr", "ssim", "lpips", "psnr_before", "ssim_before", "n_views", "n_gaussians", "refiner",
            "train_seconds", "peak_rss_mb"),
     # version 2: the fit's loss on the refined views (weight 1, depth)
-    body="refine:refine", gpu=True, models=(*MODEL_ROLES, "refiner"), runs_if="refine.enabled", version=2,
+    gpu=True, models=(*MODEL_ROLES, "refiner"), runs_if="refine.enabled", version=2,
     reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION, Read("fit")),
     keyed_by=(Key("refine", "refine"), Key("simulation", "simulation", simulation_only=True),
               Key("fit", "fit", include=("device", "renderer", "lr_means_final", "lr_quats", "lr_scales",
@@ -334,7 +334,7 @@ EXPORT = StepSpec(
     "export", "exports",
     "User-facing files, stored beside the group's zarr.json; attrs list them with checksums.",
     attrs=("files",),
-    body="export:export",
+
     reads=(Read("ingest"), Read("geometry"), _EACH_ITERATION, Read("fit", if_runs="fit"),
            Read("refine", if_runs="refine")),
     keyed_by=(Key("fps", "synthesis.fps"), Key("iterations", "iterations"), Key("fit", "fit.enabled", if_true=True),
@@ -347,7 +347,7 @@ EVALUATE = StepSpec(
     "to the metrics table.",
     attrs=("metrics", "iterations"),
     # version 2: attrs record the iterations; 3: true-path, per-iteration and close-frame metrics
-    body="scene_metrics:evaluate", stage="report", version=3,
+    stage="report", version=3,
     reads=(Read("export"),),  # the export's key covers every step before it
     keyed_by=(Key("backend", "backend"), Key("plan", "plan"), Key("iterations", "iterations")),
 )
@@ -357,7 +357,7 @@ SCORE = StepSpec(
     "One scene's rows of the evaluation suite (navcrafter evaluate): image metrics, camera guidance "
     "(COLMAP), runtime, geometry; rows in the schema of the evaluations table, kept in attrs.",
     attrs=("rows",),
-    body="score:score", stage="suite",
+    stage="suite",
     reads=(Read("evaluate"),),
     keyed_by=(Key("backend", "backend"), Key("evaluation", "evaluation")),
 )

@@ -11,12 +11,13 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any
 
-from navcrafter.models.backends import create_backend
 from navcrafter.models.reconstruction.pointcloud import Cloud
 from navcrafter.models.roles import Backend
+from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, INGEST, cloud_step
 from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.tasks.backends import create_backend
 
 _log = logging.getLogger("navcrafter")
 
@@ -81,7 +82,6 @@ def load_backend(scene: SceneStore, config: RunConfig) -> Backend:
 
 def simulation_truth(scene: SceneStore):
     """The hidden ground truth of a demo image, or ``None`` for any other image."""
-    from navcrafter.models.simulation.backend import SimulationTruth
 
     record = scene.require_complete(INGEST).attrs.get("simulation_truth")
     if record is None:

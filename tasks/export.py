@@ -20,11 +20,13 @@ import tempfile
 
 import numpy as np
 
-from navcrafter.models.backends import run_band, run_label
+from navcrafter.models.gaussians.ply import save_ply
+from navcrafter.models.gaussians.train import render_model
 from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.layout import FIT, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
+from navcrafter.tasks.backends import run_band, run_label
 from navcrafter.tasks.readers import CameraPath, camera_path, load_gaussians, load_refined_gaussians
 from navcrafter.tasks.steps import StepContext
 
@@ -44,8 +46,6 @@ def write_gaussian_exports(writer, scene, path: CameraPath, comments: list[str],
                            fps: int, refined: bool = False) -> None:
     """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group), or of the refined
     one (``renders`` group) when ``refined``."""
-    from navcrafter.models.gaussians.ply import save_ply
-    from navcrafter.models.gaussians.train import render_model
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
     fd, ply = tempfile.mkstemp(suffix=".ply")
     os.close(fd)

@@ -14,12 +14,21 @@ from __future__ import annotations
 import numpy as np
 
 from navcrafter.models.planning.orbit import orbit_azimuth_deg, orbit_radius, orbit_trajectory
-from navcrafter.models.planning.planners import PLANNERS, PlanningState, SeenView, scene_centre
+from navcrafter.models.planning.planners import (
+    PLANNERS,
+    PlanningState,
+    PlanResult,
+    SeenView,
+    optimise_trajectory,
+    planning_detector,
+    scene_centre,
+)
 from navcrafter.models.planning.plots import topdown_png
+from navcrafter.models.planning.user import trajectory_spec, user_path
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, LIFT
 from navcrafter.schemas.store import SceneStore
-from navcrafter.tasks.common import load_cloud
+from navcrafter.tasks.common import load_cloud, logger
 from navcrafter.tasks.readers import current_pose, stored_scene_centre
 from navcrafter.tasks.steps import StepContext
 
@@ -65,9 +74,6 @@ def plan(ctx: StepContext) -> dict:
 
 def user_plan(ctx: StepContext) -> dict:
     """A user's path (``plan.trajectory``, ``models/planning/user.py``) in place of the planner, checked by G."""
-    from navcrafter.models.planning.planners import optimise_trajectory, planning_detector
-    from navcrafter.models.planning.user import trajectory_spec, user_path
-    from navcrafter.tasks.common import logger
 
     cfg, scene, k = ctx.config.plan, ctx.scene, ctx.k
     state = planning_state(scene, k, ctx.config)
@@ -99,7 +105,6 @@ def user_plan(ctx: StepContext) -> dict:
     ctx.write_all(trajectory=traj, K=state.K, centre=state.centre, candidates=traj[-1:],
                   candidate_collides=np.array([bool(bad.any())]), initial_trajectory=initial)
     cloud = ctx.cloud(k - 1)
-    from navcrafter.models.planning.planners import PlanResult
 
     shown = PlanResult(traj, initial, traj[-1:], np.zeros(1), np.array([bool(bad.any())]),
                        np.zeros((1, state.height, state.width), dtype=bool), 0, optimised=optimised)

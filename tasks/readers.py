@@ -10,14 +10,28 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from navcrafter.models.camera.cameras import Intrinsics, interpolate_poses, invert_pose
+from navcrafter.models.camera.cameras import Intrinsics, estimated_clip_cameras
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
 from navcrafter.models.planning.planners import scene_centre
-from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE, StepSpec
+from navcrafter.models.simulation import LABEL as SIMULATION_LABEL
+from navcrafter.schemas.config import RUN_CONFIG_FILE, RunConfig, StoredRunConfig
+from navcrafter.schemas.layout import (
+    EXPORT,
+    FIT,
+    GEOMETRY,
+    INGEST,
+    LIFT,
+    PLAN,
+    REFINE,
+    SYNTHESIZE,
+    StepSpec,
+    scene_group,
+)
 from navcrafter.schemas.store import SceneStore
+from navcrafter.tasks.backends import run_label
+from navcrafter.tasks.common import logger
 
 
 @dataclass(frozen=True)
@@ -62,9 +76,27 @@ class CameraPath:
         return Intrinsics.from_matrix(self.K[f], self.width, self.height)
 
 
+def stored_run_config(scene: SceneStore) -> StoredRunConfig | None:
+    """The run configuration the scene's latest run stored before its first step (``schemas.config
+    .StoredRunConfig``), or None for a scene written before runs stored it."""
+    rel = f"{scene_group(scene.scene_id)}/{RUN_CONFIG_FILE}"
+    try:
+        data = scene.store.read_bytes(rel)
+    except FileNotFoundError:
+        return None
+    return StoredRunConfig.model_validate_json(data)
+
+
 def scene_run_config(scene: SceneStore, iterations: int | None = None) -> RunConfig:
-    """The parts of a run's config that the readers need, from the scene itself (a store keeps no config): the
-    synthesis size is the ingested working image's; ``iterations`` when given, else the default."""
+    """The config the scene's latest run ran with (stored with the scene). A scene written before runs stored their
+    config (before navcrafter stored ``run_config.json``) falls back, with a warning, to the defaults with the
+    synthesis size of its ingested working image and ``iterations`` (when given) as a reconstruction."""
+    stored = stored_run_config(scene)
+    if stored is not None:
+        return stored.config
+    logger().warning(f"scene {scene.scene_id[:12]}: written before runs stored their config ({RUN_CONFIG_FILE}); "
+                     "the default config with the scene's image size is assumed (rerun `navcrafter explore` with "
+                     "the same config to store it: nothing is recomputed)")
     width, height = scene.require_complete(INGEST).attrs["work_size"]
     base = RunConfig()
     synthesis = base.synthesis.model_copy(update={"width": int(width), "height": int(height)})
@@ -78,6 +110,25 @@ def export_record(scene: SceneStore) -> dict:
     st = scene.status(EXPORT)
     doc = st.attrs.get("files", {}).get("trajectory.json") if st.complete else None
     return json.loads(scene.store.read_bytes(doc["path"])) if doc else {}
+
+
+def scene_label(scene: SceneStore) -> str | None:
+    """The label every output of the scene's run carries (SIMULATION, RANDOM WEIGHTS, CAMERA CONTROL UNTRAINED;
+    ``tasks.backends.run_label``), or None: the one its export recorded, else the stored run config's, else (a scene
+    written before runs stored their config) the simulation's when its steps recorded that backend."""
+    try:
+        label = export_record(scene).get("label")
+    except (OSError, ValueError):
+        label = None
+    if label:
+        return label
+    stored = stored_run_config(scene)
+    if stored is not None:
+        return run_label(stored.config)
+    for spec in (INGEST, GEOMETRY, FIT):
+        if scene.status(spec).attrs.get("backend") == "simulation":
+            return SIMULATION_LABEL
+    return None
 
 
 def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = None,
@@ -107,30 +158,6 @@ def camera_path(scene: SceneStore, config: RunConfig, iterations: int | None = N
     return CameraPath(np.asarray(ks, dtype=np.int64), np.asarray(idx, dtype=np.int64),
                       np.concatenate(c2w) if c2w else np.zeros((0, 4, 4)),
                       np.concatenate(K) if K else np.zeros((0, 3, 3)), int(width), int(height))
-
-
-def estimated_clip_cameras(planned: np.ndarray, view_index: np.ndarray, estimated: np.ndarray) -> np.ndarray:
-    """Cameras of every frame of a clip from the estimates of some (see ``camera_path``): the correction
-    ``E_i = est_i @ inv(plan_i)`` is known at frame 0 (identity) and at the estimated frames, and interpolated in
-    between (rotation by SLERP, translation linearly), then applied to the plan."""
-    T = len(planned)
-    known = {0: np.eye(4)}
-    for j, i in enumerate(np.asarray(view_index)):
-        known[int(i)] = np.asarray(estimated[j], dtype=np.float64) @ invert_pose(planned[int(i)])
-    at = sorted(known)
-    out = np.empty_like(planned)
-    for i in range(T):
-        if i in known:
-            out[i] = known[i] @ planned[i]
-            continue
-        hi = next((a for a in at if a > i), None)
-        lo = max(a for a in at if a < i)
-        if hi is None:
-            corr = known[lo]
-        else:
-            corr = interpolate_poses(known[lo], known[hi], hi - lo + 1)[i - lo]
-        out[i] = corr @ planned[i]
-    return out
 
 
 def frame_truth(scene: SceneStore, k: int, frames: np.ndarray) -> tuple[np.ndarray, list[np.ndarray | None]]:

@@ -40,8 +40,9 @@ from navcrafter.models.metrics.cloud import (
     unit,
 )
 from navcrafter.models.planning.planners import search_space
+from navcrafter.models.simulation.reference import reference_points
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, SYNTHESIZE
+from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, STEPS, SYNTHESIZE
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import load_cloud, simulation_truth
@@ -64,7 +65,7 @@ def evaluate(ctx: StepContext) -> dict:
 
 def evaluate_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> dict[str, float]:
     """Run (or read back) the evaluate step of a finished scene: its metrics."""
-    attrs = steps.run_attrs(store_uri, scene_id, "evaluate", config, run_id)
+    attrs = steps.execute_attrs(store_uri, scene_id, STEPS["evaluate"], config, run_id, evaluate)
     return {k: float(v) for k, v in attrs["metrics"].items()}
 
 
@@ -85,7 +86,6 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
     scene.require_complete(EXPORT)
     cloud = load_cloud(scene, config.iterations)
     metrics: dict[str, float] = {"n_points": float(len(cloud))}
-    from navcrafter.models.simulation.reference import reference_points
 
     plan_attrs = [scene.status(PLAN, k).attrs for k in range(1, config.iterations + 1)]
     metrics["plan_seconds"] = float(sum(a.get("seconds", 0.0) for a in plan_attrs))

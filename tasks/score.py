@@ -35,9 +35,14 @@ from typing import Any
 
 import numpy as np
 
+from navcrafter.models.metrics.evalnets import fidfvd
 from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
+from navcrafter.models.metrics.image import psnr, ssim
+from navcrafter.models.metrics.pose import camera_guidance_precision
+from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.models.simulation.render import render
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
-from navcrafter.schemas.layout import EVALUATE, FIT, LIFT, PLAN, REFINE, SYNTHESIZE
+from navcrafter.schemas.layout import EVALUATE, EXPORT, FIT, GEOMETRY, LIFT, PLAN, REFINE, STEPS, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore
 from navcrafter.tasks import steps
 from navcrafter.tasks.common import open_store, simulation_truth
@@ -107,7 +112,6 @@ def reference_frames(scene: SceneStore, k: int, idx: np.ndarray) -> np.ndarray |
     truth = simulation_truth(scene)
     if truth is None:
         return None
-    from navcrafter.models.simulation.render import render
 
     frames = scene.read(SYNTHESIZE, k, "frames")
     H, W = frames.shape[1:3]
@@ -134,7 +138,6 @@ def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> lis
 def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationConfig, note: str | None = None,
                        scene_id: str | None = None) -> list[dict[str, Any]]:
     """PSNR, SSIM and LPIPS (mean over frames) of uint8 frames ``fake`` against ``real`` (``N x H x W x 3``)."""
-    from navcrafter.models.metrics.image import psnr, ssim
 
     a, b = fake.astype(np.float64) / 255.0, real.astype(np.float64) / 255.0
     p = np.asarray(psnr(a, b), dtype=np.float64)
@@ -215,7 +218,6 @@ def camera_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[d
         return [row("III", m, status="unavailable", note="evaluation.camera_guidance is off") for m in POSE_METRICS]
     if iterations == 0:
         return [row("III", m, status="unavailable", note="no iterations") for m in POSE_METRICS]
-    from navcrafter.models.metrics.pose import camera_guidance_precision
 
     results = []
     path = camera_path(scene, config, iterations)
@@ -281,7 +283,6 @@ def geometry_rows(scene: SceneStore, config: RunConfig) -> list[dict[str, Any]]:
 def runtime_rows(scene: SceneStore, iterations: int) -> list[dict[str, Any]]:
     """``Runtime`` (minutes: the total step time / 60; the paper reports 4.79 min per scene), then the
     seconds of each stage as ``time: <stage>``."""
-    from navcrafter.schemas.layout import EXPORT, GEOMETRY
 
     def secs(step, k=None) -> float:
         st = scene.status(step, k)
@@ -319,7 +320,8 @@ def score(ctx: StepContext) -> dict[str, Any]:
 
 def score_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> list[dict[str, Any]]:
     """Run (or read back) the score step of an explored scene: its rows."""
-    return [dict(r) for r in steps.run_attrs(store_uri, scene_id, "score", config, run_id)["rows"]]
+    attrs = steps.execute_attrs(store_uri, scene_id, STEPS["score"], config, run_id, score)
+    return [dict(r) for r in attrs["rows"]]
 
 
 # -- table II: over all scenes ---------------------------------------------------------------------
@@ -351,7 +353,6 @@ def frechet_rows(clips: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]],
                  note: str | None = None) -> list[dict[str, Any]]:
     """FID over all frames and FVD over all clips; ``clips()`` gives (real, fake) lists of uint8
     ``T x H x W x 3`` clips and is only called when a metric's weights are there."""
-    from navcrafter.models.metrics.evalnets import fidfvd
 
     rows: list[dict[str, Any]] = []
     loaded: tuple[list[np.ndarray], list[np.ndarray]] | None = None
@@ -394,7 +395,6 @@ def evaluation_markdown(evaluation_id: str, rows: list[dict[str, Any]], names: d
                         backend: str) -> str:
     """The paper-shaped tables (one per ``TABLES`` entry: scenes as rows, metrics as columns), ending with a
     line saying where Table VI (the 3DGS ablation) is."""
-    from navcrafter.models.simulation import LABEL as SIM_LABEL
 
     lines = ["# navcrafter evaluation", ""]
     if backend == "simulation":

@@ -1,15 +1,16 @@
 """How a step runs: its context, its cache key, skipping what is complete, committing what it wrote.
 
 Every step is declared once, by its ``StepSpec`` in ``schemas.layout`` (what it writes and reads, which config
-keys it, whether it holds a GPU slot, when it runs, its version, and where its body lives). Its body is a plain
-function over a ``StepContext``: it reads its inputs from ``ctx.scene``, writes its outputs with ``ctx.write``
-and returns the attributes to commit. From the specs this module derives
+keys it, whether it holds a GPU slot, when it runs, its version). Its body is a plain function over a
+``StepContext`` (registered by name in ``tasks/bodies.py``): it reads its inputs from ``ctx.scene``, writes its
+outputs with ``ctx.write`` and returns the attributes to commit. This module holds the protocol:
 
-* ``run(store_uri, scene_id, name, config, run_id, k)``: one step, skipped when its group is already complete
-  with the same cache key (``schemas.keys``), run under the scene's lock so two runs never write a scene at once;
-* ``scene_steps(config)``: the order of a scene run (geometry, N x (plan, synthesize, lift), fit and refine when
-  they run, export), used by the Prefect flow (``flows.explore``), by ``run_scene`` (one process, no Prefect:
-  benchmarks and tests) and by reports.
+* ``execute(store_uri, scene_id, spec, k, config, run_id, body)``: one step, skipped when its group is already
+  complete with the same cache key (``schemas.keys``), run under the scene's lock so two runs never write a scene
+  at once; ``execute_attrs`` for a step whose result is its attributes.
+
+``tasks/runner.py`` runs steps by name (``run``, ``run_attrs``), orders a scene run (``scene_steps``) and runs one
+in a process without Prefect (``run_scene``).
 
 A step's ``StepRef`` is small (ids and numbers), so orchestration never carries arrays.
 """
@@ -17,7 +18,6 @@ A step's ``StepRef`` is small (ids and numbers), so orchestration never carries 
 from __future__ import annotations
 
 import contextlib
-import importlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,8 +29,8 @@ import numpy as np
 from navcrafter.models.reconstruction.pointcloud import Cloud
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.keys import cache_key, dependencies, runs
-from navcrafter.schemas.layout import STEPS, StepSpec, scene_steps_in_order
+from navcrafter.schemas.keys import cache_key, dependencies
+from navcrafter.schemas.layout import StepSpec
 from navcrafter.schemas.store import SceneStore, StepWriter, Store, StoreFull, store_problem
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.common import StepError, StepRef, load_backend, load_cloud, logger, open_store
@@ -76,12 +76,6 @@ class StepContext:
 Body = Callable[[StepContext], dict[str, Any]]
 
 
-def body_of(spec: StepSpec) -> Body:
-    """The body a spec names (``"module:function"`` under ``navcrafter.tasks``)."""
-    module, _, name = spec.body.partition(":")
-    return getattr(importlib.import_module(f"navcrafter.tasks.{module}"), name)
-
-
 def step_key(scene: SceneStore, spec: StepSpec, k: int | None, config: RunConfig) -> str:
     """Cache key of a step over a store: its config and the stored keys of the outputs it reads."""
     deps = [scene.require_complete(s, kk).key for s, kk in dependencies(spec, k, config)]
@@ -95,19 +89,14 @@ def seed_from_key(key: str) -> int:
 # --------------------------------------------------------------------------------------------------
 # Running one step
 # --------------------------------------------------------------------------------------------------
-def run(store_uri: str, scene_id: str, name: str, config: RunConfig, run_id: str, k: int | None = None) -> StepRef:
-    """Run step ``name`` (iteration ``k`` of an iterative one) of a scene, or skip it when it is complete."""
-    spec = STEPS[name]
-    return execute(store_uri, scene_id, spec, k, config, run_id, body_of(spec))
-
-
-def run_attrs(store_uri: str, scene_id: str, name: str, config: RunConfig, run_id: str) -> dict[str, Any]:
-    """``run`` for a step whose result is its attributes (evaluation, scores): runs or skips it, then returns
+def execute_attrs(store_uri: str, scene_id: str, spec: StepSpec, config: RunConfig, run_id: str,
+                  body: Body) -> dict[str, Any]:
+    """``execute`` for a step whose result is its attributes (evaluation, scores): runs or skips it, then returns
     the committed attributes, read back so that a skipped step returns the same."""
-    ref = run(store_uri, scene_id, name, config, run_id)
-    status = open_store(store_uri).scene(scene_id).status(STEPS[name])
+    ref = execute(store_uri, scene_id, spec, None, config, run_id, body)
+    status = open_store(store_uri).scene(scene_id).status(spec)
     if status.key != ref.key:
-        raise RuntimeError(f"scene {scene_id[:12]}: {STEPS[name].path} changed while being read; run again")
+        raise RuntimeError(f"scene {scene_id[:12]}: {spec.path} changed while being read; run again")
     return status.attrs
 
 
@@ -197,45 +186,3 @@ def _record(store: Store, scene_id: str, path: str, event: str, key: str | None,
 
 # --------------------------------------------------------------------------------------------------
 # The order of a scene's steps
-# --------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Step:
-    """One step of a scene run: its spec and iteration."""
-
-    spec: StepSpec
-    k: int | None
-
-    @property
-    def path(self) -> str:
-        return self.spec.group_path(self.k)
-
-    def kwargs(self) -> dict:
-        return {} if self.k is None else {"k": self.k}
-
-    def run(self, store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> StepRef:
-        return run(store_uri, scene_id, self.spec.name, config, run_id, self.k)
-
-
-def scene_steps(config: RunConfig) -> list[Step]:
-    """The steps of a scene run in order (stage "scene" of ``schemas.layout``): each consecutive run of
-    iterative specs repeats for k = 1..N; steps whose ``runs_if`` is false are left out."""
-    steps: list[Step] = []
-    specs = [s for s in scene_steps_in_order() if runs(s, config)]
-    i = 0
-    while i < len(specs):
-        if not specs[i].iterative:
-            steps.append(Step(specs[i], None))
-            i += 1
-            continue
-        j = i
-        while j < len(specs) and specs[j].iterative:
-            j += 1
-        steps += [Step(s, k) for k in range(1, config.iterations + 1) for s in specs[i:j]]
-        i = j
-    return steps
-
-
-def run_scene(store_uri: str, scene_id: str, config: RunConfig, run_id: str) -> list[StepRef]:
-    """All steps of an ingested scene in this process, without Prefect."""
-    return [s.run(store_uri, scene_id, config, run_id) for s in scene_steps(config)]
-

@@ -17,6 +17,7 @@ import numpy as np
 
 from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.roles import SynthesisRequest
+from navcrafter.models.simulation.backend import ClipStart
 from navcrafter.schemas.layout import INGEST, PLAN, SYNTHESIZE
 from navcrafter.tasks.readers import current_pose, input_pose
 from navcrafter.tasks.steps import StepContext
@@ -65,7 +66,6 @@ def synthesize(ctx: StepContext) -> dict:
 
 def _simulated_start(scene, k: int):
     """Hidden truth of the conditioning image: the input camera for k = 1, else clip k-1's last frame."""
-    from navcrafter.models.simulation.backend import ClipStart
 
     if k == 1:
         return ClipStart(input_pose(scene))

@@ -1,5 +1,5 @@
-"""Screenshots of web pages with a real headless browser, for the tests: the functions of
-``deploy/local/browser.py`` (a plain module beside the scripts that use it too), importable as ``browser``.
+"""Screenshots of web pages with a real headless browser, for the tests: ``deploy/local/browser.py`` (the module
+the deploy scripts use too), importable as ``browser``.
 
     from browser import find_chromium, screenshot
     if find_chromium() is None: pytest.skip(...)
@@ -8,23 +8,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
-_PATH = Path(__file__).resolve().parents[1] / "deploy" / "local" / "browser.py"
-_NAME = "navcrafter_deploy_browser"
-
-if _NAME not in sys.modules:
-    _spec = importlib.util.spec_from_file_location(_NAME, _PATH)
-    _module = importlib.util.module_from_spec(_spec)
-    sys.modules[_NAME] = _module
-    _spec.loader.exec_module(_module)
-_impl = sys.modules[_NAME]
-
-CANDIDATES = _impl.CANDIDATES
-find_chromium = _impl.find_chromium
-screenshot = _impl.screenshot
-screenshot_and_dom = _impl.screenshot_and_dom
+from deploy.local.browser import CANDIDATES, find_chromium, screenshot, screenshot_and_dom
 
 __all__ = ["CANDIDATES", "find_chromium", "screenshot", "screenshot_and_dom"]

@@ -17,7 +17,10 @@ os.environ.setdefault("NAVCRAFTER_CHECKSUM_CACHE",
 
 import functools  # noqa: E402
 import io  # noqa: E402
+import shlex  # noqa: E402
 import shutil  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -49,6 +52,44 @@ def pytest_collection_modifyitems(config, items):
     if unmarked:
         raise pytest.UsageError("tests that start a server must be marked @pytest.mark.system:\n  "
                                 + "\n  ".join(unmarked))
+
+
+# Processes of our own that a test may start only when marked ``subprocess`` (or ``system``): Python (the CLI, a
+# script, torchrun's workers), torchrun, navcrafter, prefect, a browser. Tools that libraries run inside a call
+# (ffmpeg behind imageio, ...) are not refused.
+OWN_PROCESSES = ("python", "torchrun", "navcrafter", "prefect", "chromium", "chrome", "google-chrome")
+
+
+def _own_process(args) -> str | None:
+    argv = shlex.split(args) if isinstance(args, str) else [str(a) for a in args]
+    if not argv:
+        return None
+    name = Path(argv[0]).name
+    if argv[0] == sys.executable or any(name.startswith(p) for p in OWN_PROCESSES):
+        return " ".join(argv[:4])
+    return None
+
+
+@pytest.fixture(autouse=True)
+def _subprocesses_are_marked(request, monkeypatch):
+    """A test that starts a process of its own must say so (``@pytest.mark.subprocess`` or ``system``): the fast
+    loop (``-m "not system and not slow"``) leaves subprocess tests to the marked runs they belong to. Anything
+    else fails at the ``Popen`` with the fix."""
+    if request.node.get_closest_marker("subprocess") or request.node.get_closest_marker("system"):
+        yield
+        return
+    real = subprocess.Popen
+
+    class Refused(real):
+        def __init__(self, args, *a, **kw):
+            what = _own_process(args)
+            if what is not None:
+                pytest.fail(f"{request.node.nodeid} starts a process ({what}) without @pytest.mark.subprocess "
+                            "(or system): mark it", pytrace=False)
+            super().__init__(args, *a, **kw)
+
+    monkeypatch.setattr(subprocess, "Popen", Refused)
+    yield
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +170,7 @@ def export_cache(request):
 def tiny_models(tmp_path_factory, export_cache) -> Path:
     """All three learned roles exported with random weights (seed 0, tiny configs):
     MODEL_DIR/{synthesizer,geometry,monodepth}. Tests must not modify it (copy it first)."""
-    from navcrafter.models.runtime.exporters import export_all
+    from navcrafter.models.zoo.exporters import export_all
 
     root = tmp_path_factory.mktemp("models")
     T, H, W = TINY_MODELS_SIZE

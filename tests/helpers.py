@@ -124,7 +124,7 @@ def step_state(store: Path | Store) -> dict[tuple[str, str], tuple[bool, str | N
     e.g. one whose connection is not the run's own)."""
     from navcrafter.schemas.layout import STEPS
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.steps import scene_steps
+    from navcrafter.tasks.runner import scene_steps
 
     s = store if isinstance(store, Store) else Store(str(store))
     out = {}
@@ -141,7 +141,7 @@ def assert_same_outputs(a: Path, b: Path) -> None:
     """The two stores hold the same arrays and export files for every scene of ``b``, and the same metrics."""
     from navcrafter.schemas.layout import EVALUATE, EXPORT
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.steps import scene_steps
+    from navcrafter.tasks.runner import scene_steps
 
     sa, sb = Store(str(a)), Store(str(b))
     for sid in sb.scene_ids():

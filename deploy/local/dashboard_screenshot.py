@@ -25,7 +25,6 @@ errors (no chromium, an API that does not answer, a flow run that does not exist
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import io
 import json
 import os
@@ -44,18 +43,9 @@ ROOT = Path(__file__).resolve().parents[2]
 MAX_BYTES = 500_000  # a committed PNG stays below this (palette-reduced when larger)
 
 
-def _load_browser():
-    """``deploy/local/browser.py`` (a plain module beside this script; tests/browser.py loads the same one)."""
-    name = "navcrafter_deploy_browser"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("browser.py"))
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-browser = _load_browser()
+if __package__ in (None, ""):  # run as a script: the repository root makes the deploy package importable
+    sys.path.insert(0, str(ROOT))
+from deploy.local import browser  # noqa: E402
 
 
 class UsageError(Exception):

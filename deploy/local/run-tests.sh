@@ -6,4 +6,5 @@ cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 bash deploy/local/setup.sh test
 export PREFECT_SERVER_ANALYTICS_ENABLED="${PREFECT_SERVER_ANALYTICS_ENABLED:-false}"
 .venv/bin/ruff check --quiet .
+.venv/bin/lint-imports --no-cache --no-logo  # the layers and no cycles ([tool.importlinter] in pyproject.toml)
 exec .venv/bin/python -m pytest "$@"

@@ -33,6 +33,7 @@ def dataset_clips(
     seed: Annotated[int, typer.Option(help="Seed of the clip draw.")] = 0,
 ) -> None:
     """Write benchmark clips (conditioning image, reference frames, cameras) for a video generator."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.datasets import DatasetError, open_dataset
     from navcrafter.tasks.clips import export_clips
 
@@ -70,6 +71,7 @@ def evaluate_clips(
     """
     cfg = run_config(preset, config, set_, {"evaluation.weights_dir": str(eval_weights) if eval_weights else None,
                                             "evaluation.camera_guidance": camera_guidance})
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.tasks.clips import clip_keys
 
     with usage_errors(FileNotFoundError):
@@ -77,6 +79,7 @@ def evaluate_clips(
     if not generated.is_dir():
         fail(f"{generated} is not a folder of generated clips (GENERATED/<clip>/0001.png ...)")
     prefect_env()
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.evaluate import evaluate_clips as score_clips
 
     result = score_clips(str(clips), str(generated), str(out), cfg, reconstruction=reconstruction)
@@ -101,9 +104,10 @@ def generate_clips(
 ) -> None:
     """Generate each clip's video with the configured synthesizer (4k + 1 frames: 17 for 15 cameras, the first 15
     kept); score them with `navcrafter evaluate-clips CLIPS OUT`. Reruns skip finished clips."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.simulation import LABEL
-    from navcrafter.tasks.clip_generation import generation_frames
     from navcrafter.tasks.clips import clip_keys, load_clip
+    from navcrafter.tasks.clips.generation import generation_frames
 
     with usage_errors(FileNotFoundError):
         keys = clip_keys(clips)
@@ -117,6 +121,7 @@ def generate_clips(
     if cfg.backend == "simulation":
         console.print(f"[bold yellow]{LABEL}.[/bold yellow]")
     prefect_env()
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.clips import generate_clips_local
 
     run = generate_clips_local(str(clips), str(out), cfg)

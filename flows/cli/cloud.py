@@ -1,6 +1,6 @@
 """``navcrafter evaluate-cloud``: a point cloud (or mesh) against a reference cloud (or mesh): precision, recall,
 F-score, Coverage and Noise ratio at a distance threshold, optionally after ICP alignment
-(``tasks.interchange.evaluate_cloud_files``; the definitions: ``models.metrics.cloud``)."""
+(``flows.tools.interchange.evaluate_cloud_files``; the definitions: ``models.metrics.cloud``)."""
 
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ def evaluate_cloud(
     out: Annotated[Optional[Path], typer.Option("--out", help="Write the results as JSON to this file.")] = None,
 ) -> None:
     """Score a point cloud against a reference: precision, recall, F-score, Coverage, Noise ratio."""
-    from navcrafter.tasks.interchange import InterchangeError, evaluate_cloud_files
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.flows.tools.interchange import InterchangeError, evaluate_cloud_files
 
     with usage_errors(InterchangeError):
         doc = evaluate_cloud_files(pred, gt, threshold, align, icp_distance, mesh_points)

@@ -20,6 +20,7 @@ def demo_data(
     height: Annotated[int, typer.Option(min=64)] = 480,
 ) -> None:
     """Write a demo collection: photo-like renders of generated scenes, with hidden ground truth."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.simulation.demo import write_demo_collection
     from navcrafter.models.simulation.scenes import KINDS
 

@@ -41,6 +41,7 @@ def evaluate(
 
     Give the --preset, --config and --set the scenes were explored with.
     """
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.store import Store, StoreError
 
     cfg = run_config(preset, config, set_, {"evaluation.weights_dir": str(eval_weights) if eval_weights else None,
@@ -48,6 +49,7 @@ def evaluate(
     with usage_errors(StoreError):
         Store(store, create=False)
     prefect_env()
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.evaluate import evaluable_scenes, evaluate_store_local
 
     if not evaluable_scenes(store)[0]:

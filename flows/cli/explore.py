@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 
 def _refuse_problems(cfg: RunConfig) -> None:
     """What the config asks for that is not built yet or cannot work ends the command before any work."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.explore import preflight
 
     if problems := preflight(cfg):
@@ -52,11 +53,13 @@ def explore(
         ".npy/.json c2w matrices); repeat it for one entry per iteration (plan.trajectory).")] = None,
 ) -> None:
     """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.simulation import LABEL
 
     cfg = run_config(preset, config, set_, {"backend": backend, "model_dir": str(models) if models else None,
                                             "max_parallel_scenes": parallel, "plan.trajectory": trajectory})
     if "://" in photos:
+        # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
         from navcrafter.tasks.ingest import CollectionError, list_collection
 
         with usage_errors(CollectionError):
@@ -66,17 +69,20 @@ def explore(
     if cfg.backend == "simulation":
         console.print(f"[bold yellow]{LABEL}.[/bold yellow]")
     elif cfg.backend == "onnx" and cfg.model_dir is not None and Path(cfg.model_dir).is_dir():
-        from navcrafter.models.backends import run_label
+        # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+        from navcrafter.tasks.backends import run_label
 
         if label := run_label(cfg):
             console.print(f"[bold yellow]{label}.[/bold yellow]")
     prefect_env()
     from prefect.task_runners import ThreadPoolTaskRunner
 
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.explore import explore_collection
 
     _refuse_problems(cfg)
     if scene_deployment:  # scene runs go to workers elsewhere: they need a server they can reach
+        # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
         from navcrafter.flows.dispatch import DispatchError, check_scene_deployment
         from navcrafter.flows.submit import SubmitError, require_server
 
@@ -87,7 +93,8 @@ def explore(
     flow_ = explore_collection.with_options(task_runner=ThreadPoolTaskRunner(max_workers=cfg.max_parallel_scenes))
     run = flow_(photos, store, cfg, scene_deployment=scene_deployment)
     results = run.scenes
-    from navcrafter.tasks.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.flows.tools.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
 
     table = Table(title="navcrafter run summary")
     columns = (*SUMMARY_COLUMNS[:4], "median dist.", "cover.", "noise", "F", "coll.", "3DGS", "sec", "error")
@@ -135,6 +142,7 @@ def submit(
     """Submit a collection to a Prefect deployment (workers explore it); prints the flow-run ids."""
     cfg = run_config(preset, config, set_)
     prefect_env()
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.submit import (
         SCENE_ENTRYPOINT,
         SCENE_FLOW_NAME,

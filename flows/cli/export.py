@@ -1,5 +1,5 @@
 """``navcrafter export``: a finished scene's frames, cameras and fused cloud for other tools (nerfstudio /
-splatfacto, gsplat's and other COLMAP-reading 3DGS trainers). The writers are ``tasks/interchange.py``."""
+splatfacto, gsplat's and other COLMAP-reading 3DGS trainers). The writers are ``flows/tools/interchange.py``."""
 
 from __future__ import annotations
 
@@ -23,8 +23,9 @@ def export(
 ) -> None:
     """Export a finished scene's frames at the fit's cameras (the estimated camera path when the fit did not run)
     and its fused cloud as initial points, as a nerfstudio or COLMAP dataset, with navcrafter_export.json."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.flows.tools.interchange import EXPORTERS, InterchangeError
     from navcrafter.schemas.store import StoreError
-    from navcrafter.tasks.interchange import EXPORTERS, InterchangeError
 
     if fmt not in EXPORTERS:
         fail(f"--format {fmt!r} is not one of {', '.join(EXPORTERS)}")

@@ -26,6 +26,7 @@ _Prompt = Annotated[str, typer.Option(help="Text prompt whose embedding is preco
 
 
 def _done(path: Path) -> None:
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.runtime.onnxio import load_manifest
 
     manifest = json.loads((Path(path) / "manifest.json").read_text())
@@ -44,7 +45,8 @@ def export_geometry_cmd(
     seed: int = 0,
 ) -> None:
     """VGGT-architecture multi-view geometry (frames -> cameras, depth, points) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_geometry
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.exporters import export_geometry
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_geometry(out, checkpoint=checkpoint, random=random, seed=seed))
@@ -59,7 +61,8 @@ def export_monodepth_cmd(
     seed: int = 0,
 ) -> None:
     """MoGe-2-architecture monocular geometry (image -> points, mask, metric scale) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_monodepth
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.exporters import export_monodepth
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_monodepth(out, checkpoint=checkpoint, random=random, seed=seed))
@@ -83,7 +86,8 @@ def export_refiner_cmd(
     seed: int = 0,
 ) -> None:
     """Difix-architecture single-step diffusion refiner (render + reference view -> refined view) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_refiner
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.exporters import export_refiner
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_refiner(out, checkpoint=checkpoint, random=random, seed=seed, base=base,
@@ -105,7 +109,8 @@ def export_synthesizer_cmd(
     seed: int = 0,
 ) -> None:
     """Camera-controlled Wan2.1 I2V (DiT, VAE encoder/decoder, image encoder, text embeddings) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_synthesizer
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.exporters import export_synthesizer
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_synthesizer(out, num_frames=frames, height=height, width=width, base_dir=base,
@@ -130,7 +135,8 @@ def export_fun_camera_cmd(
     seed: int = 0,
 ) -> None:
     """The public camera-controlled Wan2.1-Fun-V1.1 Control-Camera (synthesis.model=fun-camera) as ONNX."""
-    from navcrafter.models.runtime.exporters import export_fun_camera
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.exporters import export_fun_camera
 
     with usage_errors(*_EXPORT_ERRORS):
         _done(export_fun_camera(out, checkpoint_dir=checkpoint, base_dir=base, random=random, num_frames=frames,
@@ -145,6 +151,7 @@ def convert_fp16_cmd(
 ) -> None:
     """Convert graphs of a model directory to fp16 in place (normalisations and inputs/outputs stay fp32): half the
     memory and fp16 kernels on the CUDA execution provider; on the CPU it runs, slower."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.runtime.onnxio import ModelDirError, convert_model_dir_fp16
 
     with usage_errors(ModelDirError, *_EXPORT_ERRORS):
@@ -161,7 +168,8 @@ def export_all_cmd(
     seed: int = 0,
 ) -> None:
     """All three models with random weights (tests, demos of the onnx path, timing)."""
-    from navcrafter.models.runtime.exporters import export_all
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.exporters import export_all
 
     s = run_config(preset).synthesis
     with usage_errors(*_EXPORT_ERRORS):
@@ -176,8 +184,9 @@ def show_cmd(
     verify: Annotated[bool, typer.Option(help="Check every file's sha256.")] = True,
 ) -> None:
     """What a model directory holds, with checksum verification."""
-    from navcrafter.models.backends import ROLE_DIRS
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.runtime.onnxio import ModelDirError, load_manifest
+    from navcrafter.models.zoo.modeldir import ROLE_DIRS
 
     dirs = [model_dir] if (model_dir / "manifest.json").is_file() else [model_dir / d for d in ROLE_DIRS.values()]
     for d in dirs:
@@ -211,7 +220,8 @@ def pull_cmd(
                                              "'paper' or 'tiny'.")] = "paper",
 ) -> None:
     """Download the official checkpoints with huggingface_hub, verify their sizes and sha256, export them."""
-    from navcrafter.models.runtime.hub import HubError, pull
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.models.zoo.hub import HubError, pull
 
     s = run_config(preset).synthesis
     with usage_errors(HubError):

@@ -69,6 +69,7 @@ def run_config(preset: str = "paper", config: Path | None = None, sets: list[str
     the command here, before any work starts, with one line per mistake."""
     from pydantic import ValidationError
 
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.config import RunConfig
 
     merged = {**_parse_sets(sets or []), **{k: v for k, v in (overrides or {}).items() if v is not None}}

@@ -21,7 +21,6 @@ from navcrafter.flows.cli.options import console, err, fail, usage_errors
 if TYPE_CHECKING:
     from navcrafter.models.camera.cameras import Intrinsics
     from navcrafter.models.gaussians.model import GaussianModel
-    from navcrafter.schemas.store import SceneStore
 
 DEFAULT_SIZE = 512  # a bare PLY's default width and height
 BANDS_IN_COMMENTS = ("SIMULATION", "RANDOM WEIGHTS", "CAMERA CONTROL UNTRAINED")
@@ -43,6 +42,7 @@ class Source:
 
 def ply_source(path: Path) -> Source:
     """A bare PLY (checked and normalised by ``load_gaussian_ply``); labelled when its header comments say so."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.gaussians.ply import load_gaussian_ply, read_ply_header
 
     if not path.is_file():
@@ -57,9 +57,17 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     """The fitted Gaussians of a scene (refined when the refine step ran, as its exports use), its input camera
     (the first camera of its stored path), that camera's intrinsics at the scene's resolution and the scene
     centre. ``scene_id`` may be a unique prefix; None picks the store's only scene."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.layout import FIT, PLAN, REFINE
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.readers import camera_path, load_gaussians, load_refined_gaussians, scene_run_config
+    from navcrafter.tasks.backends import label_band
+    from navcrafter.tasks.readers import (
+        camera_path,
+        load_gaussians,
+        load_refined_gaussians,
+        scene_label,
+        scene_run_config,
+    )
 
     store = Store(store_uri, create=False)
     ids = store.scene_ids()
@@ -83,21 +91,7 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
     path = camera_path(scene, scene_run_config(scene), iterations=1)
     return Source(model, f"scene {sid[:12]}{' (refined)' if refined else ''}", path.c2w[0], path.intrinsics(0),
-                  np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), _scene_band(scene))
-
-
-def _scene_band(scene: SceneStore) -> str | None:
-    """The band of a labelled run: the simulation backend (recorded by the fit), or the label its export wrote."""
-    from navcrafter.models.backends import BANDS
-    from navcrafter.schemas.layout import FIT
-    from navcrafter.tasks.readers import export_record
-
-    if scene.status(FIT).attrs.get("backend") == "simulation":
-        return "SIMULATION"
-    label = export_record(scene).get("label")
-    if label:
-        return BANDS.get(label, "SIMULATION" if label.startswith("SIMULATION") else label.split(":")[0][:32])
-    return None
+                  np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), label_band(scene_label(scene)))
 
 
 def _triple(text: str, option: str) -> np.ndarray:
@@ -194,8 +188,9 @@ def render(
 
     Presets start from a framed view: for a PLY, one that fits its Gaussians; for a scene, its input camera.
     """
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.camera import trajectories as tr
-    from navcrafter.models.camera.cameras import Intrinsics, invert_pose
+    from navcrafter.models.camera.cameras import Intrinsics
 
     if (ply is None) == (store is None):
         fail("give either a PLY file or --store STORE [--scene ID], not both" if ply else
@@ -206,6 +201,7 @@ def render(
         fail("--fov applies to a bare PLY; a scene renders with its own camera's intrinsics")
     if fov is not None and not 0 < fov < 180:
         fail(f"--fov must be in (0, 180) degrees, got {fov}")
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.store import StoreError
 
     with usage_errors(ValueError):
@@ -236,7 +232,7 @@ def render(
                 raise ValueError("--degrees / --amount size a preset, not a camera file")
             c2w = camfile.c2w
             if relative:
-                c2w = frame.c2w @ invert_pose(c2w[0]) @ c2w
+                c2w = tr.rebase_path(c2w, frame.c2w)
             K = camfile.intrinsics_at(w, h)
             K = np.repeat(base_K.K[None], len(c2w), axis=0) if K is None else K
     _render(src, c2w, K, w, h, bg, out, fps, device, renderer, trajectory)
@@ -254,6 +250,7 @@ def _render(src: Source, c2w: np.ndarray, K: np.ndarray, width: int, height: int
     from PIL import Image
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.gaussians.renderer import resolve_backend, resolve_device
     from navcrafter.models.gaussians.train import render_model
     from navcrafter.models.media import encode_mp4, label_frames

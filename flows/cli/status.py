@@ -23,9 +23,10 @@ def status(
 ) -> None:
     """Show the manifest (one row per image: status, last step, metrics, error) beside the Prefect
     state of its flow run, and flag scenes that need action (stale, possibly dead worker)."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.runstates import run_states
+    from navcrafter.flows.tools.report import read_manifest
     from navcrafter.schemas.store import Store, StoreError
-    from navcrafter.tasks.report import read_manifest
 
     with usage_errors(StoreError):
         st = Store(store, create=False)
@@ -72,6 +73,7 @@ def status(
                       f"{r['seconds'] or 0:.1f}", r["error"] or "")
     console.print(table)
     if any(r["backend"] == "simulation" for r in rows):
+        # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
         from navcrafter.models.simulation import LABEL
 
         console.print(f"[yellow]backend 'simulation': {LABEL}.[/yellow]")

@@ -16,6 +16,7 @@ def _training_config(config: Path | None, sets: list[str] | None, data: list[str
     import yaml
     from pydantic import ValidationError
 
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.training import CameraTrainingConfig
 
     raw: dict = {}
@@ -63,6 +64,7 @@ def train_camera(
     if not cfg.data.sources:
         fail("no training data: give --data KIND=ROOT (e.g. --data re10k=/data/re10k) or data.sources in --config; "
              "`navcrafter simulate-datasets OUT` writes simulated ones")
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.flows.train_camera import train_camera as flow
     from navcrafter.schemas.datasets import DatasetError
     from navcrafter.tasks.training.train import TrainingRunError
@@ -85,6 +87,7 @@ def simulate_datasets(
     seed: Annotated[int, typer.Option(help="Seed of scenes and trajectories.")] = 0,
 ) -> None:
     """Render RealEstate10K- and DL3DV-format datasets from procedural scenes with exact cameras (and depth)."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.simulation.datasets import write_dataset
 
     for i, kind in enumerate(kinds or ["re10k", "dl3dv"]):

@@ -1,4 +1,4 @@
-"""``navcrafter view``: a 3D viewer of a store's explored scenes in the browser (viser; ``tasks/viewer.py``)."""
+"""``navcrafter view``: a 3D viewer of a store's explored scenes in the browser (viser; ``flows/tools/viewer.py``)."""
 
 from __future__ import annotations
 
@@ -24,8 +24,9 @@ def view(
     """Serve a 3D viewer of a scene: its fitted Gaussians (when the fit ran), the fused cloud per iteration, the
     input photo, planned and estimated cameras, the plan's candidates (rejected by the collision detector G or
     not) and the video frames; a dropdown switches between the store's scenes. Serves until Ctrl-C."""
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
+    from navcrafter.flows.tools.viewer import NO_FIT, SceneNotFound, build_viewer, resolve_scene
     from navcrafter.schemas.store import Store, StoreError
-    from navcrafter.tasks.viewer import NO_FIT, SceneNotFound, build_viewer, resolve_scene
 
     try:
         st = Store(store, create=False)

@@ -454,3 +454,27 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[
     s = float(np.trace(np.diag(S) @ D) / var_s) if with_scale and var_s > 0 else 1.0
     t = mu_d - s * R @ mu_s
     return s, R, t
+
+
+def estimated_clip_cameras(planned: np.ndarray, view_index: np.ndarray, estimated: np.ndarray) -> np.ndarray:
+    """Cameras of every frame of a clip from the estimates of some (``tasks.readers.camera_path`` with estimated
+    cameras): the correction ``E_i = est_i @ inv(plan_i)`` is known at frame 0 (identity) and at the estimated
+    frames, and interpolated in between (rotation by SLERP, translation linearly), then applied to the plan."""
+    T = len(planned)
+    known = {0: np.eye(4)}
+    for j, i in enumerate(np.asarray(view_index)):
+        known[int(i)] = np.asarray(estimated[j], dtype=np.float64) @ invert_pose(planned[int(i)])
+    at = sorted(known)
+    out = np.empty_like(planned)
+    for i in range(T):
+        if i in known:
+            out[i] = known[i] @ planned[i]
+            continue
+        hi = next((a for a in at if a > i), None)
+        lo = max(a for a in at if a < i)
+        if hi is None:
+            corr = known[lo]
+        else:
+            corr = interpolate_poses(known[lo], known[hi], hi - lo + 1)[i - lo]
+        out[i] = corr @ planned[i]
+    return out

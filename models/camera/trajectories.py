@@ -53,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from navcrafter.models.camera.camerafiles import read_nerfstudio_transforms, read_re10k_cameras
 from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, invert_pose, look_at
 
 WORLD_UP = (0.0, -1.0, 0.0)  # a scene's world frame is its input camera's: up is -y
@@ -357,9 +358,7 @@ def _json(path: Path) -> dict:
 
 
 def read_re10k(path: str | Path) -> CameraFile:
-    """A RealEstate10K pose file (the dataset reader's parser, ``schemas.datasets.read_re10k_cameras``)."""
-    from navcrafter.schemas.datasets import read_re10k_cameras
-
+    """A RealEstate10K pose file (``camerafiles.read_re10k_cameras``)."""
     cams = read_re10k_cameras(path)
     K = np.zeros((len(cams.w2c), 3, 3))
     K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2] = cams.intrinsics.T
@@ -368,11 +367,9 @@ def read_re10k(path: str | Path) -> CameraFile:
 
 
 def read_transforms(path: str | Path) -> CameraFile:
-    """A nerfstudio / DL3DV ``transforms.json`` (the dataset reader's parser,
-    ``schemas.datasets.read_nerfstudio_transforms``), frames in ``file_path`` order. Each frame's intrinsics are
-    expressed at the first frame's size; a frame needs ``w``/``h`` or ``cx``/``cy`` to know its size."""
-    from navcrafter.schemas.datasets import read_nerfstudio_transforms
-
+    """A nerfstudio / DL3DV ``transforms.json`` (``camerafiles.read_nerfstudio_transforms``), frames in
+    ``file_path`` order. Each frame's intrinsics are expressed at the first frame's size; a frame needs
+    ``w``/``h`` or ``cx``/``cy`` to know its size."""
     frames, _ = read_nerfstudio_transforms(path)
     Ks, size = [], None
     for i, f in enumerate(frames):
@@ -532,3 +529,10 @@ def read_camera_file(path: str | Path, convention: str = "opencv") -> CameraFile
     of plain matrices (the other formats state their own)."""
     fmt = camera_file_format(path)
     return read_matrices(path, convention) if fmt == "matrices" else CAMERA_FILE_FORMATS[fmt](path)
+
+
+def rebase_path(c2w: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """A camera path re-based on its first camera and placed at ``start``: ``start @ inv(c2w[0]) @ c2w``
+    (``navcrafter render --relative``: a camera file's motion from the start view)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    return np.asarray(start, dtype=np.float64) @ invert_pose(c2w[0]) @ c2w

@@ -9,10 +9,11 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 
+from navcrafter.models.gaussians.config import FitConfig, RefineConfig
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainResult, TrainView
+from navcrafter.models.metrics.config import EvaluationConfig
 from navcrafter.models.metrics.image import psnr, ssim
-from navcrafter.schemas.config import EvaluationConfig, FitConfig, RefineConfig
 
 HISTORY_COLUMNS = ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")
 

@@ -40,11 +40,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from navcrafter.models.gaussians.config import FitConfig
 from navcrafter.models.gaussians.densify import DefaultStrategy, NoStrategy, Strategy
 from navcrafter.models.gaussians.dropgaussian import DropGaussian
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.renderer import rasterize, resolve_backend, resolve_device
-from navcrafter.schemas.config import FitConfig
 
 PerceptualLoss = Callable[[Tensor, Tensor], Tensor]  # (rendered, target) [1, 3, H, W] in [-1, 1] -> scalar
 

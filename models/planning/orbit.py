@@ -12,8 +12,8 @@ import math
 import numpy as np
 
 from navcrafter.models.camera.cameras import axis_angle_to_matrix, interpolate_poses, look_at
+from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.planning.planners import WORLD_UP
-from navcrafter.schemas.config import PlanConfig
 
 
 def orbit_azimuth_deg(k: int, cfg: PlanConfig, radius: float) -> float:

@@ -61,9 +61,9 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from navcrafter.models.camera.cameras import interpolate_poses, look_at, project
+from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.reconstruction.pointcloud import thin_points
 from navcrafter.models.reconstruction.pointrender import render_points
-from navcrafter.schemas.config import PlanConfig
 
 WORLD_UP = np.array([0.0, -1.0, 0.0])  # a scene's world is its input camera's OpenCV frame
 MAX_ELEVATION_DEG = 85.0  # look-at is degenerate straight above or below the centre

@@ -55,10 +55,10 @@ from navcrafter.models.roles import (
     MonoDepthPrediction,
     SynthesisRequest,
 )
+from navcrafter.models.simulation.config import SimulationConfig
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import GENERATOR_VERSION, KINDS, SceneObject, SimScene, generate_scene
 from navcrafter.models.simulation.textures import Material
-from navcrafter.schemas.config import SimulationConfig
 
 BACKEND = "simulation"
 

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from navcrafter.models.synthesis.pipeline import WAN_FLOW_SHIFT
+from navcrafter.models.synthesis.config import WAN_FLOW_SHIFT
 
 ARCHITECTURE = "wan2.1-i2v-camera"
 KIND = "synthesizer"

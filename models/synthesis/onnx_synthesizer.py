@@ -115,7 +115,7 @@ class OnnxSynthesizer:
             raise SynthesizerModelError(f"the synthesizer in {self.model_dir} records model {have!r} with "
                                         f"architecture {architecture!r}: re-export it with this navcrafter version")
         if have != wanted:
-            export = ("export_fun_camera (models/runtime/exporters.py)" if wanted == funcamera.MODEL_NAME
+            export = ("export_fun_camera (models/zoo/exporters.py)" if wanted == funcamera.MODEL_NAME
                       else "navcrafter models export-synthesizer")
             raise SynthesizerModelError(
                 f"the run config asks for synthesis.model={wanted!r}, but the synthesizer in {self.model_dir} is "

@@ -51,14 +51,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from navcrafter.schemas.config import SynthesisConfig
+from navcrafter.models.synthesis.config import WAN_FLOW_SHIFT, SynthesisConfig
 
 
 class SynthesisShapeError(ValueError):
     """Inputs do not fit the model (frame count, size, channel layout); the message names the fix."""
 
 
-WAN_FLOW_SHIFT = 3.0  # Wan2.1's scheduler shift: exported models record it; used when a manifest has none
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ from navcrafter.models.synthesis.camcontrol import (
     save_camera_control,
 )
 from navcrafter.models.synthesis.pipeline import i2v_mask
-from navcrafter.schemas.training import CHECKPOINT_DIR, CameraTrainingConfig
+from navcrafter.models.synthesis.training_config import CHECKPOINT_DIR, CameraTrainingConfig
 
 OPTIMIZER_FILE = "optimizer.safetensors"
 STATE_FILE = "state.json"

@@ -28,8 +28,6 @@ visited and each ``Sample`` holds its decoded frames (uint8 arrays) only once it
 
 from __future__ import annotations
 
-import math
-import re
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -39,16 +37,15 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from PIL import Image
 
+from navcrafter.models.camera.camerafiles import DatasetError, _check_rigid, _floats, _natural_key, _read_lines
 from navcrafter.models.camera.cameras import Intrinsics
+from navcrafter.models.camera.trajectories import GL_CV_FLIP
+
+__all__ = ["GL_CV_FLIP", "DatasetError", "_check_rigid", "_floats", "_natural_key", "_read_lines"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
-#: Right-multiplying a camera-to-world matrix by this flips the camera's y and z axes (OpenGL <-> OpenCV).
-GL_CV_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 StartMode = Literal["random", "first"]
 
-
-class DatasetError(ValueError):
-    """A dataset file or folder cannot be used; the message names it and says how to fix it."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -130,29 +127,6 @@ class SequenceInfo:
 # --------------------------------------------------------------------------------------------------
 # Small helpers
 # --------------------------------------------------------------------------------------------------
-def _natural_key(s: str) -> list:
-    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", s)]
-
-
-def _floats(tokens: Sequence[str], where: str) -> list[float]:
-    try:
-        out = [float(t) for t in tokens]
-    except ValueError as e:
-        raise DatasetError(f"{where}: expected numbers, got {' '.join(tokens)!r} ({e})") from None
-    if not all(math.isfinite(v) for v in out):
-        raise DatasetError(f"{where}: non-finite number in {' '.join(tokens)!r}")
-    return out
-
-
-def _check_rigid(T: np.ndarray, where: str, tol: float = 1e-2) -> None:
-    R = T[:3, :3]
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-        raise DatasetError(f"{where}: last row of the pose is {T[3].tolist()}, expected [0, 0, 0, 1]")
-    if np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) < 0:
-        raise DatasetError(f"{where}: the pose's 3x3 block is not a rotation (R^T R != I or det < 0); "
-                           "the file is corrupt or not in the expected format")
-
-
 def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:
     """OpenGL/nerfstudio camera-to-world (x right, y up, z back) -> OpenCV (x right, y down, z forward).
 
@@ -181,16 +155,6 @@ def _read_image(path: Path) -> np.ndarray:
         raise DatasetError(f"image {path} does not exist") from None
     except Exception as e:
         raise DatasetError(f"cannot read image {path} (corrupt or truncated?): {e}; re-extract or remove it") from None
-
-
-def _read_lines(path: Path, what: str) -> list[str]:
-    """The lines of a text file, or a ``DatasetError`` naming ``what`` and the file."""
-    try:
-        return path.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"{what} {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read {what} {path}: {e}") from None
 
 
 def _rescale_K(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int], where: str) -> np.ndarray:

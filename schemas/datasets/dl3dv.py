@@ -21,100 +21,26 @@ rescaled from ``w x h`` to the size of the image actually read. Expected layout:
 
 from __future__ import annotations
 
-import json
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from navcrafter.models.camera.camerafiles import NerfstudioFrame as NerfstudioFrame
+from navcrafter.models.camera.camerafiles import read_nerfstudio_transforms
+
 from .base import (
     DatasetError,
     DatasetReader,
     SequenceInfo,
-    _check_rigid,
     _image_size,
-    _natural_key,
     _subfolders,
     opengl_to_opencv,
 )
 
-
 # --------------------------------------------------------------------------------------------------
 # File parser
 # --------------------------------------------------------------------------------------------------
-@dataclass
-class NerfstudioFrame:
-    file_path: str
-    c2w_gl: np.ndarray              # [4, 4] as stored (OpenGL camera axes)
-    fx: float
-    fy: float
-    cx: float | None
-    cy: float | None
-    w: int | None
-    h: int | None
-    extra: dict[str, Any]
-
-
-_NS_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
-_NS_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-
-
-def _frame_or_global(frame: dict, meta: dict) -> Callable[[str], Any]:
-    return lambda k: frame.get(k, meta.get(k))
-
-
-def read_nerfstudio_transforms(path: str | Path) -> tuple[list[NerfstudioFrame], dict[str, Any]]:
-    """Parse a nerfstudio ``transforms.json``: frames sorted by ``file_path``, plus the top-level keys."""
-    path = Path(path)
-    try:
-        meta = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{path} does not exist; each DL3DV scene needs a nerfstudio transforms.json") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DatasetError(f"{path}: not valid JSON ({e}); re-download the scene's transforms.json") from None
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise DatasetError(f"{path}: no 'frames' list; a nerfstudio transforms.json has "
-                           "'frames': [{'file_path': ..., 'transform_matrix': ...}, ...]")
-    model = str(meta.get("camera_model", "OPENCV")).upper()
-    if "FISHEYE" in model or "EQUIRECT" in model:
-        raise DatasetError(f"{path}: camera_model {model} is not a pinhole model; undistort the images first")
-    frames = []
-    for i, fr in enumerate(meta["frames"]):
-        where = f"{path}: frames[{i}]"
-        if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
-            raise DatasetError(f"{where}: needs 'file_path' and 'transform_matrix'")
-        try:
-            M = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{where}: transform_matrix is not a numeric matrix") from None
-        if M.shape == (3, 4):
-            M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
-        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-            raise DatasetError(f"{where}: transform_matrix must be a finite 4x4 (or 3x4) matrix, got shape {M.shape}")
-        _check_rigid(M, where)
-        get = _frame_or_global(fr, meta)
-        fx = get("fl_x")
-        if fx is None:
-            raise DatasetError(f"{where}: no focal length 'fl_x' (neither per frame nor global)")
-        fy = get("fl_y") if get("fl_y") is not None else fx
-        try:
-            fx, fy = float(fx), float(fy)
-            cx = None if get("cx") is None else float(get("cx"))
-            cy = None if get("cy") is None else float(get("cy"))
-            w = None if get("w") is None else int(get("w"))
-            h = None if get("h") is None else int(get("h"))
-        except (TypeError, ValueError):
-            raise DatasetError(f"{where}: intrinsics (fl_x, fl_y, cx, cy, w, h) must be numbers") from None
-        if fx <= 0 or fy <= 0:
-            raise DatasetError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
-        extra = {k: get(k) for k in _NS_DISTORTION_KEYS if get(k) is not None}
-        frames.append(NerfstudioFrame(str(fr["file_path"]), M, fx, fy, cx, cy, w, h, extra))
-    frames.sort(key=lambda f: _natural_key(f.file_path))
-    top = {k: v for k, v in meta.items() if k != "frames"}
-    return frames, top
-
 
 # --------------------------------------------------------------------------------------------------
 # DL3DV (nerfstudio)

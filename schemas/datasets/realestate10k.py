@@ -23,81 +23,26 @@ Every line of the camera file must have its frame (``missing_frames="drop"`` dro
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+
+from navcrafter.models.camera.camerafiles import RE10KCameras as RE10KCameras
+from navcrafter.models.camera.camerafiles import read_re10k_cameras
 
 from .base import (
     IMAGE_EXTENSIONS,
     DatasetError,
     DatasetReader,
     SequenceInfo,
-    _check_rigid,
-    _floats,
     _image_size,
-    _read_lines,
 )
-
 
 # --------------------------------------------------------------------------------------------------
 # File parser
 # --------------------------------------------------------------------------------------------------
-@dataclass
-class RE10KCameras:
-    url: str
-    timestamps_us: np.ndarray   # [N] int64
-    intrinsics: np.ndarray      # [N, 4] normalised fx, fy, cx, cy
-    distortion: np.ndarray      # [N, 2]
-    w2c: np.ndarray             # [N, 4, 4]
-
-
-def read_re10k_cameras(path: str | Path) -> RE10KCameras:
-    """Parse a RealEstate10K camera file (URL line, then 19 numbers per frame; see the module doc)."""
-    path = Path(path)
-    lines = _read_lines(path, "RealEstate10K camera file")
-    if not lines or not lines[0].strip():
-        raise DatasetError(f"{path}: empty file; a RealEstate10K camera file starts with the video URL line")
-    url = lines[0].strip()
-    first = url.split()
-    if len(first) > 1 and re.fullmatch(r"[-+0-9.eE]+", first[0]):
-        raise DatasetError(f"{path}:1: the first line should be the YouTube URL but holds numbers; "
-                           "restore the URL line (the file may have been truncated or re-written)")
-    ts, intr, dist, w2c = [], [], [], []
-    for n, line in enumerate(lines[1:], start=2):
-        tok = line.split()
-        if not tok:
-            continue
-        where = f"{path}:{n}"
-        if len(tok) != 19:
-            raise DatasetError(f"{where}: expected 19 numbers (timestamp fx fy cx cy k1 k2 and a 3x4 "
-                               f"world-to-camera matrix), got {len(tok)}; the line is malformed")
-        try:
-            t = int(tok[0])
-        except ValueError:
-            raise DatasetError(f"{where}: the timestamp {tok[0]!r} is not an integer (microseconds)") from None
-        vals = _floats(tok[1:], where)
-        if min(vals[0], vals[1]) <= 0:
-            raise DatasetError(f"{where}: focal lengths must be positive, got fx={vals[0]}, fy={vals[1]}")
-        T = np.eye(4)
-        T[:3, :] = np.reshape(vals[6:], (3, 4))
-        _check_rigid(T, where)
-        ts.append(t)
-        intr.append(vals[:4])
-        dist.append(vals[4:6])
-        w2c.append(T)
-    if not ts:
-        raise DatasetError(f"{path}: no frame lines after the URL line")
-    ts_arr = np.asarray(ts, dtype=np.int64)
-    if np.any(np.diff(ts_arr) <= 0):
-        k = int(np.flatnonzero(np.diff(ts_arr) <= 0)[0])
-        raise DatasetError(f"{path}: timestamps must increase, but line {k + 3} ({ts_arr[k + 1]}) follows "
-                           f"{ts_arr[k]}; the file is corrupt")
-    return RE10KCameras(url, ts_arr, np.asarray(intr), np.asarray(dist), np.stack(w2c))
-
 
 # --------------------------------------------------------------------------------------------------
 # RealEstate10K

@@ -3,23 +3,16 @@ numbers are not measurements)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def gpu_check():
-    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "benchmarks" / "gpu_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_check"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    from benchmarks import gpu_check
+
+    return gpu_check
 
 
 def test_refuses_without_cuda(gpu_check, tmp_path, monkeypatch, capsys):
@@ -60,6 +53,7 @@ def test_dry_run_plumbing(gpu_check, tmp_path):
     assert gpu_check.DRY_RUN_LABEL in md and "| vggt | ok |" in md and "| dit |" not in md
 
 
+@pytest.mark.slow
 def test_dit_torch_vs_onnxruntime_dry_run(gpu_check, tmp_path):
     """The DiT item end to end on the CPU: tiny config, torch fp32 vs its ONNX export on onnxruntime."""
     ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path), "cap": 100}
@@ -70,6 +64,7 @@ def test_dit_torch_vs_onnxruntime_dry_run(gpu_check, tmp_path):
     assert res["torch"]["median_s"] > 0 and res["export_s"] > 0
 
 
+@pytest.mark.subprocess  # gpu_check runs each item in a child Python
 def test_item_subprocess_failure_and_timeout_are_recorded(gpu_check, tmp_path):
     ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path)}
     r = gpu_check.run_item_subprocess("training", ctx, 120)
@@ -78,6 +73,7 @@ def test_item_subprocess_failure_and_timeout_are_recorded(gpu_check, tmp_path):
     assert r["status"] == "timeout" and r["cap_s"] == 0.5
 
 
+@pytest.mark.slow
 def test_full_size_dits_wire_up_on_the_meta_device(gpu_check, tmp_path):
     """The GPU run's own configs and inputs (Wan-1.3B width at 81 x 256², Fun-Camera 1.3B; below VGGT-1B on
     25 x 518², MoGe-2 ViT-L, Difix at SD-Turbo size) go through the items' forward passes on the meta device:
@@ -89,6 +85,7 @@ def test_full_size_dits_wire_up_on_the_meta_device(gpu_check, tmp_path):
     assert fun["status"] == "ok" and fun["output_shape"] == [2, 16, 21, 32, 32]
 
 
+@pytest.mark.slow
 def test_full_size_geometry_and_refiner_wire_up_on_the_meta_device(gpu_check, tmp_path):
     ctx = {"device": "meta", "dry_run": False, "quick": False, "work": str(tmp_path), "cap": 100}
     vggt = gpu_check.item_vggt(ctx)

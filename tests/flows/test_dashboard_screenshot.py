@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -20,10 +19,9 @@ SCRIPT = Path(__file__).resolve().parents[2] / "deploy" / "local" / "dashboard_s
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("navcrafter_dashboard_screenshot", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from deploy.local import dashboard_screenshot
+
+    return dashboard_screenshot
 
 
 def test_blank_pages_are_recognised(tmp_path):

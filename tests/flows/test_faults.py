@@ -41,9 +41,9 @@ from helpers import (
     tail,
 )
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.report import read_manifest
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 pytestmark = [
     pytest.mark.system,  # outages of real servers under flows run in subprocesses and by workers

@@ -18,11 +18,11 @@ import pyarrow.parquet as pq
 import pytest
 from helpers import BAD, DEMO, TINY, assert_same_outputs, completed_counts, run_cli, step_state
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.models.reconstruction.pointcloud import read_ply
 from navcrafter.schemas.layout import EXPORT, PLAN
 from navcrafter.schemas.store import FAULT_ENV, Store
-from navcrafter.tasks.report import read_manifest
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 pytestmark = pytest.mark.system  # whole flows on the Prefect test server, and CLI runs in subprocesses
 

@@ -124,9 +124,9 @@ def test_tables_on_s3(s3_endpoint):
 def test_explore_collection_on_s3_matches_local(s3_endpoint, prefect_api_url, demo_photos, full_run, tmp_path):
     """One image (the table-top; test_faults runs the room over S3 through a flaky proxy)."""
     from navcrafter.flows.explore import explore_collection
+    from navcrafter.flows.tools.report import read_manifest
     from navcrafter.models.reconstruction.pointcloud import read_ply
-    from navcrafter.tasks.report import read_manifest
-    from navcrafter.tasks.steps import scene_steps
+    from navcrafter.tasks.runner import scene_steps
 
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -174,8 +174,8 @@ def test_photos_under_an_s3_prefix(s3_endpoint, prefect_api_url, demo_photos, fu
 
     from navcrafter.flows.cli import app
     from navcrafter.flows.submit import collection_items
+    from navcrafter.flows.tools.report import read_manifest
     from navcrafter.tasks.ingest import CollectionError, list_collection, source_fs
-    from navcrafter.tasks.report import read_manifest
 
     fs, _ = source_fs(f"s3://{BUCKET}")
     everything = s3_url("photos")

@@ -31,9 +31,9 @@ from helpers import (
     tail,
 )
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.report import read_manifest
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 GPU_POOL = "navcrafter-test-gpu"  # process pool standing in for the GPU machines
 SCENE_DEPLOYMENT = "explore-scene/test"
@@ -243,7 +243,7 @@ def test_dispatched_scene_results_come_from_the_manifest_or_the_run_state(tmp_pa
     from prefect.states import Crashed
 
     from navcrafter.flows.dispatch import _FinalRows, result_from_row, result_without_row
-    from navcrafter.tasks.report import SceneResult, manifest_rows_for, write_manifest
+    from navcrafter.flows.tools.report import SceneResult, manifest_rows_for, write_manifest
 
     store, a, b = str(tmp_path / "store"), "a" * 64, "b" * 64
     done = SceneResult(b, ["/p/b.png"], "done", step="export", backend="simulation", seconds=3.0,

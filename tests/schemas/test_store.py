@@ -14,7 +14,7 @@ import pytest
 from navcrafter.schemas.layout import GEOMETRY, INGEST, LIFT, PLAN, STEPS, SYNTHESIZE
 from navcrafter.schemas.store import FAULT_ENV, Store, StoreError
 from navcrafter.schemas.tables import Tables, to_table, utcnow
-from navcrafter.tasks import steps
+from navcrafter.tasks import runner
 from navcrafter.tasks.ingest import ingest
 
 
@@ -87,22 +87,22 @@ def test_step_protocol_skip_stale_and_incomplete(tmp_path, demo_photos, tiny):
     uri = str(tmp_path / "s")
     res = ingest(uri, str(demo_photos / "room-0.png"), tiny, "run1")
     assert res.ok and res.step is not None and not res.step.skipped
-    first = steps.run(uri, res.scene_id, "geometry", tiny, "run1")
+    first = runner.run(uri, res.scene_id, "geometry", tiny, "run1")
     assert not first.skipped
-    second = steps.run(uri, res.scene_id, "geometry", tiny, "run2")
+    second = runner.run(uri, res.scene_id, "geometry", tiny, "run2")
     assert second.skipped and second.exec_id == first.exec_id
     # a config change that the step reads makes it stale
     changed = tiny.model_copy(update={"lift": tiny.lift.model_copy(update={"voxel_size": 0.05})})
-    third = steps.run(uri, res.scene_id, "geometry", changed, "run3")
+    third = runner.run(uri, res.scene_id, "geometry", changed, "run3")
     assert not third.skipped and third.key != first.key
     # a config change the step does not read does not
     other = tiny.model_copy(update={"plan": tiny.plan.model_copy(update={"orbit_step_deg": 5.0})})
-    assert steps.run(uri, res.scene_id, "geometry", other, "run4").skipped is False  # key(changed) != key(other)
-    assert steps.run(uri, res.scene_id, "geometry", other, "run5").skipped
+    assert runner.run(uri, res.scene_id, "geometry", other, "run4").skipped is False  # key(changed) != key(other)
+    assert runner.run(uri, res.scene_id, "geometry", other, "run5").skipped
     # an incomplete group (a crash mid-step) is rewritten
     scene = Store(uri).scene(res.scene_id)
     scene.begin(GEOMETRY, None, key=scene.status(GEOMETRY).key, backend="simulation")
-    redo = steps.run(uri, res.scene_id, "geometry", other, "run6")
+    redo = runner.run(uri, res.scene_id, "geometry", other, "run6")
     assert not redo.skipped and scene.status(GEOMETRY).complete
     events = Store(uri).tables.read("steps").to_pylist()
     geo = [(e["run_id"], e["event"]) for e in events if e["step"] == "iter_0/geometry"]
@@ -112,7 +112,7 @@ def test_step_protocol_skip_stale_and_incomplete(tmp_path, demo_photos, tiny):
 
 def test_downstream_needs_upstream(tmp_path, tiny):
     with pytest.raises(Exception, match="has not completed"):
-        steps.run(str(tmp_path / "s"), "nothing-here", "geometry", tiny, "r")
+        runner.run(str(tmp_path / "s"), "nothing-here", "geometry", tiny, "r")
 
 
 @pytest.mark.system  # a subprocess killed by the injected fault
@@ -120,14 +120,14 @@ def test_fault_injection_kills_before_commit(tmp_path, demo_photos, tiny):
     uri = str(tmp_path / "s")
     res = ingest(uri, str(demo_photos / "tabletop-0.png"), tiny, "r")
     code = ("import sys; from navcrafter.schemas.config import RunConfig; "
-            "from navcrafter.tasks import steps; "
-            f"steps.run({uri!r}, {res.scene_id!r}, 'geometry', RunConfig.load(preset='tiny'), 'r')")
+            "from navcrafter.tasks import runner; "
+            f"runner.run({uri!r}, {res.scene_id!r}, 'geometry', RunConfig.load(preset='tiny'), 'r')")
     env = {**os.environ, FAULT_ENV: "iter_0/geometry"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=300)
     assert proc.returncode == -9, proc.stderr.decode()[-2000:]
     st = Store(uri).scene(res.scene_id).status(GEOMETRY)
     assert st.exists and not st.complete  # arrays were written, the marker was not
-    assert steps.run(uri, res.scene_id, "geometry", tiny, "r2").skipped is False
+    assert runner.run(uri, res.scene_id, "geometry", tiny, "r2").skipped is False
     assert Store(uri).scene(res.scene_id).status(GEOMETRY).complete
     assert Store(uri).scene(res.scene_id).status(INGEST).complete
 

@@ -192,7 +192,7 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.ingest import ingest
     from navcrafter.tasks.readers import load_gaussians
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True})
     store = str(tmp_path / "store")
@@ -216,7 +216,7 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     assert a["lpips"] is None and "weights are missing" in a["lpips_note"]
     assert a["renderer"] == "cpu" and a["peak_rss_mb"] > 50  # the compiled kernels; the step's sampled peak
     # the run summary reports the fit and says that the LPIPS term was skipped
-    from navcrafter.tasks.report import scene_result, summary_markdown
+    from navcrafter.flows.tools.report import scene_result, summary_markdown
 
     result = scene_result(scene, ["tabletop-0.png"], cfg, "done")
     assert result.metrics["gs_psnr"] == a["psnr"] and result.metrics["gs_gaussians"] == G
@@ -258,10 +258,10 @@ def test_train_stride_and_depth_from_the_cloud(demo_photos, tmp_path):
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.layout import FIT
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks import steps
+    from navcrafter.tasks import runner
     from navcrafter.tasks.ingest import ingest
     from navcrafter.tasks.readers import load_fit_views
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     base = {"fit.iterations": 5, "lift.max_views": 3}
     cfg = RunConfig.load(preset="tiny", overrides=base)
@@ -272,7 +272,7 @@ def test_train_stride_and_depth_from_the_cloud(demo_photos, tmp_path):
     sources = {}
     for views, stride in (("lift", 1), ("all", 2)):
         over = {**base, "fit.enabled": True, "fit.train_stride": stride, "fit.depth_views": views}
-        steps.run(store, sid, "fit", RunConfig.load(preset="tiny", overrides=over), "t")
+        runner.run(store, sid, "fit", RunConfig.load(preset="tiny", overrides=over), "t")
         a, g = scene.status(FIT).attrs, scene.read_all(FIT)
         held = g["holdout"]
         expect = np.zeros(len(held), dtype=bool)
@@ -320,18 +320,18 @@ def test_novel_cameras_move_sideways_and_keep_clear():
 
 
 def test_simulation_refiner_moves_renders_toward_the_truth(demo_photos, tmp_path):
-    from navcrafter.models.backends import create_backend
     from navcrafter.models.simulation.render import render
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks import steps
+    from navcrafter.tasks import runner
+    from navcrafter.tasks.backends import create_backend
     from navcrafter.tasks.common import simulation_truth
     from navcrafter.tasks.ingest import ingest
 
     cfg = RunConfig.load(preset="tiny")
     store = str(tmp_path / "store")
     sid = ingest(store, str(demo_photos / "room-0.png"), cfg, "t").scene_id
-    steps.run(store, sid, "geometry", cfg, "t")
+    runner.run(store, sid, "geometry", cfg, "t")
     truth = simulation_truth(Store(store).scene(sid))
     K = truth.intrinsics_for(24, 32)
     pose = np.eye(4)
@@ -358,8 +358,8 @@ def test_refine_step_trains_on_refined_views_and_feeds_the_exports(demo_photos, 
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.ingest import ingest
     from navcrafter.tasks.readers import load_refined_gaussians
+    from navcrafter.tasks.runner import run_scene
     from navcrafter.tasks.score import gaussian_rows
-    from navcrafter.tasks.steps import run_scene
 
     cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "refine.enabled": True, "refine.views": 4,
                                                    "refine.iterations": 30, "simulation.refine_noise": 0.0,
@@ -394,8 +394,8 @@ def test_refine_step_trains_on_refined_views_and_feeds_the_exports(demo_photos, 
 
 
 def test_refine_needs_fit_and_a_refiner(tmp_path):
-    from navcrafter.models.backends import onnx_problems
     from navcrafter.schemas.config import RunConfig
+    from navcrafter.tasks.backends import onnx_problems
 
     with pytest.raises(ValueError, match="refine.enabled needs fit.enabled"):  # the config's own rule
         RunConfig.load(preset="tiny", overrides={"refine.enabled": True})

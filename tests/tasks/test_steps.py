@@ -8,7 +8,7 @@ import pytest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.keys import dependencies, scene_keys, step_config
 from navcrafter.schemas.layout import STEPS
-from navcrafter.tasks.steps import body_of, scene_steps
+from navcrafter.tasks.runner import body_of, scene_steps
 
 
 def _paths(config: RunConfig) -> list[str]:

@@ -13,7 +13,7 @@ from helpers import TINY
 def _explore(store: str, photo, steps: list[tuple[str, int | None]]) -> str:
     """Ingest ``photo`` and run ``steps`` ((name, k), in order) of its scene with the tiny config."""
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run
+    from navcrafter.tasks.runner import run
 
     sid = ingest(store, str(photo), TINY, "t").scene_id
     for name, k in steps:
@@ -69,7 +69,8 @@ def test_a_plan_that_does_not_start_where_the_last_clip_ended_fails_the_synthesi
     from navcrafter.schemas.layout import PLAN
     from navcrafter.tasks.common import StepError
     from navcrafter.tasks.plan import plan
-    from navcrafter.tasks.steps import execute, run
+    from navcrafter.tasks.runner import run
+    from navcrafter.tasks.steps import execute
 
     def elsewhere(ctx):  # the real plan, moved 0.1 world units sideways
         write = ctx.write

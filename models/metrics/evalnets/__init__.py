@@ -12,8 +12,15 @@ from navcrafter.models.metrics.evalnets.weights import (
     MetricUnavailable,
     WeightFile,
     find_weights,
-    known_weight_files,
     weights_dir,
 )
 
 __all__ = ["WEIGHT_FILES", "MetricUnavailable", "WeightFile", "find_weights", "known_weight_files", "weights_dir"]
+
+
+def known_weight_files() -> dict[str, WeightFile]:
+    """Every weight file any evaluation network can use (imports the networks, which register them)."""
+    # deferred: the networks import torch; only asking for the list of weight files loads them
+    from navcrafter.models.metrics.evalnets import fidfvd, lpips  # noqa: F401  (registration on import)
+
+    return dict(WEIGHT_FILES)

@@ -57,10 +57,3 @@ def find_weights(key: str, explicit: str | os.PathLike | None = None) -> Path:
         f"{w.used_by} is unavailable: weight file {w.filename} not found in {folder}. "
         f"Download it from {w.source} and put it there (or pass --eval-weights DIR / set {ENV_VAR}); "
         "navcrafter never computes this metric with random weights.")
-
-
-def known_weight_files() -> dict[str, WeightFile]:
-    """Every weight file any evaluation network can use (imports the networks, which register them)."""
-    from navcrafter.models.metrics.evalnets import fidfvd, lpips  # noqa: F401  (registration on import)
-
-    return dict(WEIGHT_FILES)

@@ -1,4 +1,4 @@
-"""``navcrafter evaluate-cloud`` (models.metrics.cloud.cloud_metrics, tasks.interchange.evaluate_cloud_files,
+"""``navcrafter evaluate-cloud`` (models.metrics.cloud.cloud_metrics, flows.tools.interchange.evaluate_cloud_files,
 flows/cli/cloud.py): precision / recall / F-score / Coverage / Noise ratio of a cloud against a reference cloud,
 before and after ICP; a mesh reference sampled; unreadable and empty files named in the error."""
 
@@ -77,8 +77,8 @@ def test_known_precision_and_recall(clouds):
 
 
 def test_alignment_improves_a_shifted_copy(clouds, tmp_path):
+    from navcrafter.flows.tools.interchange import evaluate_cloud_files
     from navcrafter.models.camera.cameras import axis_angle_to_matrix
-    from navcrafter.tasks.interchange import evaluate_cloud_files
 
     gt, _ = clouds
     rng = np.random.default_rng(1)

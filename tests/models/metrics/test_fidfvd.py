@@ -348,6 +348,7 @@ def test_i3d_loading_is_strict(random_weights, tmp_path) -> None:
         I3DFeatures.from_pretrained(tmp_path)
 
 
+@pytest.mark.slow
 def test_fvd_plumbing_with_random_weights(random_weights) -> None:
     # Random weights: this checks the wiring (loading, features, statistics, distance), not FVD values.
     folder, _, saved = random_weights

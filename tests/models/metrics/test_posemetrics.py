@@ -168,6 +168,7 @@ def test_errors_grow_with_the_deviation_from_the_requested_path(sim_recovery, si
         assert 1.6 < two / one < 2.4, (key, one, two)
 
 
+@pytest.mark.slow
 def test_unknown_intrinsics_are_estimated(sim_clip, tmp_path):
     frames, poses, K = sim_clip
     out = camera_guidance_precision(frames, poses, None, tmp_path, num_threads=THREADS)
@@ -192,6 +193,7 @@ def test_rad_mean_is_the_deg_mean_in_radians():
     assert e["R_err_rad_mean"] == pytest.approx(np.deg2rad(6.0) / 5)
 
 
+@pytest.mark.slow
 def test_a_failing_rung_is_retried_and_recorded(sim_clip, tmp_path):
     """A rung that cannot initialise (an impossible inlier count) is followed by the next one, which is
     upscaled x2: its camera is still reported in pixels of the input frames."""
@@ -229,6 +231,7 @@ def pan_clip():
     return [render(scene, p, K).rgb for p in poses], poses, K
 
 
+@pytest.mark.slow
 def test_a_pure_rotation_is_recovered_by_the_rotation_model(pan_clip, tmp_path, monkeypatch):
     frames, poses, K = pan_clip
     stock = recover_poses(frames, K.K, tmp_path / "stock", num_threads=THREADS, attempts="stock",

@@ -102,7 +102,7 @@ def test_explore_follows_the_given_trajectory_and_flags_collisions(demo_photos, 
     from navcrafter.schemas.layout import PLAN
     from navcrafter.schemas.store import Store
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     # iteration 1 a short dolly towards the centre (space the photo saw free), iteration 2 a truck 3x the
     # distance to the centre sideways: through the room's wall
@@ -128,9 +128,9 @@ def test_explore_follows_the_given_trajectory_and_flags_collisions(demo_photos, 
     # repair: the collision optimisation moves the colliding path (same end poses) or says it could not
     fixed = RunConfig.load(preset="tiny", overrides={"plan.trajectory": ["dolly:0.3", "truck:3"],
                                                       "plan.trajectory_repair": True})
-    from navcrafter.tasks import steps
+    from navcrafter.tasks import runner
 
-    steps.run(store, sid, "plan", fixed, "t2", k=2)
+    runner.run(store, sid, "plan", fixed, "t2", k=2)
     b2 = scene.status(PLAN, 2).attrs
     assert "repaired" in b2["warning"] or "found no safe path" in b2["warning"]
     if b2["optimised"]:

@@ -319,7 +319,7 @@ def test_export_command_needs_a_source(tmp_path):
     from typer.testing import CliRunner
 
     from navcrafter.flows.cli.models import models_app
-    from navcrafter.models.runtime.exporters import export_refiner as export_role
+    from navcrafter.models.zoo.exporters import export_refiner as export_role
 
     res = CliRunner().invoke(models_app, ["export-refiner", str(tmp_path / "r")])
     assert res.exit_code == 2 and "--checkpoint" in res.output and "--random" in res.output
@@ -334,12 +334,12 @@ def test_onnx_backend_serves_the_refiner_and_the_refine_step_runs_it(exported, d
     import shutil
 
     import navcrafter.models.simulation.backend as sim_backend
-    from navcrafter.models.backends import _onnx_backend, onnx_problems
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.layout import REFINE
     from navcrafter.schemas.store import Store
+    from navcrafter.tasks.backends import _onnx_backend, onnx_problems
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     models = tmp_path / "models"
     shutil.copytree(exported, models / "refiner")

@@ -280,7 +280,7 @@ def test_dit_onnx_matches_torch(tmp_path):
 
 @pytest.fixture(scope="module")
 def fun_export(tmp_path_factory, export_cache):
-    from navcrafter.models.runtime.exporters import export_fun_camera
+    from navcrafter.models.zoo.exporters import export_fun_camera
 
     root = tmp_path_factory.mktemp("fun") / "synthesizer"
     args = dict(num_frames=T, height=H, width=W, random="tiny", seed=0, prompt="a room")

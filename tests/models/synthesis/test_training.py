@@ -118,6 +118,8 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.subprocess  # a training script run twice, SIGKILLed in between
+@pytest.mark.slow
 def test_a_run_killed_with_sigkill_resumes_to_the_same_curve(tmp_path):
     tests = str(Path(__file__).resolve().parents[2])
     script = tmp_path / "run.py"
@@ -151,6 +153,8 @@ DDP = textwrap.dedent("""
 """)
 
 
+@pytest.mark.subprocess  # torchrun with 2 gloo processes
+@pytest.mark.slow
 def test_two_gloo_processes_equal_one_process_with_the_doubled_batch(tmp_path):
     tests = str(Path(__file__).resolve().parents[2])
     script = tmp_path / "ddp.py"

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from navcrafter.models.backends import role_dir
+from navcrafter.models.zoo.modeldir import role_dir
 
 RandomPreset = Literal["tiny", "full"]
 

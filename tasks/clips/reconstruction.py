@@ -21,9 +21,20 @@ from typing import Any
 import numpy as np
 import torch
 
+from navcrafter.models.camera.cameras import Intrinsics
+from navcrafter.models.gaussians.model import GaussianModel
+from navcrafter.models.gaussians.recipe import (
+    fit_size,
+    heldout_metrics,
+    init_subset,
+    load_lpips,
+    resize_image,
+    scene_scale,
+)
+from navcrafter.models.gaussians.train import GaussianTrainer, TrainView
+from navcrafter.schemas.clips import CLOUD
 from navcrafter.schemas.config import RunConfig
-from navcrafter.tasks.clip_generation import CLOUD
-from navcrafter.tasks.clips import load_clip, load_generated
+from navcrafter.tasks.clips.dataset import load_clip, load_generated
 from navcrafter.tasks.score import row
 
 INIT_POINTS, NEAR, FAR = 20_000, 0.5, 5.0
@@ -59,17 +70,6 @@ def initial_points(generated: Path, key: str, clip: dict[str, Any], seed: int
 def reconstruction_rows(clips: str | Path, generated: str | Path, key: str, config: RunConfig
                         ) -> list[dict[str, Any]]:
     """Table IV rows of one clip (``status`` failed, with the reason, when its frames cannot be read)."""
-    from navcrafter.models.camera.cameras import Intrinsics
-    from navcrafter.models.gaussians.model import GaussianModel
-    from navcrafter.models.gaussians.recipe import (
-        fit_size,
-        heldout_metrics,
-        init_subset,
-        load_lpips,
-        resize_image,
-        scene_scale,
-    )
-    from navcrafter.models.gaussians.train import GaussianTrainer, TrainView
 
     clips, generated = Path(clips), Path(generated)
     try:

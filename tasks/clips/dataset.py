@@ -5,19 +5,12 @@ image and the camera path of the next 14 frames). ``export_clips`` writes such c
 ``schemas/datasets/``, as plain files any generator can consume; ``score_clips`` scores the frames a
 generator wrote for them with the same metrics as ``navcrafter evaluate`` (Table I image quality on the
 14 frames, Table II FID/FVD over all clips, Table III camera pose errors by COLMAP on the conditioning image
-and the 14 frames: per-frame means, R_err in radians, and per-clip sums). Layout::
-
-    <clips>/<clip>/condition.png            the conditioning image
-    <clips>/<clip>/reference/0001.png ...   the T-1 ground-truth frames after it
-    <clips>/<clip>/cameras.json             T OpenCV c2w (relative: the first is the identity) and K
-    <generated>/<clip>/0001.png ...         what a generator made: T-1 frames (or T, the first being
-                                            its copy of the conditioning image, which is then dropped)
+and the 14 frames: per-frame means, R_err in radians, and per-clip sums). The files: ``schemas/clips.py``.
 """
 
 from __future__ import annotations
 
 import json
-import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -25,15 +18,10 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from navcrafter.models.simulation.datasets import MANIFEST
+from navcrafter.schemas.clips import CAMERAS, CONDITION, GENERATION, REFERENCE, clip_key
 from navcrafter.schemas.config import EvaluationConfig
 from navcrafter.tasks.score import frechet_rows, image_quality_rows, pose_error_rows, row
-
-CAMERAS = "cameras.json"
-
-
-def clip_key(clip_id: str) -> str:
-    """A folder name for a clip id such as ``re10k/0a1b2c@17``."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", clip_id).strip("_")
 
 
 def _save_png(image: np.ndarray, path: Path) -> None:
@@ -44,7 +32,6 @@ def _save_png(image: np.ndarray, path: Path) -> None:
 def simulation_sequences(root: str | Path | None) -> dict[str, dict[str, Any]]:
     """Per sequence name, the provenance record of a dataset written by the simulation data engine
     (``models/simulation/datasets.py``: ``<root>/simulation.json``); empty for any other dataset."""
-    from navcrafter.models.simulation.datasets import MANIFEST
 
     path = None if root is None else Path(root) / MANIFEST
     if path is None or not path.is_file():
@@ -56,7 +43,7 @@ def export_clips(samples, out: str | Path) -> list[str]:
     """Write every ``Sample`` of a dataset reader as a clip folder; returns the clip folder names.
 
     A clip of a simulated dataset also records its hidden truth (``simulation``: the scene's spec and the
-    conditioning camera in the scene's frame), which only the simulated generator (``tasks/clip_generation.py``)
+    conditioning camera in the scene's frame), which only the simulated generator (``tasks/clips/generation.py``)
     reads."""
     out = Path(out)
     keys = []
@@ -64,9 +51,9 @@ def export_clips(samples, out: str | Path) -> list[str]:
     for s in samples:
         key = clip_key(s.clip_id)
         d = out / key
-        _save_png(s.image, d / "condition.png")
+        _save_png(s.image, d / CONDITION)
         for i, frame in enumerate(s.frames, start=1):
-            _save_png(frame, d / "reference" / f"{i:04d}.png")
+            _save_png(frame, d / REFERENCE / f"{i:04d}.png")
         doc = {"clip_id": s.clip_id, "dataset": s.dataset, "sequence": s.sequence, "width": s.width,
                "height": s.height, "frame_ids": [str(f) for f in s.frame_ids],
                "c2w": s.relative_c2w().tolist(), "K": np.asarray(s.K).tolist(),
@@ -88,8 +75,8 @@ def _read_frames(folder: Path) -> list[np.ndarray]:
 def load_clip(clips: Path, key: str) -> dict[str, Any]:
     d = clips / key
     doc = json.loads((d / CAMERAS).read_text())
-    return {"doc": doc, "condition": np.asarray(Image.open(d / "condition.png").convert("RGB")),
-            "reference": np.stack(_read_frames(d / "reference")),
+    return {"doc": doc, "condition": np.asarray(Image.open(d / CONDITION).convert("RGB")),
+            "reference": np.stack(_read_frames(d / REFERENCE)),
             "c2w": np.asarray(doc["c2w"], dtype=np.float64), "K": np.asarray(doc["K"], dtype=np.float64)}
 
 
@@ -164,8 +151,6 @@ def clip_keys(clips: str | Path) -> list[str]:
 def generator_backend(generated: Path, keys: list[str]) -> str:
     """The backend that made the clips' frames when ``navcrafter generate-clips`` made them all with one
     (``simulation`` or ``onnx``, from their ``generation.json``), else ``external``."""
-    from navcrafter.tasks.clip_generation import GENERATION
-
     seen = set()
     for key in keys:
         path = Path(generated) / key / GENERATION

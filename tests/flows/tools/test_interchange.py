@@ -1,6 +1,6 @@
-"""``navcrafter export`` (tasks/interchange.py, flows/cli/export.py): a finished scene as a nerfstudio dataset and a
-COLMAP text model (read back with pycolmap), at the fit's cameras or the estimated path; and the export step's
-``gaussians.ply`` as splat viewers read it (plyfile, the INRIA 3DGS layout)."""
+"""``navcrafter export`` (flows/tools/interchange.py, flows/cli/export.py): a finished scene as a nerfstudio dataset
+and a COLMAP text model (read back with pycolmap), at the fit's cameras or the estimated path; and the export
+step's ``gaussians.ply`` as splat viewers read it (plyfile, the INRIA 3DGS layout)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from navcrafter.flows.cli import app
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
+              pytest.mark.slow]  # every test uses `explored`: three tiny scenes explored (~1 min on 2 idle cores)
 runner = CliRunner()
 
 
@@ -23,7 +24,7 @@ def explored(demo_photos, tmp_path_factory):
     """A store with a tiny explored scene with the fit (5 iterations), one without it, and one only ingested."""
     from navcrafter.schemas.config import RunConfig
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     store = str(tmp_path_factory.mktemp("interchange") / "store")
     fit_cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "fit.iterations": 5})
@@ -57,10 +58,10 @@ def _check_images(scene, out: Path, refs, width, height):
 def test_nerfstudio_export_at_the_fit_cameras(explored, tmp_path):
     import open3d as o3d
 
+    from navcrafter.flows.tools.interchange import export_nerfstudio
     from navcrafter.models.simulation import LABEL
     from navcrafter.schemas.layout import FIT
     from navcrafter.tasks.common import load_cloud
-    from navcrafter.tasks.interchange import export_nerfstudio
     from navcrafter.tasks.readers import camera_path
 
     scene, cfg = _scene(explored, "fitted"), explored["fit_cfg"]
@@ -151,8 +152,8 @@ def test_colmap_export_reads_back_with_pycolmap(explored, tmp_path):
 def test_export_without_the_fit_uses_the_estimated_path(explored, tmp_path):
     import pycolmap
 
+    from navcrafter.flows.tools.interchange import export_colmap, export_nerfstudio
     from navcrafter.schemas.layout import FIT
-    from navcrafter.tasks.interchange import export_colmap, export_nerfstudio
     from navcrafter.tasks.readers import camera_path
 
     scene, cfg = _scene(explored, "plain"), explored["plain_cfg"]
@@ -230,3 +231,30 @@ def test_gaussians_ply_reads_as_the_inria_layout_with_plyfile(explored):
                        model.log_scales.double().exp().numpy())
     q = cols("rot_0", "rot_1", "rot_2", "rot_3")
     assert np.array_equal(q, m["quats"]) and (np.linalg.norm(q, axis=1) > 0).all()
+
+
+def test_scene_run_config_is_the_stored_one(explored, caplog):
+    """A run stores its resolved config with the scene; the tools read it back (not defaults); a rerun with another
+    config keeps the earlier one's hash in the history; a scene without the file falls back with a warning."""
+    from navcrafter.flows.tools.interchange import scene_config
+    from navcrafter.schemas.config import RUN_CONFIG_FILE, RunConfig
+    from navcrafter.schemas.store import Store
+    from navcrafter.tasks.readers import scene_run_config, stored_run_config
+    from navcrafter.tasks.runner import record_run_config
+
+    store = Store(explored["store"], create=False)
+    fitted = store.scene(explored["fitted"])
+    assert scene_run_config(fitted) == explored["fit_cfg"] and scene_config(fitted) == explored["fit_cfg"]
+    assert scene_run_config(fitted) != RunConfig()  # not rebuilt from defaults (tiny preset, fit on)
+    other = RunConfig.load(preset="tiny", overrides={"seed": 7})
+    record_run_config(explored["store"], explored["plain"], other, "t2")
+    doc = stored_run_config(store.scene(explored["plain"]))
+    assert doc.config == other and doc.run_id == "t2"
+    assert [h["config_hash"] for h in doc.history] == [explored["plain_cfg"].config_hash()]
+    record_run_config(explored["store"], explored["plain"], explored["plain_cfg"], "t3")  # as the other tests expect
+    unfinished = store.scene(explored["unfinished"])  # only ingested: as a scene of a store written before
+    assert stored_run_config(unfinished) is None
+    assert Path(store.path(f"scenes/{explored['fitted']}/{RUN_CONFIG_FILE}")).is_file()
+    with caplog.at_level("WARNING"):
+        legacy = scene_run_config(unfinished)
+    assert legacy.iterations == RunConfig().iterations and "written before runs stored their config" in caplog.text

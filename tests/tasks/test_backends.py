@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from helpers import TINY, TINY_MODELS_SIZE
 
-from navcrafter.models.backends import RANDOM_WEIGHTS_LABEL, onnx_problems, run_label
 from navcrafter.schemas.layout import GEOMETRY, LIFT, SYNTHESIZE
 from navcrafter.schemas.store import Store
+from navcrafter.tasks.backends import RANDOM_WEIGHTS_LABEL, onnx_problems, run_label
 
 
 def _onnx_config(models: Path, **updates):
@@ -43,7 +43,7 @@ def test_a_base_exported_without_trained_camera_control_is_labelled_everywhere_r
     summary, manifest, PLY comment and trajectory.json; the band burnt into videos and figures)."""
     import json
 
-    from navcrafter.models.backends import CAMERA_CONTROL_UNTRAINED_LABEL, run_band
+    from navcrafter.tasks.backends import CAMERA_CONTROL_UNTRAINED_LABEL, run_band
 
     def manifest(role: str, weights: dict) -> None:
         (tmp_path / role).mkdir(exist_ok=True)
@@ -79,7 +79,7 @@ def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, t
     assert frames.shape == (*TINY_MODELS_SIZE, 3) and frames.dtype == np.uint8 and frames.std() > 0
     assert scene.status(SYNTHESIZE, 1).attrs["synthesizer_model"] == "navcrafter"
     # release_models (default): each step's models were released when it ended (the process's cached backend)
-    from navcrafter.models.backends import create_backend
+    from navcrafter.tasks.backends import create_backend
 
     backend = create_backend(_onnx_config(tiny_models))
     assert not any(getattr(backend, r).loaded for r in ("synthesizer", "geometry", "mono_depth"))
@@ -93,8 +93,8 @@ def test_onnx_backend_explores_a_photo_end_to_end(prefect_api_url, collection, t
 
 
 def test_a_lazy_role_is_released_and_loads_again():
-    from navcrafter.models.backends import _LazyRole
     from navcrafter.models.roles import Backend
+    from navcrafter.tasks.backends import _LazyRole
 
     made = []
 

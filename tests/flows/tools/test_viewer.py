@@ -1,4 +1,4 @@
-"""``navcrafter view`` (tasks/viewer.py, flows/cli/view.py): the scene's nodes on a real viser server, the CLI's
+"""``navcrafter view`` (flows/tools/viewer.py, flows/cli/view.py): the scene's nodes on a real viser server, the CLI's
 usage errors, and the page drawn by a real headless browser (tests/browser.py)."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def viewer_store(tmp_path_factory):
     from navcrafter.models.simulation.demo import write_demo_collection
     from navcrafter.schemas.config import RunConfig
     from navcrafter.tasks.ingest import ingest
-    from navcrafter.tasks.steps import run_scene
+    from navcrafter.tasks.runner import run_scene
 
     root = tmp_path_factory.mktemp("viewer")
     write_demo_collection(root / "photos", width=320, height=240, supersample=1)
@@ -46,12 +46,13 @@ def viser_server():
     s.stop()
 
 
+@pytest.mark.slow
 def test_scene_nodes_gaussians_clouds_frustums_candidates(viewer_store, viser_server):
     import viser
 
+    from navcrafter.flows.tools.viewer import ROOT, build_scene, read_scene
     from navcrafter.models.simulation import LABEL
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.viewer import ROOT, build_scene, read_scene
 
     store, ids = viewer_store
     sid = ids["tabletop-0.png"]
@@ -93,9 +94,9 @@ def test_scene_nodes_gaussians_clouds_frustums_candidates(viewer_store, viser_se
 def test_pose_and_gaussian_conversions():
     import torch
 
+    from navcrafter.flows.tools.viewer import frustum_fov, gaussian_splat_arrays, pose_to_viser
     from navcrafter.models.camera.cameras import look_at, quat_wxyz_to_matrix
     from navcrafter.models.gaussians.model import GaussianModel
-    from navcrafter.tasks.viewer import frustum_fov, gaussian_splat_arrays, pose_to_viser
 
     c2w = look_at(np.array([1.0, -0.5, 0.2]), np.array([0.0, 0.0, 3.0]))
     wxyz, pos = pose_to_viser(c2w)
@@ -113,9 +114,10 @@ def test_pose_and_gaussian_conversions():
                                                                                atol=1e-4)
 
 
+@pytest.mark.slow
 def test_viewer_gui_switches_scenes_and_says_when_there_is_no_fit(viewer_store, viser_server):
+    from navcrafter.flows.tools.viewer import NO_FIT, ROOT, SceneNotFound, build_viewer, resolve_scene
     from navcrafter.schemas.store import Store
-    from navcrafter.tasks.viewer import NO_FIT, ROOT, SceneNotFound, build_viewer, resolve_scene
 
     store, ids = viewer_store
     st = Store(store, create=False)
@@ -133,6 +135,7 @@ def test_viewer_gui_switches_scenes_and_says_when_there_is_no_fit(viewer_store, 
     assert viewer.view.iteration == 1 and "iteration 1" in viewer.gui["iteration_info"].content
 
 
+@pytest.mark.slow
 def test_cli_usage_errors(viewer_store, tmp_path):
     from typer.testing import CliRunner
 

@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 
 from navcrafter.flows.cli import app
 from navcrafter.models.camera.cameras import invert_pose
-from navcrafter.tasks.clip_generation import CLOUD, GENERATION, extend_path, generation_frames
+from navcrafter.schemas.clips import CLOUD, GENERATION
+from navcrafter.tasks.clips.generation import extend_path, generation_frames
 
 runner = CliRunner()
 SIZE = 64
@@ -136,7 +137,7 @@ def test_table_iv_on_clips_tells_good_frames_from_bad(sim_clips, tmp_path, prefe
     """3DGS fitted on the generated frames and scored at the dataset's frames: the true frames as the
     generated video reconstruct the dataset frames better than a generator that drew something else."""
     from navcrafter.schemas.config import RunConfig
-    from navcrafter.tasks.clip_reconstruction import reconstruction_rows
+    from navcrafter.tasks.clips.reconstruction import reconstruction_rows
 
     key, other = sorted(p.name for p in sim_clips.iterdir())
     good, bad = tmp_path / "good", tmp_path / "bad"

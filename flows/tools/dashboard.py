@@ -16,11 +16,11 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, ImageDraw
 
-from navcrafter.models.backends import run_band, run_label
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
+from navcrafter.tasks.backends import label_band, run_band, run_label
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 THUMB = 256  # longer side of a thumbnail (input image, top-down plots), pixels
 GRID_MAX = 512  # longer side of the render grid, pixels
@@ -85,7 +85,7 @@ def _metric(name: str, value: float) -> str:
     return f"{value:.3f}"
 
 
-def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig) -> str:
+def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, label: str | None = None) -> str:
     """Markdown of a scene's input, top-down trajectory plots, render grid and metrics (whatever of
     them is complete in the store: a failed scene shows what it got to)."""
     store = open_store(store_uri)
@@ -93,7 +93,7 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig) -
     short = scene_id[:12]
     inp = scene.status(INGEST)
     sim = config.backend == "simulation"
-    label = run_label(config)
+    label = label or run_label(config)  # the scene summary's label when the flow passes it
     source = PurePath(inp.attrs.get("source", "")).name or short
     lines = [f"# Scene `{short}`: {source}", ""]
     if label:
@@ -135,7 +135,7 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig) -
             idx = clip_frame_indices(n)
             clips.append((k, scene.read_rows(SYNTHESIZE, k, "frames", idx), idx))
     if clips:
-        band = run_band(config)
+        band = label_band(label) if label else run_band(config)
         grid = render_grid(clips, band)
         title = "## Synthesized views" + (" (SIMULATION: ground-truth renders, not a learned model)" if sim else
                                           f" ({label})" if label else "")

@@ -1,6 +1,6 @@
 """Generate frames for dataset clips with the configured synthesizer (``navcrafter generate-clips``).
 
-A dataset clip (``tasks/clips.py``: a conditioning image, the 14 ground-truth frames after it and the 15
+A dataset clip (``tasks/clips/dataset.py``: a conditioning image, the 14 ground-truth frames after it and the 15
 cameras) asks for a video along its cameras. Wan-based synthesizers make ``4k + 1`` frames, so the camera path is
 extended to ``generation_frames(T)`` poses, the smallest ``4k + 1 >= T`` (17 for the paper's 15: the conditioning
 frame + 14): the poses after the clip's last continue its last relative motion (constant velocity, the last
@@ -42,12 +42,14 @@ import numpy as np
 from PIL import Image
 
 from navcrafter.models.camera.cameras import Intrinsics, invert_pose
+from navcrafter.models.roles import SynthesisRequest
+from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.models.simulation.backend import SimulationError, SimulationTruth
+from navcrafter.schemas.clips import CLOUD, GENERATION, GENERATION_VERSION
 from navcrafter.schemas.config import RunConfig
-from navcrafter.tasks.clips import load_clip
-
-GENERATION = "generation.json"
-CLOUD = "cloud.npz"
-VERSION = 1
+from navcrafter.tasks.backends import create_backend
+from navcrafter.tasks.clips.dataset import load_clip
+from navcrafter.tasks.geometry import view_cloud
 
 
 def generation_frames(n: int) -> int:
@@ -76,7 +78,7 @@ def clip_seed(key: str, seed: int) -> int:
 
 def settings(config: RunConfig) -> dict[str, Any]:
     """What decides a clip's frames: the backend and its model settings (``generation.json`` records them)."""
-    out: dict[str, Any] = {"version": VERSION, "backend": config.backend, "seed": config.seed}
+    out: dict[str, Any] = {"version": GENERATION_VERSION, "backend": config.backend, "seed": config.seed}
     if config.backend == "simulation":
         out["simulation"] = config.simulation.model_dump(mode="json")
     else:
@@ -86,11 +88,9 @@ def settings(config: RunConfig) -> dict[str, Any]:
 
 
 def _backend(config: RunConfig, doc: dict[str, Any], key: str, height: int, width: int, K: np.ndarray):
-    from navcrafter.models.backends import create_backend
 
     if config.backend != "simulation":
         return create_backend(config)
-    from navcrafter.models.simulation.backend import SimulationError, SimulationTruth
 
     sim = doc.get("simulation")
     if sim is None:
@@ -107,8 +107,6 @@ def _backend(config: RunConfig, doc: dict[str, Any], key: str, height: int, widt
 def generate_clip(clips: str | Path, generated: str | Path, key: str, config: RunConfig) -> dict[str, Any]:
     """Generate (or keep, when already made with the same settings) the frames of clip ``key``; returns its
     ``generation.json`` record (``"skipped": True`` when it was already there)."""
-    from navcrafter.models.roles import SynthesisRequest
-    from navcrafter.tasks.geometry import view_cloud
 
     folder = Path(generated) / key
     want = settings(config)
@@ -143,7 +141,6 @@ def generate_clip(clips: str | Path, generated: str | Path, key: str, config: Ru
     for i, frame in enumerate(frames[:T], start=1):
         Image.fromarray(frame).save(folder / f"{i:04d}.png")
     np.savez_compressed(folder / CLOUD, points=cloud.points.astype(np.float32), colors=cloud.colors)
-    from navcrafter.models.simulation import LABEL as SIM_LABEL
 
     rec = {"clip": key, "settings": want, "generated_frames": n, "kept_frames": T,
            "extension": f"cameras {T + 1}..{n} continue the clip's last relative motion; frames after {T} dropped",

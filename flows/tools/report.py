@@ -9,14 +9,14 @@ from typing import Any
 
 import pyarrow as pa
 
-from navcrafter.models.backends import run_label
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EVALUATE, FIT, REFINE
+from navcrafter.schemas.layout import EVALUATE, FIT, PLAN, REFINE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
+from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.steps import scene_steps
+from navcrafter.tasks.runner import scene_steps
 
 
 @dataclass
@@ -35,6 +35,8 @@ class SceneResult:
     metrics: dict[str, float] = field(default_factory=dict)
     outputs: str | None = None
     notes: list[str] = field(default_factory=list)  # what a reader of the summary must know (e.g. a skipped term)
+    # the run's label (tasks.backends.run_label), read once per scene by scene_result; not in the manifest rows
+    label: str | None = field(default=None, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -75,6 +77,7 @@ def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, statu
     """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
     done = _completed(scene, config)  # read once for the timings and the peaks
     timings = step_timings(scene, config, done)
+    fields.setdefault("label", run_label(config))
     result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
                          seconds=sum(timings.values()), timings=timings, peaks=step_peaks(scene, config, done),
                          **fields)
@@ -135,10 +138,15 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
     return rows
 
 
+def results_label(config: RunConfig, results: list[SceneResult]) -> str | None:
+    """The run's label: as the scene summaries carry it (read once per scene), else from the config."""
+    return next((r.label for r in results if r.label), None) or run_label(config)
+
+
 def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -> list[str]:
     done = sum(r.status == "done" for r in results)
     lines = []
-    label = run_label(config)
+    label = results_label(config, results)
     if config.backend == "simulation":
         lines.append(f"{SIM_LABEL}. Distances are measured against the true scene surfaces.")
     elif label:
@@ -160,7 +168,7 @@ def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -
 def summary_markdown(run_id: str, config: RunConfig, results: list[SceneResult]) -> str:
     header = summary_header(run_id, config, results)
     lines = ["# navcrafter run summary", ""]
-    if run_label(config):
+    if results_label(config, results):
         lines += [f"> **{header.pop(0)}**", ""]
     lines += header + ["", "| " + " | ".join(SUMMARY_COLUMNS) + " |",
                        "|" + "|".join("---" if c in _TEXT_COLUMNS else "---:" for c in SUMMARY_COLUMNS) + "|"]
@@ -176,7 +184,7 @@ def write_summary(store_uri: str, run_id: str, config: RunConfig, results: list[
     md = summary_markdown(run_id, config, results)
     doc = {"run_id": run_id, "backend": config.backend, "config": config.model_dump(mode="json"),
            "scenes": [r.to_dict() for r in results]}
-    if label := run_label(config):
+    if label := results_label(config, results):
         doc["label"] = label
     store.write_bytes(f"runs/{run_id}/summary.json", json.dumps(doc, indent=1, default=str).encode())
     store.write_bytes(f"runs/{run_id}/summary.md", md.encode())
@@ -187,7 +195,6 @@ def plan_artifact_markdown(store_uri: str, scene_id: str, k: int) -> str | None:
     """Dashboard view of a planner step: the top-down plot (embedded) and the candidates' table."""
     import base64
 
-    from navcrafter.schemas.layout import PLAN
 
     scene = open_store(store_uri).scene(scene_id)
     st = scene.status(PLAN, k)

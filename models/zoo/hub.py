@@ -11,7 +11,7 @@ of it the role's loader in this repository reads (``patterns``, as ``snapshot_do
    every file, the sha256 of LFS files, the git blob sha1 of the others), then writes what it verified (size and
    sha256 of every file, by commit) to ``models--org--name/navcrafter-manifest.json`` in the cache; offline
    against that record (a cache not filled by ``pull`` has none and is refused, naming the fix);
-3. runs the role's exporter (``models/runtime/exporters.py``) into ``model_dir/<role dir>``.
+3. runs the role's exporter (``models/zoo/exporters.py``) into ``model_dir/<role dir>``.
 
 Evaluation networks (LPIPS, FID Inception, FVD I3D) are not published on the Hugging Face hub: role ``eval``
 downloads them from their official URLs (``huggingface_hub.file_download.http_get``, resumable) into
@@ -286,7 +286,7 @@ def _hub_snapshot(src: Source, cache_dir: Path, *, local_files_only: bool, revis
     missing = [f for f in src.required if f not in siblings]
     if missing:
         raise HubError(f"{src.repo_id}@{info.sha}: the hub lists no {', '.join(missing)}, which the {src.role} "
-                       f"loader reads; the repository layout changed: fix SOURCES in models/runtime/hub.py")
+                       f"loader reads; the repository layout changed: fix SOURCES in models/zoo/hub.py")
     try:
         snap = Path(hf.snapshot_download(src.repo_id, revision=info.sha, cache_dir=cache_dir,
                                          allow_patterns=list(src.patterns) if src.patterns else None))
@@ -416,7 +416,7 @@ def _export_fun_camera(out: Path, snap: Path, base: Path, sizes: dict[str, int])
     ``onnx_export.export_fun_camera_synthesizer(out, checkpoint_dir=, base_dir=, num_frames=, height=, width=)``."""
     import inspect
 
-    from navcrafter.models.runtime import exporters
+    from navcrafter.models.zoo import exporters
 
     fn = getattr(exporters, "export_fun_camera", None)
     if fn is None:
@@ -431,8 +431,8 @@ def _export_fun_camera(out: Path, snap: Path, base: Path, sizes: dict[str, int])
 
 
 def _export(src: Source, snap: Path, model_dir: Path, sizes: dict[str, int], needed: dict[str, Path]) -> Path:
-    from navcrafter.models.backends import role_dir
-    from navcrafter.models.runtime import exporters
+    from navcrafter.models.zoo import exporters
+    from navcrafter.models.zoo.modeldir import role_dir
 
     if src.role == "eval":
         out = Path(model_dir) / EVAL_DIR

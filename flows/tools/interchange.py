@@ -34,6 +34,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from navcrafter.models.camera.cameras import Intrinsics, invert_pose, matrix_to_quat
+from navcrafter.models.camera.trajectories import GL_CV_FLIP
+from navcrafter.models.metrics import cloud_files
+from navcrafter.models.metrics.cloud_files import MESH_POINTS
+from navcrafter.models.reconstruction.pointcloud import ply_bytes
+from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, LIFT, SYNTHESIZE
+from navcrafter.schemas.store import Store, StoreError
+from navcrafter.tasks.backends import run_label
+from navcrafter.tasks.common import load_cloud
+from navcrafter.tasks.readers import camera_path, export_record, scene_label, scene_run_config, stored_run_config
+
 if TYPE_CHECKING:
     from navcrafter.schemas.config import RunConfig
     from navcrafter.schemas.store import SceneStore
@@ -41,8 +52,6 @@ if TYPE_CHECKING:
 FORMATS = ("nerfstudio", "colmap")
 WORLD_CONVENTION = ("world = the input camera's frame, OpenCV axes (x right, y down, z forward; world up is -y for "
                     "an upright photo)")
-ICP_DISTANCE_FACTOR = 5.0  # evaluate-cloud: default ICP max correspondence distance, in thresholds
-MESH_POINTS = 1_000_000  # evaluate-cloud: points sampled uniformly on a mesh file
 
 
 class InterchangeError(ValueError):
@@ -77,8 +86,6 @@ class ExportFrames:
 def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
     """The scene ``scene_id`` (or a unique prefix of it) of a store, which must have finished exploring (its
     export step complete)."""
-    from navcrafter.schemas.layout import EXPORT
-    from navcrafter.schemas.store import Store, StoreError
 
     try:
         store = Store(store_uri, create=False)
@@ -99,11 +106,11 @@ def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
 
 
 def scene_config(scene: SceneStore) -> RunConfig:
-    """The parts of the run's config that the export reads, from the scene (a store keeps no config): the iterations
-    its export covered and the synthesis size (the ingested working image's)."""
-    from navcrafter.schemas.layout import LIFT
-    from navcrafter.tasks.readers import export_record, scene_run_config
+    """The config the scene's run stored (``readers.scene_run_config``). For a scene written before runs stored it,
+    the fallback reconstruction takes the iterations its export covered (a warning says so)."""
 
+    if stored_run_config(scene) is not None:
+        return scene_run_config(scene)
     frames = export_record(scene).get("frames", [])
     if frames:
         iterations = max(int(f["iteration"]) for f in frames)
@@ -116,9 +123,6 @@ def scene_config(scene: SceneStore) -> RunConfig:
 
 def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
     """The frames to export at the fit's cameras (fit step complete), else at the estimated camera path."""
-    from navcrafter.models.camera.cameras import Intrinsics
-    from navcrafter.schemas.layout import FIT
-    from navcrafter.tasks.readers import camera_path
 
     W, H = int(config.synthesis.width), int(config.synthesis.height)
     st = scene.status(FIT)
@@ -134,15 +138,12 @@ def export_frames(scene: SceneStore, config: RunConfig) -> ExportFrames:
 
 
 def _labels(scene: SceneStore, config: RunConfig | None) -> tuple[str, str | None]:
-    """The run's backend and label: as its export step recorded them (``run_label`` of the run's config), else
-    from ``config``."""
-    from navcrafter.models.backends import run_label
-    from navcrafter.schemas.layout import EXPORT
-    from navcrafter.tasks.readers import export_record
+    """The run's backend and label: as its export step recorded them, else from ``config``
+    (``readers.scene_label``: the one label reader)."""
 
     st = scene.status(EXPORT)
     backend = st.attrs.get("backend") or (config.backend if config is not None else "unknown")
-    label = st.attrs.get("label") or export_record(scene).get("label")
+    label = st.attrs.get("label") or scene_label(scene)
     if not label and config is not None:
         label = run_label(config)
     return backend, label or None
@@ -153,7 +154,6 @@ def _write_images(scene: SceneStore, frames: ExportFrames, folder: Path, label: 
     from PIL import Image
     from PIL.PngImagePlugin import PngInfo
 
-    from navcrafter.schemas.layout import SYNTHESIZE
 
     folder.mkdir(parents=True, exist_ok=True)
     info = None
@@ -190,7 +190,6 @@ def _prepare(store_uri: str, scene_id: str, out: Path, config: RunConfig | None)
 
 
 def _cloud(scene: SceneStore, config: RunConfig):
-    from navcrafter.tasks.common import load_cloud
 
     return load_cloud(scene, config.iterations)
 
@@ -202,7 +201,6 @@ def _comments(scene: SceneStore, backend: str, label: str | None) -> list[str]:
 
 def _manifest(scene: SceneStore, fmt: str, frames: ExportFrames, backend: str, label: str | None, files: dict,
               n_points: int) -> dict:
-    from navcrafter.schemas.layout import GEOMETRY
 
     scale = scene.status(GEOMETRY).attrs.get("simulation_world_scale")
     units = "the geometry model's (metres for metric models)"
@@ -231,7 +229,6 @@ def _manifest(scene: SceneStore, fmt: str, frames: ExportFrames, backend: str, l
 # --------------------------------------------------------------------------------------------------
 def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     """Camera-to-world with OpenCV camera axes -> with OpenGL's (nerfstudio, Blender): y and z axes negated."""
-    from navcrafter.models.camera.trajectories import GL_CV_FLIP
 
     return np.asarray(c2w, dtype=np.float64) @ GL_CV_FLIP
 
@@ -253,7 +250,6 @@ def nerfstudio_transforms(frames: ExportFrames, ply_name: str = "sparse_pc.ply")
 def export_nerfstudio(store_uri: str, scene_id: str, out: str | Path, config: RunConfig | None = None) -> dict:
     """Write a nerfstudio dataset of a finished scene to ``out``; returns ``navcrafter_export.json``'s content.
     ``config`` (optional) gives the iterations and synthesis size; by default they are read from the scene."""
-    from navcrafter.models.reconstruction.pointcloud import ply_bytes
 
     scene, cfg, frames, backend, label, out = _prepare(store_uri, scene_id, out, config)
     cloud = _cloud(scene, cfg)
@@ -277,7 +273,6 @@ def _num(x: float) -> str:
 def colmap_model_text(frames: ExportFrames, points: np.ndarray, colors: np.ndarray, comment: str = ""
                       ) -> dict[str, str]:
     """The three files of a COLMAP text model: ``cameras.txt``, ``images.txt``, ``points3D.txt``."""
-    from navcrafter.models.camera.cameras import invert_pose, matrix_to_quat
 
     head = [f"# {line}" for line in comment.splitlines()]
     cams: list[tuple[float, ...]] = []
@@ -334,80 +329,12 @@ EXPORTERS = {"nerfstudio": export_nerfstudio, "colmap": export_colmap}
 
 
 # --------------------------------------------------------------------------------------------------
-# evaluate-cloud: a point cloud against a reference cloud (the maths: models.metrics.cloud)
+# evaluate-cloud: a point cloud against a reference cloud (models.metrics.cloud_files)
 # --------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class LoadedCloud:
-    path: str
-    points: np.ndarray  # [N, 3] float64
-    from_mesh: bool  # sampled uniformly on a mesh's triangles
-
-
-def read_points(path: str | Path, mesh_points: int = MESH_POINTS, seed: int = 0) -> LoadedCloud:
-    """A point cloud file (any format Open3D reads: .ply, .pcd, .xyz, .pts, ...); a file with triangles is a mesh,
-    sampled uniformly (``mesh_points`` points, area-weighted, seeded). Non-finite points are dropped."""
-    import open3d as o3d
-
-    p = Path(path)
-    if not p.is_file():
-        raise InterchangeError(f"{p}: no such file; give a point cloud or mesh file (.ply, .pcd, .xyz, ...)")
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    from_mesh = False
-    pts = np.zeros((0, 3))
-    try:
-        mesh = o3d.io.read_triangle_mesh(str(p))
-        if len(mesh.triangles) > 0:
-            o3d.utility.random.seed(seed)
-            pts = np.asarray(mesh.sample_points_uniformly(number_of_points=int(mesh_points)).points)
-            from_mesh = True
-        else:
-            pts = np.asarray(o3d.io.read_point_cloud(str(p)).points)
-    except (RuntimeError, ValueError, OSError) as exc:
-        raise InterchangeError(f"{p}: cannot be read as a point cloud or mesh ({exc})") from None
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if len(pts) == 0:
-        raise InterchangeError(f"{p}: no points could be read (empty, or not a point cloud / mesh file that "
-                               "Open3D reads: .ply, .pcd, .xyz, .xyzn, .xyzrgb, .pts, .obj, .stl, ...)")
-    return LoadedCloud(str(p), pts, from_mesh)
-
-
-def icp_align(points: np.ndarray, reference: np.ndarray, max_distance: float, max_iterations: int = 100):
-    """Open3D's point-to-point ICP of ``points`` onto ``reference``, initialised by the identity; returns the 4x4
-    transform and ICP's fitness / inlier RMSE."""
-    import open3d as o3d
-
-    src, dst = o3d.geometry.PointCloud(), o3d.geometry.PointCloud()
-    src.points = o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
-    dst.points = o3d.utility.Vector3dVector(np.asarray(reference, dtype=np.float64))
-    reg = o3d.pipelines.registration
-    res = reg.registration_icp(src, dst, float(max_distance), np.eye(4), reg.TransformationEstimationPointToPoint(),
-                               reg.ICPConvergenceCriteria(max_iteration=int(max_iterations)))
-    return np.asarray(res.transformation, dtype=np.float64), {"fitness": float(res.fitness),
-                                                             "inlier_rmse": float(res.inlier_rmse)}
-
-
 def evaluate_cloud_files(pred: str | Path, gt: str | Path, threshold: float = 0.02, align: bool = False,
                          icp_distance: float | None = None, mesh_points: int = MESH_POINTS) -> dict:
-    """Precision, recall (= coverage), F-score and noise ratio of the cloud ``pred`` against the reference ``gt``
-    (``models.metrics.cloud.cloud_metrics``), and with ``align`` the same after ICP-aligning ``pred`` onto ``gt``
-    (max correspondence distance ``icp_distance``, default ``ICP_DISTANCE_FACTOR`` x ``threshold``)."""
-    from navcrafter.models.metrics.cloud import cloud_metrics
-
-    if not threshold > 0:
-        raise InterchangeError(f"--threshold must be positive, got {threshold}")
-    P, G = read_points(pred, mesh_points), read_points(gt, mesh_points)
-    doc: dict = {"pred": P.path, "gt": G.path, "threshold": float(threshold),
-                 "pred_sampled_from_mesh": P.from_mesh, "gt_sampled_from_mesh": G.from_mesh,
-                 "n_pred": len(P.points), "n_gt": len(G.points),
-                 "unaligned": cloud_metrics(P.points, G.points, threshold)}
-    if align:
-        dist = ICP_DISTANCE_FACTOR * threshold if icp_distance is None else float(icp_distance)
-        if not dist > 0:
-            raise InterchangeError(f"--icp-distance must be positive, got {icp_distance}")
-        T, info = icp_align(P.points, G.points, dist)
-        moved = P.points @ T[:3, :3].T + T[:3, 3]
-        doc["aligned"] = {**cloud_metrics(moved, G.points, threshold), "transform": T.tolist(),
-                          "icp": {"method": "Open3D point-to-point ICP, identity initialisation",
-                                  "max_correspondence_distance": dist, **info}}
-    return doc
+    """``models.metrics.cloud_files.evaluate_cloud_files``; a bad file or option is an ``InterchangeError``."""
+    try:
+        return cloud_files.evaluate_cloud_files(pred, gt, threshold, align, icp_distance, mesh_points)
+    except cloud_files.CloudFileError as exc:
+        raise InterchangeError(str(exc)) from None

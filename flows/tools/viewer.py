@@ -25,9 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from navcrafter.flows.tools.report import read_manifest
 from navcrafter.models.camera.cameras import matrix_to_quat, quat_wxyz_to_matrix
+from navcrafter.models.gaussians.sh import SH_C0
 from navcrafter.schemas.layout import FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.tasks.common import load_cloud
+from navcrafter.tasks.readers import scene_label
 
 # RGB of each kind of camera
 COLOURS = {
@@ -54,7 +58,6 @@ class SceneNotFound(ValueError):
 # --------------------------------------------------------------------------------------------------
 def scene_sources(store: Store) -> dict[str, list[str]]:
     """Source paths of each scene id: the manifest's rows, else the ingest step's ``source``."""
-    from navcrafter.tasks.report import read_manifest
 
     out: dict[str, list[str]] = {sid: [] for sid in store.scene_ids()}
     for r in read_manifest(store).to_pylist():  # empty for scenes run outside a flow
@@ -97,22 +100,6 @@ def resolve_scene(store: Store, scene: str | None) -> str:
                             f"source name); {hint}")
     raise SceneNotFound(f"scene {scene!r} matches {len(matches)} scenes of {store.uri} "
                         f"({', '.join(m[:12] for m in matches[:5])}); give more characters of the id ({hint})")
-
-
-def scene_label(scene: SceneStore) -> str | None:
-    """The label every output of the scene's run carries (``models.backends.run_label``): the simulation's,
-    from the backend each step records, or the one the export wrote (e.g. random weights); None for none."""
-    from navcrafter.models.simulation import LABEL
-
-    for spec in (INGEST, GEOMETRY, FIT):
-        if scene.status(spec).attrs.get("backend") == "simulation":
-            return LABEL
-    from navcrafter.tasks.readers import export_record
-
-    try:
-        return export_record(scene).get("label") or None
-    except (OSError, ValueError):
-        return None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -166,7 +153,6 @@ class SceneData:
 
     def cloud(self, k: int):
         """The fused cloud after iteration k (``tasks.common.load_cloud``), read once."""
-        from navcrafter.tasks.common import load_cloud
 
         if k not in self._clouds:
             self._clouds[k] = load_cloud(self.scene, k)
@@ -244,7 +230,6 @@ def gaussian_splat_arrays(model) -> dict[str, np.ndarray]:
     """``add_gaussian_splats``'s arrays from a ``GaussianModel`` (3DGS's raw parameters): centres, covariances
     ``R diag(s^2) R^T`` (``s = exp(log_scales)``, R from the normalised quaternion), RGB from the degree-0 SH
     term (``0.5 + C0 dc``, view-independent), opacities ``sigmoid(logit)`` as ``[N, 1]``."""
-    from navcrafter.models.gaussians.sh import SH_C0
 
     def arr(t) -> np.ndarray:
         return t.detach().cpu().numpy().astype(np.float64) if hasattr(t, "detach") else np.asarray(t, np.float64)

@@ -23,10 +23,10 @@ from typer.testing import CliRunner
 
 from navcrafter.flows.cli import app
 from navcrafter.flows.runstates import run_states, store_tag
+from navcrafter.flows.tools.dashboard import GRID_MAX, THUMB, scene_dashboard_markdown
+from navcrafter.flows.tools.report import manifest_rows_for, read_manifest, write_manifest
 from navcrafter.models.simulation import LABEL
 from navcrafter.schemas.store import Store
-from navcrafter.tasks.dashboard import GRID_MAX, THUMB, scene_dashboard_markdown
-from navcrafter.tasks.report import manifest_rows_for, read_manifest, write_manifest
 
 pytestmark = pytest.mark.system  # the session's collection run and real flow runs on the Prefect test server
 runner = CliRunner()
@@ -167,7 +167,7 @@ def test_run_states_classify_real_flow_runs(prefect_api_url, tmp_path):
 
 
 def _result(scene_id: str, source: str, status: str):
-    from navcrafter.tasks.report import SceneResult
+    from navcrafter.flows.tools.report import SceneResult
 
     return SceneResult(scene_id, [source], status, backend="simulation")
 

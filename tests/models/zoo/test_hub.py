@@ -1,4 +1,4 @@
-"""``navcrafter models pull`` (models/runtime/hub.py), offline only: each test lays out a Hugging Face hub cache
+"""``navcrafter models pull`` (models/zoo/hub.py), offline only: each test lays out a Hugging Face hub cache
 itself (``models--org--name/{refs/main, snapshots/<commit>/..., blobs/}``, tiny files) and never touches the
 network (``HF_HUB_OFFLINE=1``; the online path is exercised with the hub calls replaced)."""
 
@@ -13,8 +13,8 @@ from types import SimpleNamespace
 import pytest
 from typer.testing import CliRunner
 
-from navcrafter.models.runtime import hub
-from navcrafter.models.runtime.hub import SOURCES, HubError, pull, record_snapshot, repo_folder
+from navcrafter.models.zoo import hub
+from navcrafter.models.zoo.hub import SOURCES, HubError, pull, record_snapshot, repo_folder
 
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
 
@@ -57,7 +57,7 @@ def tiny_moge_checkpoint() -> bytes:
 
 
 def test_table_matches_the_loaders():
-    from navcrafter.models.backends import ROLE_DIRS
+    from navcrafter.tasks.backends import ROLE_DIRS
 
     assert set(hub.DEFAULT_ROLES) <= set(SOURCES)
     for src in SOURCES.values():
@@ -65,12 +65,13 @@ def test_table_matches_the_loaders():
         assert src.target in (*ROLE_DIRS, hub.EVAL_DIR), src.role
         assert (src.repo_id is None) == bool(src.urls), src.role
     # the file names the evaluation networks look up are the ones the eval role fetches
-    from navcrafter.models.metrics.evalnets.weights import known_weight_files
+    from navcrafter.models.metrics.evalnets import known_weight_files
 
     assert {w.filename for w in known_weight_files().values()} == {u.filename for u in SOURCES["eval"].urls}
     assert SOURCES["geometry"].required == ("model.safetensors",) and SOURCES["monodepth"].required == ("model.pt",)
 
 
+@pytest.mark.slow
 def test_offline_pull_exports_monodepth(tmp_path):
     from navcrafter.models.runtime.onnxio import load_manifest
 
@@ -82,7 +83,7 @@ def test_offline_pull_exports_monodepth(tmp_path):
     manifest = load_manifest(model_dir / "monodepth", "monodepth")  # what the runtime checks at load
     assert manifest["weights"]["source"] == "checkpoint"
     assert manifest["config"]["embed_dim"] == 32  # the checkpoint's own model_config, not ViT-L
-    from navcrafter.models.backends import model_manifests
+    from navcrafter.tasks.backends import model_manifests
 
     assert set(model_manifests(model_dir)) == {"monodepth"}
 
@@ -210,7 +211,7 @@ def test_eval_role_downloads_urls_records_and_exports(tmp_path, monkeypatch):
     hash-in-name), recorded, verified offline, and copied to MODEL_DIR/eval, where the metrics look them up."""
     from dataclasses import replace
 
-    from navcrafter.models.metrics.evalnets.weights import find_weights, known_weight_files
+    from navcrafter.models.metrics.evalnets import find_weights, known_weight_files
 
     known_weight_files()  # registers the networks' files
     monkeypatch.delenv("HF_HUB_OFFLINE")

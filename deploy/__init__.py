@@ -1,0 +1,1 @@
+"""Deployment files; ``deploy.local`` holds the local helper scripts, importable as modules."""

@@ -1,0 +1,105 @@
+"""Settings of camera trajectory planning (composed into the run config by schemas/config.py)."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from navcrafter.models.settings import Section as _Section
+
+
+class PlanConfig(_Section):
+    """Camera trajectory planning (see ``navcrafter.models.planning.planners``).
+
+    * ``collision_aware``: the paper's Algorithm 1 (candidates in the search space, collision
+      detector, visibility score, spherical interpolation, collision optimisation).
+    * ``viewcrafter``: the baseline, ViewCrafter's next-best view: the same K candidates in S, its own utility
+      (the empty area of the candidate's point-cloud render), spherical interpolation about o, no collision
+      handling.
+    * ``orbit``: the foundation's simple orbit around the scene centre (no scoring, no obstacles).
+
+    The search space S is the quarter sphere about the scene centre ``o`` (the point on the input optical axis at
+    the ``centre_depth_quantile`` of the input view's depth) facing the input camera, at radii relative to ``d0``,
+    the input camera's distance to ``o``, so it scales with the scene; ``safe_radius`` is a physical size, in
+    scene units.
+    """
+
+    strategy: Literal["collision_aware", "viewcrafter", "orbit"] = "collision_aware"
+    num_candidates: int = Field(3, ge=1, description="K candidate poses per iteration (paper: 3).")
+    radius_range: tuple[float, float] = Field(
+        (0.6, 1.0), description="Candidate distance from the scene centre o, times d0 (the search space S is "
+        "spheres about o; ViewCrafter moves the radius by d_r = -0.2).")
+    azimuth_range_deg: tuple[float, float] = Field(
+        (-90.0, 90.0), description="Candidate azimuth about o from the direction o -> input camera (positive: right).")
+    elevation_range_deg: tuple[float, float] = Field(
+        (-30.0, 30.0), description="Candidate elevation from the horizon (with the azimuth default: the quarter "
+        "sphere facing the reference view, ViewCrafter's search space).")
+    safe_radius: float = Field(
+        0.25, gt=0, description="r_safe in scene units (metres for metric geometry): the camera's "
+        "safety margin from any surface.")
+    follow_error: float = Field(
+        0.1, ge=0, description="Expected camera-following error of the video model per unit of path length: along "
+        "a path, G demands a clearance of r_safe plus this times the distance travelled (camera-controlled video "
+        "models drift by 5-10 % of the path on RealEstate10K: CameraCtrl, CamI2V). 0: r_safe everywhere.")
+    anchor_fraction: float = Field(
+        0.5, gt=0, le=1, description="m0 of the score F = (1-m) min(1, m/m0), m = seen fraction of the mask.")
+    smoothness: float = Field(1.0, ge=0, description="lambda of the collision optimisation's smoothness term.")
+    max_resample: int = Field(
+        0, ge=0, description="Extra draws of K candidates until K pass G (0: exactly K candidates, the baseline's "
+        "budget; a colliding candidate is first pulled towards o until G passes it).")
+    unknown_space: Literal["occupied", "free"] = Field(
+        "occupied", description="How G treats space no camera has seen: 'occupied' (only seen free space "
+        "is allowed) or 'free' (collisions are proximity to the cloud and being behind an observed surface).")
+    centre_depth_quantile: float = Field(
+        0.5, gt=0, lt=1, description="Scene centre o = point at this depth quantile on the optical axis.")
+    orbit_step_deg: float = Field(20.0, gt=0, le=90, description="Azimuth step of the orbit planner.")
+    orbit_max_shift: float = Field(
+        1.0, gt=0, description="Cap on the camera displacement of one orbit step, in scene units.")
+    orbit_radius_scale: float = Field(
+        0.85, gt=0, description="Orbit target distance to the centre as a fraction of the initial one.")
+    trajectory: list[str] | None = Field(
+        None, description="A user's camera path in place of the planner (models/planning/user.py): iteration k takes "
+        "entry (k-1) mod len, a preset NAME[:SIZE] (orbit, arc, dolly, pan, tilt, truck, pedestal, spiral, "
+        "lookaround; SIZE in the preset's degrees or amount) or a camera file (RealEstate10K .txt, transforms.json, "
+        "camera_path.json, camera-to-world matrices .npy/.json). Checked by G; see trajectory_repair.")
+    trajectory_extent: float = Field(
+        0.5, ge=0, description="A camera file's path is scaled so its farthest camera lies this many times the "
+        "current camera's distance to the scene centre from its first; 0 keeps the file's units.")
+    trajectory_convention: Literal["opencv", "opengl"] = Field(
+        "opencv", description="Camera axes of plain matrix files (.npy, or .json without a 'convention' field).")
+    trajectory_repair: bool = Field(
+        False, description="Repair a user path that G flags with the collision optimisation (same end poses); "
+        "otherwise it is kept with a warning.")
+
+    # added after stores existed: keys the plan step only when set (schemas.keys)
+    keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
+                                                "trajectory_convention": "opencv", "trajectory_repair": False}
+
+    @field_validator("trajectory")
+    @classmethod
+    def _trajectory(cls, value: list[str] | None) -> list[str] | None:
+        """Entries checked now (a bad one fails before any work); camera files kept as absolute paths."""
+        if value is None:
+            return None
+        if not value:
+            raise ValueError("plan.trajectory must list at least one preset or camera file (or be null)")
+        from navcrafter.models.planning.user import parse_spec
+
+        out = []
+        for entry in value:
+            spec = parse_spec(entry)
+            out.append(spec.path if spec.path is not None else spec.text)
+        return out
+
+    @model_validator(mode="after")
+    def _ranges(self) -> PlanConfig:
+        for name in ("radius_range", "azimuth_range_deg", "elevation_range_deg"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"plan.{name} must be (low, high), got ({lo}, {hi})")
+        if self.radius_range[0] <= 0:
+            raise ValueError("plan.radius_range must be positive")
+        if not -90 <= self.elevation_range_deg[0] <= self.elevation_range_deg[1] <= 90:
+            raise ValueError("plan.elevation_range_deg must lie within [-90, 90]")
+        return self

@@ -1,0 +1,84 @@
+"""Settings of the simulation backend (composed into the run config by schemas/config.py)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from navcrafter.models.settings import Section as _Section
+
+
+class SimulationConfig(_Section):
+    """The simulation backend's stand-ins for the learned models, and how they fail (``models/simulation``).
+
+    ``preset = "honest"`` (default): the simulated roles fail the way real models fail, with every error size
+    fixed from published measurements *before* any result was looked at (source beside each field; figures
+    recalled from the papers, which could not be re-read from the machine this was built on). ``"perfect"``:
+    the old behaviour for unit tests of plumbing: the synthesizer renders the truth exactly at the requested
+    poses (also inside objects and in unseen regions) and geometry sees the true cameras plus small jitter;
+    the honest-only fields (``drift_*``, ``hallucinate``, ``anchor_tolerance_m``, ``variant_shift_m``,
+    ``corrupt_clearance_m``, ``pose_trans_rel``, ``depth_lowfreq``) are then ignored; the other geometry errors
+    apply in both.
+
+    The geometry prediction is returned like VGGT's: in the first view's camera frame at an unknown
+    scale, so the lifting code must recover the scale exactly as with a real model.
+    """
+
+    preset: Literal["honest", "perfect"] = Field(
+        "honest", description="'honest': the simulated roles drift, hallucinate and break down like real models; "
+        "'perfect': truth at the requested poses (unit tests of plumbing only).")
+    supersample: int = Field(1, ge=1, le=4, description="Anti-aliasing factor of synthesized frames.")
+    drift_rot_deg: float = Field(
+        3.0, ge=0, description="Synthesizer: rotation error of the video's camera against the requested one at the "
+        "clip's last frame (grows linearly from 0 at frame 0; random axis, half-normal size with this mean). "
+        "Source: camera-controlled video models on RealEstate10K, e.g. CameraCtrl (He et al. 2024, Tab. 1, "
+        "RotErr ~1.3-1.5 summed over 16 frames, i.e. a few degrees per frame relative to frame 0) and CamI2V "
+        "(Zheng et al. 2024, lower); 3 deg at the end of a clip (1.5 deg on average) sits between them.")
+    drift_trans: float = Field(
+        0.08, ge=0, description="Synthesizer: translation error at the clip's last frame as a fraction of the clip's "
+        "path length (random direction, half-normal size with this mean). Source: the TransErr of the same "
+        "models (CameraCtrl, CamI2V) is of the order of 5-10 % of the camera path on RealEstate10K.")
+    hallucinate: bool = Field(
+        True, description="Synthesizer: content the current cloud does not show is re-drawn from a per-clip variant "
+        "of the scene (objects moved by up to variant_shift_m, every texture re-drawn): plausible, not the truth, "
+        "different from clip to clip. A video model copies what its point-cloud render shows and invents the rest.")
+    anchor_tolerance_m: float = Field(
+        0.05, gt=0, description="Synthesizer: a pixel shows the truth only where its true surface lies within this "
+        "of the current cloud (metres; 2.5 x the default lift voxel).")
+    variant_shift_m: float = Field(
+        0.3, ge=0, description="Synthesizer: largest horizontal displacement of an object in a clip's variant scene.")
+    corrupt_clearance_m: float = Field(
+        0.25, ge=0, description="Synthesizer: frames whose true camera is nearer than this to a surface (or inside "
+        "one) come out corrupted, fully at contact: what video models make of a close-up blob of points "
+        "(ViewCrafter and NavCrafter show such failures; the size is the paper's r_safe).")
+    scale_sigma: float = Field(
+        0.2, ge=0, description="Geometry: log-sigma of the arbitrary global scale of each call "
+        "(the first call's scale becomes the scene's world scale)."
+    )
+    depth_noise: float = Field(0.004, ge=0, description="Geometry: relative per-pixel depth noise (sigma).")
+    depth_lowfreq: float = Field(
+        0.03, ge=0, description="Geometry (honest): sigma of a smooth multiplicative depth error per view. Source: "
+        "AbsRel of feed-forward depth of 3-5 % (VGGT, Wang et al. 2025; MoGe-2, Wang et al. 2025, on NYUv2/ETH3D).")
+    pose_rot_deg: float = Field(
+        0.5, ge=0, description="Geometry: rotation error (sigma, degrees) of each predicted pose but the first. "
+        "Source: VGGT's relative-rotation accuracy on RealEstate10K/CO3D (AUC@30 85-88, errors of a degree "
+        "or less for the small baselines of a video clip).")
+    pose_trans: float = Field(
+        0.003, ge=0, description="Geometry: absolute translation jitter (sigma) of predicted poses, in metres."
+    )
+    pose_trans_rel: float = Field(
+        0.02, ge=0, description="Geometry (honest): translation error (sigma) as a fraction of the camera's distance "
+        "to the first view. Source: VGGT's relative translation-direction accuracy (same tables: ~1 deg, ~2 %).")
+    focal_noise: float = Field(0.0, ge=0, description="Geometry: relative error of the predicted focal length.")
+    edge_confidence: float = Field(
+        0.2, ge=0, le=1, description="Geometry: confidence assigned at depth discontinuities."
+    )
+    refine_strength: float = Field(
+        0.7, ge=0, le=1, description="Refiner stand-in: how far a render is moved toward the true view "
+        "(refined = render + strength x (truth - render) + noise; 1: a perfect refiner).")
+    refine_noise: float = Field(0.02, ge=0, description="Refiner stand-in: sigma of added pixel noise (0-1 range).")
+
+    @property
+    def honest(self) -> bool:
+        return self.preset == "honest"
