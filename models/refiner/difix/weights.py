@@ -95,7 +95,7 @@ LORA_TARGET_SUFFIXES = ("conv1", "conv2", "conv_in", "conv_shortcut", "conv", "c
                         "skip_conv_2", "skip_conv_3", "skip_conv_4", "to_k", "to_q", "to_v", "to_out.0")
 UNET_FILE = "unet/diffusion_pytorch_model.safetensors"
 VAE_FILE = "vae/diffusion_pytorch_model.safetensors"
-KEYS_DIR = Path(__file__).with_name("keys")
+KEYS_DIR = Path(__file__).parents[1] / "keys"
 OFFICIAL_KEYS_SD_TURBO = KEYS_DIR / "difix_sd_turbo.txt"
 INPUTS = ("image", "reference", "prompt_embeds", "latent_noise")
 OUTPUT = "refined"

@@ -62,7 +62,7 @@ _RESNET_STD = (0.229, 0.224, 0.225)
 
 OUTPUT_NAMES = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
 IGNORED_PREFIXES = ("track_head.",)  # official checkpoint parts we do not build
-KEY_LIST_1B = Path(__file__).parent / "keys" / "vggt_1b.txt"
+KEY_LIST_1B = Path(__file__).parents[1] / "keys" / "vggt_1b.txt"
 
 
 # --------------------------------------------------------------------------------------------------
