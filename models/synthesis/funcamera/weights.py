@@ -49,7 +49,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from diffusers.models.transformers.transformer_wan import WanTransformer3DModel
 
-from navcrafter.models.synthesis.camcontrol import _short  # the same shortened key listing in both loaders
+from navcrafter.models.checkpoints import listing as _short
 
 MODEL_NAME = "fun-camera"  # synthesis.model
 ARCHITECTURE = "wan2.1-fun-v1.1-control-camera"  # manifest architecture
