@@ -14,19 +14,22 @@ The network follows the published MoGe-2 model (microsoft/MoGe, ``moge/model/v2.
 Output remaps (as official): points use ``remap_output`` ("exp" for MoGe-2: ``z = exp(z')``, ``xy = xy' z``),
 normals are L2-normalised, the mask is a probability (``sigmoid``), ``metric_scale = exp(mlp(cls))``.
 
-**Resizing is outside the graph.** The official ``forward(image, num_tokens)`` resizes the input (bilinear,
-antialiased) to a token grid chosen from ``num_tokens`` inside the network. Here the caller does it:
-``preprocess_image`` picks the grid exactly like the official code (``token_grid``) and resizes; the graph
-takes the already-resized image (H, W multiples of 14, any size, float RGB in [0, 1]) and returns maps at
-that size. ``postprocess`` resizes them back to the input resolution and does what the official ``infer()``
-does after the network (focal and z-shift recovery, metric scale, mask). The ImageNet mean/std
-normalisation stays inside the graph, as in the official encoder (buffers ``encoder.image_mean/std``).
+**The input resize is outside the graph.** The official ``forward(image, num_tokens)`` resizes the input
+(bilinear, antialiased) to a token grid chosen from ``num_tokens`` inside the network. Here the caller does
+it: ``preprocess_image`` picks the grid exactly like the official code (``token_grid``) and resizes; the graph
+takes the already-resized image (H, W multiples of 14, any size, float RGB in [0, 1]) and the ORIGINAL
+image's aspect ratio (width / height), from which the UV channels are built as official
+(``normalized_view_plane_uv(..., aspect_ratio)``: the token grid's own aspect differs by its rounding). The
+ImageNet mean/std normalisation stays inside the graph, as in the official encoder (buffers
+``encoder.image_mean/std``).
 
-Differences to the official torch path, all small: the UV channels use the aspect ratio of the resized
-image (the official code uses the original image's, which differs by the rounding of the token grid), and
-the maps are resized twice (to the token-grid size inside the graph, then to the input size) instead of
-once. The positional-embedding interpolation reproduces the official (non-ONNX-mode) bicubic resampling
-with DINOv2's 0.1 offset exactly, as a traceable separable matrix product.
+**The head maps are resized once, outside the graph.** The graph returns the heads' raw maps at their own
+resolution (``2**(levels-1)`` x the token grid) and the metric scale; ``head_maps_to_size`` resizes them
+(bilinear, no antialias) straight to the input resolution and only then remaps them (points ``exp``, normal
+L2, mask ``sigmoid``), in the official order; ``postprocess`` then does what the official ``infer()`` does
+after the network (focal and z-shift recovery, metric scale, mask). ``infer_torch`` and ``OnnxMonoDepth``
+run this same pipeline. The positional-embedding interpolation reproduces the official (non-ONNX-mode)
+bicubic resampling with DINOv2's 0.1 offset exactly, as a traceable separable matrix product.
 
 Checkpoints use the official key layout (fused ``attn.qkv``, ``ls1.gamma``, ``pos_embed`` ...);
 ``load_moge2_weights`` / ``moge2_state_dict_official`` map it to and from the modules here. The official
@@ -351,19 +354,24 @@ def _bicubic_matrices(h, w, n_in: int, offset: float, columns: torch.Tensor,
     return matrix[:h], matrix[h:]
 
 
-def _view_plane_uv(h, w, levels: int, like: torch.Tensor) -> list[torch.Tensor]:
-    """[1, 2, h * 2**l, w * 2**l] for l < levels: the official ``normalized_view_plane_uv`` of each grid (pixel
-    centres; corners at +-width/diagonal, +-height/diagonal) for the grid's own aspect ratio. The finest
-    grid is computed, coarser ones are its 2x2 means (exact: the coordinates are linear in the index)."""
+def _view_plane_uv(h, w, levels: int, like: torch.Tensor, aspect: torch.Tensor | None = None) -> list[torch.Tensor]:
+    """[B, 2, h * 2**l, w * 2**l] for l < levels: the official ``normalized_view_plane_uv`` of each grid (pixel
+    centres; ``u`` spans +-aspect / sqrt(1 + aspect**2), ``v`` +-1 / sqrt(1 + aspect**2), each times
+    (n - 1) / n) for ``aspect`` [B] = the original image's width / height (B = 1 and the grid's own aspect
+    when None). The finest grid is computed, coarser ones are its 2x2 means (exact: the coordinates are
+    linear in the index)."""
     scale = 2 ** (levels - 1)
     ys = torch.arange(h * scale, dtype=like.dtype, device=like.device)
     xs = torch.arange(w * scale, dtype=like.dtype, device=like.device)
     ht, wt = ys[-1:] + 1, xs[-1:] + 1
-    diagonal = torch.sqrt(ht * ht + wt * wt)
-    u = (2 * xs + 1 - wt) / diagonal
-    v = (2 * ys + 1 - ht) / diagonal
-    uv = torch.stack([u[None, :].expand(h * scale, w * scale), v[:, None].expand(h * scale, w * scale)])[None]
-    out = [uv]
+    if aspect is None:
+        aspect = wt / ht
+    aspect = aspect.to(like.dtype).reshape(-1, 1, 1)
+    norm = torch.sqrt(1 + aspect * aspect)
+    u = (aspect / norm) * ((2 * xs + 1 - wt) / wt)[None, None, :]
+    v = (1 / norm) * ((2 * ys + 1 - ht) / ht)[None, :, None]
+    shape = (aspect.shape[0], h * scale, w * scale)
+    out = [torch.stack([u.expand(shape), v.expand(shape)], dim=1)]
     for _ in range(levels - 1):
         out.append(F.avg_pool2d(out[-1], 2))
     return out[::-1]
@@ -428,8 +436,11 @@ class _Encoder(nn.Module):
 
 class MoGe2(nn.Module):
     """MoGe-2 network. ``forward(image [B,3,H,W] in [0,1], H, W multiples of 14, already resized by the
-    caller)`` -> ``(points [B,H,W,3], normal [B,H,W,3], mask [B,H,W] probability, metric_scale [B])``;
-    ``normal`` / ``metric_scale`` are left out when the config has no such head (see ``output_names``)."""
+    caller; aspect_ratio [B] = the ORIGINAL image's width / height, default the resized image's)`` ->
+    ``(points_raw [B,h,w,3], normal_raw [B,h,w,3], mask_logits [B,h,w], metric_scale [B])`` with the head
+    maps raw (before the remaps) at the heads' resolution (h, w = 2**(levels-1) x the token grid);
+    ``normal_raw`` / ``metric_scale`` are left out when the config has no such head (see ``output_names``).
+    ``head_maps_to_size`` resizes them to the input size and remaps them, as the official ``forward``."""
 
     def __init__(self, config: MoGe2Config) -> None:
         super().__init__()
@@ -452,41 +463,23 @@ class MoGe2(nn.Module):
 
     @property
     def output_names(self) -> list[str]:
-        return (["points"] + (["normal"] if self.config.normal_head else []) + ["mask"]
+        return (["points_raw"] + (["normal_raw"] if self.config.normal_head else []) + ["mask_logits"]
                 + (["metric_scale"] if self.config.scale_head_dims else []))
 
-    def _remap_points(self, points: torch.Tensor) -> torch.Tensor:
-        kind = self.config.remap_output
-        if kind == "sinh":
-            return torch.sinh(points)
-        if kind == "exp":
-            xy, z = points.split([2, 1], dim=-1)
-            z = torch.exp(z)
-            return torch.cat([xy * z, z], dim=-1)
-        if kind == "sinh_exp":
-            xy, z = points.split([2, 1], dim=-1)
-            return torch.cat([torch.sinh(xy), torch.exp(z)], dim=-1)
-        return points
-
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        batch, _, height, width = image.shape
+    def forward(self, image: torch.Tensor, aspect_ratio: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        batch = image.shape[0]
         features, cls_token = self.encoder(image)
         h, w = features.shape[-2:]
-        pyramid = _view_plane_uv(h, w, len(self.config.neck_dims), image)  # batch 1: broadcast in the neck
+        if aspect_ratio is not None:
+            aspect_ratio = aspect_ratio.reshape(-1).expand(batch)
+        pyramid = _view_plane_uv(h, w, len(self.config.neck_dims), image, aspect_ratio)  # batch 1 broadcasts
         pyramid[0] = torch.cat([features, pyramid[0].expand(batch, -1, -1, -1)], dim=1)
         pyramid = self.neck(pyramid)
         heads = [self.points_head, self.normal_head, self.mask_head] if self.config.normal_head \
             else [self.points_head, self.mask_head]
-        maps = torch.cat([head(pyramid)[-1] for head in heads], dim=1)
-        maps = F.interpolate(maps, size=(height, width), mode="bilinear", align_corners=False)
-        if self.config.normal_head:
-            points, normal, mask = maps.permute(0, 2, 3, 1).split([3, 3, 1], dim=-1)
-        else:
-            (points, mask), normal = maps.permute(0, 2, 3, 1).split([3, 1], dim=-1), None
-        outputs = [self._remap_points(points)]
-        if normal is not None:
-            outputs.append(F.normalize(normal, dim=-1))
-        outputs.append(mask.squeeze(-1).sigmoid())
+        maps = torch.cat([head(pyramid)[-1] for head in heads], dim=1).permute(0, 2, 3, 1)
+        parts = maps.split([3, 3, 1] if self.config.normal_head else [3, 1], dim=-1)
+        outputs = list(parts[:-1]) + [parts[-1].squeeze(-1)]
         if self.config.scale_head_dims:
             outputs.append(self.scale_head(cls_token).squeeze(1).exp())
         return tuple(outputs)
@@ -689,24 +682,6 @@ def _resize_antialias(array: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.stack(channels, axis=-1).astype(np.float32)
 
 
-def _bilinear_axis(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    src = np.maximum((np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5, 0.0)
-    i0 = np.minimum(np.floor(src).astype(np.int64), n_in - 1)
-    i1 = np.minimum(i0 + 1, n_in - 1)
-    return i0, i1, (src - i0).astype(np.float32)
-
-
-def resize_bilinear(array: np.ndarray, height: int, width: int) -> np.ndarray:
-    """[h, w, ...] -> [height, width, ...] plain bilinear (torch ``align_corners=False``, no antialias),
-    the resize the official network applies to its outputs."""
-    a0, a1, wa = _bilinear_axis(array.shape[0], height)
-    b0, b1, wb = _bilinear_axis(array.shape[1], width)
-    extra = (1,) * (array.ndim - 2)
-    wa, wb = wa.reshape((-1, 1) + extra), wb.reshape((1, -1) + extra)
-    rows = array[a0] * (1 - wa) + array[a1] * wa
-    return (rows[:, b0] * (1 - wb) + rows[:, b1] * wb).astype(np.float32)
-
-
 def preprocess_image(image: np.ndarray, num_tokens: int, patch_size: int = 14) -> np.ndarray:
     """``[H, W, 3]`` uint8 (or float in [0, 1]) -> ``[1, 3, 14*rows, 14*cols]`` float32 in [0, 1], resized
     (bilinear, antialiased, as the official encoder) to the token grid of ``token_grid``. The ImageNet
@@ -745,7 +720,9 @@ def recover_focal_shift(points: np.ndarray, valid: np.ndarray, focal: float | No
     uv = _view_plane_uv_np(height, width)[ri][:, ci]
     pts = points[ri][:, ci]
     keep = valid[ri][:, ci]
-    uv, xy, z = uv[keep].astype(np.float64), pts[keep][:, :2].astype(np.float64), pts[keep][:, 2].astype(np.float64)
+    # float32 maps and float64 shift, as official (``solve_optimal_focal_shift``): with ``ftol=1e-3`` the
+    # solver's stopping point depends on the arithmetic, so it is kept the same
+    uv, xy, z = uv[keep].astype(np.float32), pts[keep][:, :2].astype(np.float32), pts[keep][:, 2].astype(np.float32)
     if len(z) < 2:
         return 1.0, 0.0
 
@@ -754,12 +731,76 @@ def recover_focal_shift(points: np.ndarray, valid: np.ndarray, focal: float | No
         return (proj * uv).sum() / np.square(proj).sum()
 
     def residual(shift):
-        proj = xy / (z + shift[0])[:, None]
+        proj = xy / (z + shift)[:, None]
         f = focal if focal is not None else (proj * uv).sum() / np.square(proj).sum()
         return (f * proj - uv).ravel()
 
-    shift = float(np.float32(least_squares(residual, x0=[0.0], ftol=1e-3, method="lm").x[0]))
-    return (float(focal_of(shift)) if focal is None else float(focal)), shift
+    shift = np.float32(least_squares(residual, x0=0, ftol=1e-3, method="lm").x.squeeze())
+    return (float(focal_of(shift)) if focal is None else float(focal)), float(shift)
+
+
+def remap_points(points: torch.Tensor, kind: str) -> torch.Tensor:
+    """The official ``_remap_points`` of the raw points map ``[..., 3]`` (``exp``: ``z = exp(z')``, ``xy = xy' z``)."""
+    if kind == "sinh":
+        return torch.sinh(points)
+    if kind == "exp":
+        xy, z = points.split([2, 1], dim=-1)
+        z = torch.exp(z)
+        return torch.cat([xy * z, z], dim=-1)
+    if kind == "sinh_exp":
+        xy, z = points.split([2, 1], dim=-1)
+        return torch.cat([torch.sinh(xy), torch.exp(z)], dim=-1)
+    if kind != "linear":
+        raise ValueError(f"unknown remap_output {kind!r}")
+    return points
+
+
+def head_maps_to_size(points_raw: np.ndarray, mask_logits: np.ndarray, normal_raw: np.ndarray | None, *,
+                      size: tuple[int, int], remap_output: str = "exp"
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One image's raw head maps (``points_raw [h,w,3]``, ``mask_logits [h,w]``, ``normal_raw [h,w,3]``, at
+    the heads' resolution) -> ``(points [H,W,3], mask [H,W] probability, normal [H,W,3] unit)`` at ``size``
+    = (H, W), float32: resized once (torch bilinear, ``align_corners=False``, no antialias), then remapped,
+    with the official ``forward``'s ops in its order."""
+    parts = [np.asarray(points_raw, np.float32), np.asarray(mask_logits, np.float32)[..., None]]
+    if normal_raw is not None:
+        parts.append(np.asarray(normal_raw, np.float32))
+    maps = torch.from_numpy(np.concatenate(parts, axis=-1)).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        maps = F.interpolate(maps, size=tuple(size), mode="bilinear", align_corners=False, antialias=False)
+        maps = maps[0].permute(1, 2, 0)
+        points = remap_points(maps[..., :3], remap_output)
+        mask = maps[..., 3].sigmoid()
+        normal = F.normalize(maps[..., 4:], dim=-1) if normal_raw is not None else None
+    return points.numpy(), mask.numpy(), None if normal is None else normal.numpy()
+
+
+def outputs_to_result(outputs: dict[str, np.ndarray], size: tuple[int, int], config: MoGe2Config,
+                      fov_x: float | None = None, index: int = 0) -> MoGe2Result:
+    """Batch item ``index`` of the network's outputs (``MoGe2.output_names``) -> ``MoGe2Result`` at ``size``:
+    ``head_maps_to_size`` then ``postprocess`` (the torch and onnxruntime paths share this)."""
+    points, mask, normal = head_maps_to_size(
+        outputs["points_raw"][index], outputs["mask_logits"][index],
+        outputs["normal_raw"][index] if "normal_raw" in outputs else None, size=size,
+        remap_output=config.remap_output)
+    scale = float(outputs["metric_scale"][index]) if "metric_scale" in outputs else None
+    return postprocess(points, mask, scale, normal, fov_x=fov_x)
+
+
+def infer_torch(model: MoGe2, image: np.ndarray, num_tokens: int | None = None,
+                fov_x: float | None = None) -> MoGe2Result:
+    """The whole MoGe-2 pipeline in torch (float32) for one ``[H, W, 3]`` image (uint8, or float in [0, 1]),
+    as the official ``infer(image, num_tokens, fov_x=fov_x, use_fp16=False)``: token-grid resize, network with
+    the original aspect ratio, one resize of the head maps to ``H x W``, focal/shift recovery, metric scale."""
+    image = np.asarray(image)
+    num_tokens = int(num_tokens or num_tokens_for_level(9, model.config.num_tokens_range))
+    x = preprocess_image(image, num_tokens, model.config.patch_size)
+    aspect = torch.tensor([image.shape[1] / image.shape[0]], dtype=torch.float32)
+    param = next(model.parameters())
+    with torch.no_grad():
+        out = model(torch.from_numpy(x).to(param.device, param.dtype), aspect.to(param.device))
+    arrays = {k: v.float().cpu().numpy() for k, v in zip(model.output_names, out)}
+    return outputs_to_result(arrays, image.shape[:2], model.config, fov_x=fov_x)
 
 
 @dataclass
@@ -778,19 +819,22 @@ class MoGe2Result:
 def postprocess(points: np.ndarray, mask: np.ndarray, metric_scale: float | None = None,
                 normal: np.ndarray | None = None, *, size: tuple[int, int] | None = None,
                 fov_x: float | None = None) -> MoGe2Result:
-    """Network outputs of one image (``points [h,w,3]``, ``mask [h,w]`` probability, ``metric_scale``,
-    ``normal [h,w,3]``) -> ``MoGe2Result`` at ``size`` = (H, W) (the input resolution).
+    """Remapped maps of one image at the input resolution (``points [H,W,3]``, ``mask [H,W]`` probability,
+    ``metric_scale``, ``normal [H,W,3]``; see ``head_maps_to_size``) -> ``MoGe2Result``. ``size``, when
+    given, must be the maps' size (the maps are never resized here: the official pipeline resizes the raw
+    head maps once, before the remaps).
 
-    As official: maps are resized (bilinear), ``valid = mask > 0.5``, focal and z-shift are recovered from
+    As official: ``valid = mask > 0.5``, focal and z-shift are recovered from
     the point map (or only the shift, when ``fov_x`` in degrees is known), ``depth = (z + shift) * scale``,
     pixels with ``depth <= 0`` are invalid. Non-finite values are invalid too. Invalid pixels get
     ``depth = inf``, ``inv_depth = 0``, ``points = inf``, ``normal = 0``.
     """
-    height, width = size if size is not None else mask.shape[:2]
-    if (height, width) != tuple(mask.shape[:2]):
-        points = resize_bilinear(points, height, width)
-        mask = resize_bilinear(mask, height, width)
-        normal = None if normal is None else resize_bilinear(normal, height, width)
+    height, width = mask.shape[:2]
+    if size is not None and tuple(size) != (height, width):
+        raise ValueError(f"postprocess: maps are {height}x{width} but size is {tuple(size)}; resize the raw head "
+                         f"maps with head_maps_to_size first (one resize, then the remaps, as official)")
+    if points.shape[:2] != (height, width) or (normal is not None and normal.shape[:2] != (height, width)):
+        raise ValueError(f"postprocess: points {points.shape} / normal maps differ in size from mask {mask.shape}")
     points = points.astype(np.float32)
     valid = (mask > 0.5) & np.isfinite(points).all(axis=-1)
     aspect = width / height
@@ -827,8 +871,10 @@ def postprocess(points: np.ndarray, mask: np.ndarray, metric_scale: float | None
 
 
 def export_monodepth(out_dir: Path, config: MoGe2Config, weights: Path | None = None, seed: int = 0) -> Path:
-    """Export the network as graph ``monodepth`` (input ``image`` [B, 3, H, W] float in [0, 1], dynamic B and
-    H, W = 14 x token rows/cols; outputs ``points``, ``normal``, ``mask``, ``metric_scale`` as ``MoGe2``)
+    """Export the network as graph ``monodepth`` (inputs ``image`` [B, 3, H, W] float in [0, 1], dynamic B and
+    H, W = 14 x token rows/cols, and ``aspect_ratio`` [B] float, the original images' width / height; outputs
+    ``points_raw``, ``normal_raw``, ``mask_logits`` (raw head maps at the heads' resolution) and
+    ``metric_scale`` as ``MoGe2``; ``head_maps_to_size`` + ``postprocess`` finish them)
     plus the manifest (kind ``monodepth``, architecture ``moge-2``). Random weights from ``seed`` unless a
     checkpoint is given. Returns ``out_dir``."""
     from navcrafter.models.runtime import onnxio
@@ -843,19 +889,21 @@ def export_monodepth(out_dir: Path, config: MoGe2Config, weights: Path | None = 
     else:
         weights_info = {"source": "random", "seed": seed}
     p = config.patch_size
-    example = torch.rand(2, 3, 3 * p, 4 * p)
+    example = (torch.rand(2, 3, 3 * p, 4 * p), torch.tensor([1.25, 1.4]))
     batch = torch.export.Dim("batch", min=1, max=64)
     rows = torch.export.Dim("token_rows", min=2, max=256)
     cols = torch.export.Dim("token_cols", min=2, max=256)
-    info = onnxio.export_graph(model, (example,), out_dir / "monodepth.onnx", input_names=["image"],
+    info = onnxio.export_graph(model, example, out_dir / "monodepth.onnx", input_names=["image", "aspect_ratio"],
                                output_names=model.output_names,
-                               dynamic_shapes=({0: batch, 2: p * rows, 3: p * cols},))
+                               dynamic_shapes=({0: batch, 2: p * rows, 3: p * cols}, {0: batch}))
     info.notes = ("image: RGB float in [0, 1], already resized to a token grid (H, W multiples of patch_size); "
-                  "mean/std normalisation is inside. points: affine point map (remapped), normal: unit, "
-                  "mask: probability, metric_scale: [B]")
+                  "mean/std normalisation is inside. aspect_ratio: the original image's width / height. "
+                  "points_raw / normal_raw / mask_logits: the heads' raw maps at 2**(levels-1) x the token grid, "
+                  "to resize once to the input size and then remap (head_maps_to_size); metric_scale: [B]")
     io = {"input_range": [0.0, 1.0], "patch_size": p, "num_tokens_range": list(config.num_tokens_range),
           "default_num_tokens": num_tokens_for_level(9, config.num_tokens_range),
-          "outputs": model.output_names, "official_model_config": config.to_official()}
+          "outputs": model.output_names, "head_maps": "raw, resize once to the input size, then remap",
+          "remap_output": config.remap_output, "official_model_config": config.to_official()}
     onnxio.write_manifest(out_dir, kind="monodepth", architecture="moge-2", config=config.to_dict(),
                           weights=weights_info, graphs={"monodepth": info}, extra={"io": io})
     return out_dir
