@@ -53,7 +53,7 @@ from navcrafter.models.runtime.onnxio import config_from_dict, config_to_dict
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-KEYS_DIR = Path(__file__).with_name("keys")
+KEYS_DIR = Path(__file__).parents[1] / "keys"
 OFFICIAL_KEYS_VITL_NORMAL = KEYS_DIR / "moge2_vitl_normal.txt"
 # checkpoint buffers that may be absent from a checkpoint (their values are fixed constants)
 _OPTIONAL_KEYS = ("encoder.image_mean", "encoder.image_std")
