@@ -143,8 +143,8 @@ def test_wrong_checkpoint_is_named(tmp_path):
         load_moge2_weights(_model(0), path)
     message = str(err.value)
     assert "bad.safetensors" in message
-    assert "neck.input_blocks.1.weight (3, 2, 1, 1) (expected (16, 2, 1, 1))" in message
-    assert "missing 1: scale_head.0.bias" in message and "unexpected 1: head.extra" in message
+    assert "shape mismatch [neck.input_blocks.1.weight: file [3, 2, 1, 1] vs model [16, 2, 1, 1]]" in message
+    assert "missing keys [scale_head.0.bias]" in message and "unexpected keys [head.extra]" in message
 
 
 def test_full_size_layout_matches_official_key_list():
