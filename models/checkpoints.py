@@ -9,7 +9,8 @@ still names the model, the file and what is missing, unexpected or mis-shaped:
 - ``layout_problems`` / ``check_layout``: the strict name-and-shape comparison of a file against a model;
 - ``load_safetensors``, ``load_tensor_only``, ``read_state_dict``: tensors from ``.safetensors`` or a tensor-only
   torch file (``torch.load(weights_only=True)``: pickled code is refused, never loaded);
-- ``safetensors_files``: the files of a single or sharded diffusers-style safetensors checkpoint.
+- ``safetensors_files``: the files of a single or sharded diffusers-style safetensors checkpoint;
+- ``DINOV2_BLOCK_NAMES``: the official DINOv2 block names -> transformers' (VGGT's and MoGe-2's encoders).
 
 A leaf module (torch and safetensors only, both imported on use) so that no model package imports another, or
 ``models.runtime``, to share it.
@@ -23,6 +24,20 @@ from pathlib import Path
 from typing import Any
 
 LISTED = 10  # names shown before "... (+N more)"
+
+# A DINOv2 ViT block (facebookresearch/dinov2, the backbone of VGGT and MoGe-2) under its official parameter names
+# -> transformers' Dinov2 modules (the ones built here), in the official order. ``None``: the fused ``attn.qkv``,
+# which each loader splits into ``attention.{q,k,v}_proj``.
+DINOV2_BLOCK_NAMES: tuple[tuple[str, str | None], ...] = (
+    ("norm1.weight", "norm1.weight"), ("norm1.bias", "norm1.bias"),
+    ("attn.qkv.weight", None), ("attn.qkv.bias", None),
+    ("attn.proj.weight", "attention.o_proj.weight"), ("attn.proj.bias", "attention.o_proj.bias"),
+    ("ls1.gamma", "layer_scale1.lambda1"),
+    ("norm2.weight", "norm2.weight"), ("norm2.bias", "norm2.bias"),
+    ("mlp.fc1.weight", "mlp.fc1.weight"), ("mlp.fc1.bias", "mlp.fc1.bias"),
+    ("mlp.fc2.weight", "mlp.fc2.weight"), ("mlp.fc2.bias", "mlp.fc2.bias"),
+    ("ls2.gamma", "layer_scale2.lambda1"),
+)
 
 
 def listing(names: Iterable[str], limit: int = LISTED) -> str:

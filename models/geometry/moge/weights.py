@@ -19,16 +19,7 @@ from navcrafter.models.geometry.moge.config import (
 from navcrafter.models.geometry.moge.model import MoGe2
 
 _BACKBONE = "encoder.backbone."
-_BLOCK_MAP = (  # official block suffix -> ours (under encoder.layer.{i}.)
-    ("norm1.weight", "norm1.weight"), ("norm1.bias", "norm1.bias"),
-    ("attn.qkv.weight", None), ("attn.qkv.bias", None),
-    ("attn.proj.weight", "attention.o_proj.weight"), ("attn.proj.bias", "attention.o_proj.bias"),
-    ("ls1.gamma", "layer_scale1.lambda1"),
-    ("norm2.weight", "norm2.weight"), ("norm2.bias", "norm2.bias"),
-    ("mlp.fc1.weight", "mlp.fc1.weight"), ("mlp.fc1.bias", "mlp.fc1.bias"),
-    ("mlp.fc2.weight", "mlp.fc2.weight"), ("mlp.fc2.bias", "mlp.fc2.bias"),
-    ("ls2.gamma", "layer_scale2.lambda1"),
-)
+_BLOCK_MAP = checkpoints.DINOV2_BLOCK_NAMES  # official block suffix -> ours (under encoder.layer.{i}.)
 _TOP_MAP = (  # official backbone key -> ours (under encoder.backbone.)
     ("cls_token", "embeddings.cls_token"), ("pos_embed", "embeddings.position_embeddings"),
     ("mask_token", "embeddings.mask_token"),

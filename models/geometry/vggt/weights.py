@@ -37,15 +37,7 @@ _ENC_TOP = [
 
 
 # within block i: ours -> official (q/k/v handled separately)
-_ENC_BLOCK = [
-    ("norm1.weight", "norm1.weight"), ("norm1.bias", "norm1.bias"),
-    ("attention.o_proj.weight", "attn.proj.weight"), ("attention.o_proj.bias", "attn.proj.bias"),
-    ("layer_scale1.lambda1", "ls1.gamma"),
-    ("norm2.weight", "norm2.weight"), ("norm2.bias", "norm2.bias"),
-    ("mlp.fc1.weight", "mlp.fc1.weight"), ("mlp.fc1.bias", "mlp.fc1.bias"),
-    ("mlp.fc2.weight", "mlp.fc2.weight"), ("mlp.fc2.bias", "mlp.fc2.bias"),
-    ("layer_scale2.lambda1", "ls2.gamma"),
-]
+_ENC_BLOCK = [(ours, official) for official, ours in checkpoints.DINOV2_BLOCK_NAMES if ours is not None]
 
 
 def _encoder_depth(sd: dict, prefix: str, block_key: str) -> int:
