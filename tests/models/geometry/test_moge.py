@@ -38,9 +38,9 @@ def _model(seed: int = 0) -> MoGe2:
     return MoGe2(TINY).eval()
 
 
-def _outputs(model: MoGe2, image: torch.Tensor) -> dict[str, np.ndarray]:
+def _outputs(model: MoGe2, image: torch.Tensor, aspect: torch.Tensor | None = None) -> dict[str, np.ndarray]:
     with torch.no_grad():
-        return {k: v.numpy() for k, v in zip(model.output_names, model(image))}
+        return {k: v.numpy() for k, v in zip(model.output_names, model(image, aspect))}
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -56,16 +56,18 @@ def test_onnx_matches_torch_at_two_sizes(exported):
     manifest = onnxio.load_manifest(exported, "monodepth")
     runner = onnxio.GraphRunner(exported, manifest, ["CPUExecutionProvider"])
     generator = torch.Generator().manual_seed(1)
-    for shape in [(1, 3, 42, 70), (2, 3, 84, 56)]:  # token grids 3 x 5 and 6 x 4, batch 1 and 2
+    for shape, aspect in [((1, 3, 42, 70), [1.61]), ((2, 3, 84, 56), [0.7, 0.62])]:  # grids 3 x 5 and 6 x 4
         image = torch.rand(shape, generator=generator)
-        want = _outputs(model, image)
-        got = runner.run("monodepth", {"image": image.numpy()})
-        assert sorted(got) == sorted(want) == sorted(["points", "normal", "mask", "metric_scale"])
+        aspect = torch.tensor(aspect)
+        want = _outputs(model, image, aspect)
+        got = runner.run("monodepth", {"image": image.numpy(), "aspect_ratio": aspect.numpy()})
+        assert sorted(got) == sorted(want) == sorted(["points_raw", "normal_raw", "mask_logits", "metric_scale"])
         for name, value in want.items():
             assert got[name].shape == value.shape, name
             assert np.abs(got[name] - value).max() <= 1e-4, (shape, name)
-        assert want["points"].shape == (shape[0], shape[2], shape[3], 3)
-        assert want["mask"].shape == (shape[0], shape[2], shape[3]) and want["metric_scale"].shape == (shape[0],)
+        rows, cols = shape[2] // 14 * 16, shape[3] // 14 * 16  # the heads' resolution: 16 x the token grid
+        assert want["points_raw"].shape == (shape[0], rows, cols, 3)
+        assert want["mask_logits"].shape == (shape[0], rows, cols) and want["metric_scale"].shape == (shape[0],)
 
 
 def test_manifest_round_trip_and_corruption(exported, tmp_path):
@@ -74,7 +76,9 @@ def test_manifest_round_trip_and_corruption(exported, tmp_path):
     assert MoGe2Config.from_dict(manifest["config"]) == TINY
     assert manifest["weights"] == {"source": "random", "seed": 0}
     graph = manifest["graphs"]["monodepth"]
-    assert graph["inputs"] == ["image"] and graph["outputs"] == ["points", "normal", "mask", "metric_scale"]
+    assert graph["inputs"] == ["image", "aspect_ratio"]
+    assert graph["outputs"] == ["points_raw", "normal_raw", "mask_logits", "metric_scale"]
+    assert graph["dynamic"]["aspect_ratio"][0]
     assert graph["dynamic"]["image"][1] == "" and all(graph["dynamic"]["image"][i] for i in (0, 2, 3))
 
     broken = tmp_path / "monodepth"
@@ -139,8 +143,8 @@ def test_wrong_checkpoint_is_named(tmp_path):
         load_moge2_weights(_model(0), path)
     message = str(err.value)
     assert "bad.safetensors" in message
-    assert "neck.input_blocks.1.weight (3, 2, 1, 1) (expected (16, 2, 1, 1))" in message
-    assert "missing 1: scale_head.0.bias" in message and "unexpected 1: head.extra" in message
+    assert "shape mismatch [neck.input_blocks.1.weight: file [3, 2, 1, 1] vs model [16, 2, 1, 1]]" in message
+    assert "missing keys [scale_head.0.bias]" in message and "unexpected keys [head.extra]" in message
 
 
 def test_full_size_layout_matches_official_key_list():
@@ -195,5 +199,43 @@ def test_postprocess_recovers_shift_scale_and_masks():
     assert np.allclose(result.inv_depth[result.valid], 1 / (z * scale)[result.valid], rtol=1e-3)
     fx = focal / 2 * math.hypot(width, height) / width
     assert abs(result.intrinsics[0, 0] - fx) < 1e-3 * fx
-    up = postprocess(points, mask, scale, size=(80, 120))
-    assert up.depth.shape == (80, 120) and up.valid.shape == (80, 120) and not up.valid[:8].any()
+    with pytest.raises(ValueError, match="head_maps_to_size"):  # maps are never resized after the remaps
+        postprocess(points, mask, scale, size=(80, 120))
+
+
+def test_uv_channels_use_the_original_aspect_ratio():
+    """The official ``normalized_view_plane_uv(w, h, aspect_ratio)`` (pixel centres of a linspace spanning
+    +-aspect / sqrt(1 + aspect^2) * (w - 1) / w, and +-1 / sqrt(1 + aspect^2) * (h - 1) / h), at every level."""
+    from navcrafter.models.geometry.moge import _view_plane_uv
+
+    like = torch.zeros(())
+    for h, w, aspect in [(3, 5, 1.61), (6, 4, 0.7), (3, 5, None)]:
+        a = w / h if aspect is None else aspect
+        pyramid = _view_plane_uv(h, w, 5, like, None if aspect is None else torch.tensor([aspect]))
+        for level, uv in enumerate(pyramid):
+            hl, wl = h * 2**level, w * 2**level
+            sx, sy = a / math.sqrt(1 + a * a), 1 / math.sqrt(1 + a * a)
+            u = torch.linspace(-sx * (wl - 1) / wl, sx * (wl - 1) / wl, wl)
+            v = torch.linspace(-sy * (hl - 1) / hl, sy * (hl - 1) / hl, hl)
+            want = torch.stack(torch.meshgrid(u, v, indexing="xy"))[None]
+            assert uv.shape == (1, 2, hl, wl) and torch.allclose(uv, want, atol=1e-6), (h, w, aspect, level)
+    model = _model(0)
+    image = torch.rand(1, 3, 42, 70, generator=torch.Generator().manual_seed(5))
+    grid, original = _outputs(model, image), _outputs(model, image, torch.tensor([1.61]))
+    assert np.abs(grid["points_raw"] - original["points_raw"]).max() > 1e-4  # the aspect reaches the heads
+
+
+def test_head_maps_are_resized_once_then_remapped():
+    from navcrafter.models.geometry.moge import head_maps_to_size
+
+    rng = np.random.default_rng(4)
+    raw, logits, normal = (rng.normal(size=s).astype(np.float32) for s in [(48, 80, 3), (48, 80), (48, 80, 3)])
+    points, mask, unit = head_maps_to_size(raw, logits, normal, size=(45, 61), remap_output="exp")
+    want = F.interpolate(torch.from_numpy(np.concatenate([raw, logits[..., None], normal], -1)).permute(2, 0, 1)[None],
+                         (45, 61), mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+    z = want[..., 2:3].exp()
+    remapped = torch.cat([want[..., :2] * z, z], -1).numpy()
+    assert np.abs(points - remapped).max() < 1e-6 * np.abs(remapped).max()
+    assert np.abs(mask - want[..., 3].sigmoid().numpy()).max() < 1e-6
+    assert np.abs(unit - F.normalize(want[..., 4:], dim=-1).numpy()).max() < 1e-6
+    assert points.dtype == mask.dtype == unit.dtype == np.float32 and mask.shape == (45, 61)

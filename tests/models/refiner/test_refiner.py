@@ -185,8 +185,8 @@ def test_wrong_checkpoints_are_named(tmp_path):
     with pytest.raises(DifixWeightsError) as err:
         load_difix_weights(_model(0), tmp_path / "bad")
     msg = str(err.value)
-    assert str(tmp_path / "bad") in msg and "vae: missing 1: decoder.skip_conv_2.lora_B.vae_skip.weight" in msg
-    assert "wrong shape 1: decoder.conv_out.base_layer.weight (3, 8, 1, 1)" in msg and "DifixConfig" in msg
+    assert str(tmp_path / "bad") in msg and "vae: missing keys [decoder.skip_conv_2.lora_B.vae_skip.weight]" in msg
+    assert "shape mismatch [decoder.conv_out.base_layer.weight: file [3, 8, 1, 1]" in msg and "DifixConfig" in msg
     with pytest.raises(DifixWeightsError, match="not a Difix diffusers directory"):
         load_difix_weights(model, tmp_path)
     with pytest.raises(DifixWeightsError, match="single .safetensors file is not a Difix layout"):

@@ -339,3 +339,27 @@ def test_onnx_matches_torch(exported, shape, refs):
     want = _out(model, inp).numpy()
     assert got.shape == want.shape == (shape[0], 16, *shape[1:])
     assert np.abs(got - want).max() <= 1e-4
+
+
+def test_the_wan_base_loads_from_safetensors_and_refuses_a_wrong_layout(tmp_path):
+    """``load_wan_transformer`` without accelerate (diffusers then refuses Wan): config + safetensors, names checked."""
+    from diffusers.models.transformers.transformer_wan import WanTransformer3DModel
+    from diffusers.utils import is_accelerate_available
+    from safetensors.torch import save_file
+
+    if is_accelerate_available():
+        pytest.skip("with accelerate installed diffusers' own from_pretrained loads the base")
+    base = cc.build_camera_wan(cc.TINY_I2V_CONFIG, cc.tiny_camera_config(), seed=3).base
+    base.save_config(tmp_path)
+    state = {k: v.contiguous() for k, v in base.state_dict().items()}
+    save_file(state, str(tmp_path / "diffusion_pytorch_model.safetensors"))
+    loaded = cc.load_wan_transformer(tmp_path)
+    assert isinstance(loaded, WanTransformer3DModel)
+    assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in state.items())
+    del state["blocks.0.ffn.net.0.proj.weight"]
+    state["extra.weight"] = torch.zeros(1)
+    save_file(state, str(tmp_path / "diffusion_pytorch_model.safetensors"))
+    with pytest.raises(cc.CameraControlWeightsError, match=r"Wan weights do not fit its config\.json: missing keys "
+                                                           r"\[blocks\.0\.ffn\.net\.0\.proj\.weight\]; unexpected keys "
+                                                           r"\[extra\.weight\]"):
+        cc.load_wan_transformer(tmp_path)

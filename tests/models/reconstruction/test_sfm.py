@@ -1,4 +1,5 @@
-"""Camera-guidance precision: CameraCtrl-style pose errors and COLMAP pose recovery on simulated video."""
+"""COLMAP pose recovery (models/reconstruction/sfm.py) on simulated video: the retry ladder, the rotation-only model,
+unknown intrinsics, and the errors of the recovered path (models/metrics/pose.py) against the rendered one."""
 
 from __future__ import annotations
 
@@ -9,90 +10,14 @@ import numpy as np
 import pytest
 
 from navcrafter.models.camera.cameras import Intrinsics, axis_angle_to_matrix, look_at, make_pose
-from navcrafter.models.metrics import pose as pose_module
-from navcrafter.models.metrics.pose import Attempt, camera_guidance_precision, pose_errors, recover_poses
+from navcrafter.models.metrics.pose import camera_guidance_precision, pose_errors
+from navcrafter.models.reconstruction import sfm
+from navcrafter.models.reconstruction.sfm import Attempt, recover_poses
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import UP, generate_scene
 
 N_FRAMES, SIZE, HALF_SWEEP = 14, 256, 0.4  # 14 frames, 256x256, an 0.8 m sideways move
 THREADS = 2
-
-
-def random_trajectory(n: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    out = []
-    for i in range(n):
-        R = axis_angle_to_matrix(rng.normal(size=3), rng.uniform(0, np.pi))
-        out.append(make_pose(R, rng.normal(size=3) * (1 + i)))
-    return np.array(out)
-
-
-def similarity(c2w: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> np.ndarray:
-    """The same cameras in a world moved by ``X -> s R X + t`` (rotations change by R, centres fully)."""
-    out = c2w.copy()
-    out[:, :3, :3] = R @ c2w[:, :3, :3]
-    out[:, :3, 3] = s * c2w[:, :3, 3] @ R.T + t
-    return out
-
-
-# --------------------------------------------------------------------------------------------------
-# pose_errors
-# --------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("scale", ["lstsq", "farthest"])
-def test_identical_trajectories_have_zero_error(scale):
-    gt = random_trajectory(10)
-    e = pose_errors(gt, gt.copy(), scale=scale)
-    assert e["n_registered"] == e["n_frames"] == 10 and e["ref_index"] == 0
-    for key in ("R_err_deg_sum", "R_err_deg_mean", "R_err_rad_sum", "T_err_sum", "T_err_mean"):
-        assert e[key] == pytest.approx(0.0, abs=1e-6)
-
-
-@pytest.mark.parametrize("scale", ["lstsq", "farthest"])
-def test_errors_are_invariant_to_a_similarity_of_the_estimate(scale):
-    gt = random_trajectory(12, seed=1)
-    R = axis_angle_to_matrix(np.array([0.3, -1.0, 0.5]), 2.1)
-    est = similarity(gt, R, np.array([5.0, -3.0, 10.0]), 0.037)  # COLMAP's arbitrary frame and scale
-    e = pose_errors(est, gt, scale=scale)
-    assert e["R_err_deg_sum"] == pytest.approx(0.0, abs=1e-5)
-    assert e["T_err_sum"] == pytest.approx(0.0, abs=1e-6)
-    if scale == "lstsq":
-        assert e["scale"] == pytest.approx(1 / 0.037)
-    # unregistered frames (including the first) are excluded; the first registered frame is the reference
-    registered = np.ones(12, dtype=bool)
-    registered[[0, 5]] = False
-    est[5] = np.nan
-    e = pose_errors(est, gt, registered, scale=scale)
-    assert e["n_registered"] == 10 and e["n_frames"] == 12 and e["ref_index"] == 1
-    assert np.isnan(e["R_err_deg"][0]) and np.isnan(e["T_err"][5])
-    assert e["R_err_deg_sum"] == pytest.approx(0.0, abs=1e-5) and e["T_err_sum"] == pytest.approx(0.0, abs=1e-6)
-
-
-def test_known_rotation_offset_on_one_frame():
-    gt = random_trajectory(8, seed=2)
-    est = gt.copy()
-    est[3] = est[3] @ make_pose(axis_angle_to_matrix(np.array([1.0, 2.0, -0.5]), np.deg2rad(10.0)), np.zeros(3))
-    e = pose_errors(est, gt)
-    assert e["R_err_deg"][3] == pytest.approx(10.0, abs=1e-6)
-    assert e["R_err_deg_sum"] == pytest.approx(10.0, abs=1e-6)
-    assert e["R_err_deg_mean"] == pytest.approx(10.0 / 7, abs=1e-6)  # over the 7 non-reference frames
-    assert e["R_err_rad_sum"] == pytest.approx(np.deg2rad(10.0), abs=1e-8)
-    assert e["T_err_sum"] == pytest.approx(0.0, abs=1e-6)  # rotating a camera about its centre moves nothing
-
-
-def test_too_few_registered_frames_give_nan_and_a_reason():
-    gt = random_trajectory(4)
-    e = pose_errors(gt, gt, np.array([False, True, False, False]))
-    assert e["n_registered"] == 1 and np.isnan(e["R_err_deg_sum"]) and np.isnan(e["T_err_mean"])
-    assert "at least 2" in e["reason"]
-
-
-def test_recovery_failure_is_a_result(tmp_path):
-    rng = np.random.default_rng(0)
-    noise = [rng.integers(0, 255, (96, 96, 3), dtype=np.uint8) for _ in range(5)]
-    out = camera_guidance_precision(noise, random_trajectory(5), Intrinsics.from_fov(60, 96, 96).K, tmp_path,
-                                    num_threads=THREADS)
-    assert out["n_registered"] == 0 and out["recovery"]["n_registered"] == 0
-    assert "no reconstruction" in out["reason"] and np.isnan(out["R_err_deg_sum"])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -184,13 +109,6 @@ def test_unknown_intrinsics_are_estimated(sim_clip, tmp_path):
 # --------------------------------------------------------------------------------------------------
 # the retry ladder, the pure-rotation model, the intrinsics of the dataset clips
 # --------------------------------------------------------------------------------------------------
-def test_rad_mean_is_the_deg_mean_in_radians():
-    gt = random_trajectory(6, seed=3)
-    est = gt.copy()
-    est[2] = est[2] @ make_pose(axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.deg2rad(6.0)), np.zeros(3))
-    e = pose_errors(est, gt)
-    assert e["R_err_rad_mean"] == pytest.approx(np.deg2rad(e["R_err_deg_mean"]))
-    assert e["R_err_rad_mean"] == pytest.approx(np.deg2rad(6.0) / 5)
 
 
 @pytest.mark.slow
@@ -238,7 +156,7 @@ def test_a_pure_rotation_is_recovered_by_the_rotation_model(pan_clip, tmp_path, 
                           rotation_fallback=False)
     # the global mapper registers a pan (at 0.3-0.7 px): with the "good" threshold raised the ladder stops after
     # the stock rung (MIN_RUNGS) and the rotation fallback follows a ladder that did not run to its end
-    monkeypatch.setattr(pose_module, "GOOD_REPROJECTION_PX", 10.0)
+    monkeypatch.setattr(sfm, "GOOD_REPROJECTION_PX", 10.0)
     rec = recover_poses(frames, K.K, tmp_path / "robust", num_threads=THREADS,
                         attempts=(Attempt("global", global_sfm=True), Attempt("stock"), Attempt("never")))
     print(f"pan: stock {stock.n_registered}/15 ({stock.reason}); with the rotation model {rec.n_registered}/15, "
@@ -258,7 +176,7 @@ def test_the_rotation_model_is_rejected_when_the_camera_moves(sim_clip, tmp_path
     frames, _, K = sim_clip
     recover_poses(frames, K.K, tmp_path, num_threads=THREADS, attempts="stock", rotation_fallback=False)
     names = [f"frame_{i:05d}.png" for i in range(len(frames))]
-    rot = pose_module._rotation_only(tmp_path / "database.db", names, K.K, len(frames))
+    rot = sfm._rotation_only(tmp_path / "database.db", names, K.K, len(frames))
     assert rot.n_registered == 0 and rot.reason.startswith("rejected"), rot.reason
 
 
@@ -299,10 +217,10 @@ def test_the_rotation_model_never_replaces_a_whole_incremental_reconstruction(si
 
     def accepted(database, names, K, n, upscale=1):
         c2w = np.repeat(np.eye(4)[None], n, axis=0)
-        return pose_module.PoseRecovery(c2w, np.ones(n, dtype=bool), n, n, mean_reprojection_error=0.1,
+        return sfm.PoseRecovery(c2w, np.ones(n, dtype=bool), n, n, mean_reprojection_error=0.1,
                                         attempt="rotation-only", model="rotation")
 
-    monkeypatch.setattr(pose_module, "_rotation_only", accepted)
+    monkeypatch.setattr(sfm, "_rotation_only", accepted)
     rec = recover_poses(frames, K.K, tmp_path / "a", num_threads=THREADS, attempts=(Attempt("stock"),))
     assert rec.model == "sfm" and rec.attempt == "stock" and rec.n_registered == n
     assert rec.attempts[-1]["name"] == "rotation-only" and rec.attempts[-1]["reason"].startswith("not used")
@@ -319,16 +237,16 @@ def test_the_rotation_fallback_follows_a_ladder_that_stopped_early(sim_clip, tmp
 
     def recover(folder, names, K_, home, database, fresh, att, matcher, *args):
         if not att.global_sfm:
-            return pose_module._failed(n, "stubbed: no reconstruction", attempt=att.name, model="sfm")
-        return pose_module.PoseRecovery(np.repeat(np.eye(4)[None], n, axis=0), np.ones(n, dtype=bool), n, n,
+            return sfm._failed(n, "stubbed: no reconstruction", attempt=att.name, model="sfm")
+        return sfm.PoseRecovery(np.repeat(np.eye(4)[None], n, axis=0), np.ones(n, dtype=bool), n, n,
                                         mean_reprojection_error=0.1, attempt=att.name, model="sfm", matcher=matcher)
 
     def rotation(database, names, K_, n_, upscale=1):
-        return pose_module.PoseRecovery(np.repeat(np.eye(4)[None], n_, axis=0), np.ones(n_, dtype=bool), n_, n_,
+        return sfm.PoseRecovery(np.repeat(np.eye(4)[None], n_, axis=0), np.ones(n_, dtype=bool), n_, n_,
                                         mean_reprojection_error=0.2, attempt="rotation-only", model="rotation")
 
-    monkeypatch.setattr(pose_module, "_recover", recover)
-    monkeypatch.setattr(pose_module, "_rotation_only", rotation)
+    monkeypatch.setattr(sfm, "_recover", recover)
+    monkeypatch.setattr(sfm, "_rotation_only", rotation)
     rec = recover_poses(frames, K.K, tmp_path, num_threads=THREADS,
                         attempts=(Attempt("global", global_sfm=True), Attempt("stock"), Attempt("never")))
     assert [a["name"] for a in rec.attempts] == ["global", "stock", "rotation-only"]
