@@ -784,10 +784,17 @@ PREFLIGHT_MODULES: dict[str, tuple[str, bool]] = {
     "onnx": ("the opt-in *-onnx items", False),
     "onnxscript": ("the opt-in *-onnx items (dynamo export)", False),
     "navcrafter.models.runtime.onnxio": ("the opt-in *-onnx items", False),
+    "gsplat": ("gsplat (its package only: importing it builds nothing)", False),
+}
+# the sibling benchmark scripts the items run (benchmarks/ is not a package)
+PREFLIGHT_BENCH: dict[str, tuple[str, bool]] = {
+    "synthesis": ("dit, the *-onnx items", True), "gsplat_fit": ("gsplat", True),
+    "camera_training_gpu": ("training", True),
 }
 
 
-def _tool(cmd: list[str]) -> str | None:
+def _tool(cmd: list[str], line: int = -1) -> str | None:
+    """``EXE: a line of its output`` (the last by default), or None when it is not on the PATH."""
     import shutil
 
     exe = shutil.which(cmd[0])
@@ -796,7 +803,7 @@ def _tool(cmd: list[str]) -> str | None:
     try:
         p = subprocess.run([exe, *cmd[1:]], capture_output=True, text=True, timeout=30)
         lines = (p.stdout or p.stderr).strip().splitlines()
-        return f"{exe}: {lines[-1] if lines else ''}".strip()
+        return f"{exe}: {lines[line] if lines else ''}".strip()
     except (OSError, subprocess.SubprocessError) as exc:
         return f"{exe}: {type(exc).__name__}: {exc}"
 
@@ -834,6 +841,13 @@ def preflight(device: str = "cuda") -> dict:
             add(f"import {mod}", True, detail, required)
         except Exception as exc:
             add(f"import {mod}", False, f"{item_error(exc).get('reason') or exc} (needed by: {needed_by})", required)
+    for mod, (needed_by, required) in PREFLIGHT_BENCH.items():
+        try:
+            _bench_import(mod)
+            add(f"import benchmarks/{mod}.py", True, "", required)
+        except Exception as exc:
+            add(f"import benchmarks/{mod}.py", False, f"{item_error(exc).get('reason') or exc} (needed by: "
+                f"{needed_by})", required)
     try:
         import onnxruntime
 
@@ -854,7 +868,7 @@ def preflight(device: str = "cuda") -> dict:
     nvcc = _tool([str(Path(home) / "bin" / "nvcc") if home else "nvcc", "--version"])
     add("nvcc", nvcc is not None, f"{nvcc} (CUDA_HOME {home})" if nvcc else "no CUDA compiler: gsplat cannot be "
         "built", False)
-    cxx = _tool(["c++", "--version"]) or _tool(["g++", "--version"])
+    cxx = _tool(["c++", "--version"], 0) or _tool(["g++", "--version"], 0)
     add("c++ compiler", cxx is not None, (cxx or "none on the PATH").splitlines()[0], False)
     ninja = _tool(["ninja", "--version"])
     add("ninja", ninja is not None, ninja or "not on the PATH (torch's JIT builds need it)", False)

@@ -177,3 +177,48 @@ def test_preflight_and_gsplat_build_without_cuda(gpu_check, tmp_path):
     assert json.loads((tmp_path / "preflight.json").read_text())["ok"] is False
     res = gpu_check.build_gsplat()
     assert res["status"] in ("skipped", "error") and not res["built"]
+
+
+def test_gsplat_build_keeps_what_a_killed_build_left(gpu_check, tmp_path, monkeypatch):
+    """gsplat deletes its build folder before a fresh build (so a build killed at a cap starts over); the build
+    step skips that one deletion, so ninja resumes from the objects. Played with a stand-in gsplat whose
+    ``cuda._backend`` import does what gsplat 1.5.3's does: rmtree(build folder), then build gsplat_cuda.so."""
+    import shutil
+
+    import torch
+
+    pkg = tmp_path / "fake" / "gsplat"
+    (pkg / "cuda").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "cuda" / "__init__.py").write_text("")
+    (pkg / "cuda" / "_backend.py").write_text(
+        "import os, shutil\n"
+        "from torch.utils.cpp_extension import _get_build_directory\n"
+        "build = _get_build_directory('gsplat_cuda', verbose=False)\n"
+        "shutil.rmtree(build)\n"
+        "os.makedirs(build, exist_ok=True)\n"
+        "open(os.path.join(build, 'gsplat_cuda.so'), 'w').write('built')\n"
+        "_C = object()\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "fake"))
+    for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    monkeypatch.delenv("TORCH_CUDA_ARCH_LIST", raising=False)
+    monkeypatch.delenv("MAX_JOBS", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda *a: (9, 0))
+    left = tmp_path / "ext" / "gsplat_cuda" / "a_killed_build.o"
+    left.parent.mkdir(parents=True)
+    left.write_text("object")
+    st = gpu_check.gsplat_state()
+    assert st["installed"] and not st["built"] and "--build-gsplat" in st["reason"]
+    rmtree = shutil.rmtree
+    try:
+        res = gpu_check.build_gsplat()
+    finally:
+        for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+            del sys.modules[name]
+    assert res["status"] == "ok" and res["built"] and res["arch"] == "9.0"
+    assert left.read_text() == "object"  # the killed build's objects survived
+    assert shutil.rmtree is rmtree
+    assert gpu_check.build_gsplat()["note"] == "already built"
