@@ -1,24 +1,30 @@
 """The prepared GPU check: every CUDA measurement the project still owes, as one command on one GPU in < 8 minutes.
 
-    python benchmarks/gpu_check.py --out bench-out/gpu-check            # ~7 min at most (per-item time caps)
+On a bare, air-gapped CUDA node (the project's folder copied there, not installed) run it through
+``deploy/gpu/run_check.sh`` (deploy/gpu/README.md): it brings the missing wheels, makes ``navcrafter`` importable,
+builds gsplat in a capped step of its own and runs this under a deadline. Directly, where navcrafter is installed:
+
+    python benchmarks/gpu_check.py --out bench-out/gpu-check            # ~6.5 min at most (per-item time caps)
     python benchmarks/gpu_check.py --out bench-out/gpu-check --quick    # ~5 min at most, smaller sizes
+    python benchmarks/gpu_check.py --preflight [--out DIR]              # what the node has; exit 3 with the reasons
+    python benchmarks/gpu_check.py --build-gsplat [--out DIR]           # gsplat's JIT build (resumable), run capped
+    python benchmarks/gpu_check.py --out bench-out/gpu-check --items dit,dit-onnx   # + the opt-in ONNX export
     python benchmarks/gpu_check.py --out bench-out/gpu-check --prepare-scene-models   # once, any machine
     python benchmarks/gpu_check.py --out bench-out/gpu-check --with-explore           # + the whole flow
 
 Random weights everywhere (timing, memory and precision only; no quality). Items, each in its own subprocess with
-its own time cap (a failure, a crash or a timeout of one is recorded and the next one runs):
+its own time cap (a failure, a crash, a failed import or a timeout of one is recorded and the next one runs);
+``results.json`` / ``results.md`` are rewritten after every item, so a crash or a kill keeps what was measured:
 
 * ``gsplat``: ``benchmarks/gsplat_fit.py``'s ``run`` (its quick size): iterations/s of the gsplat-backed fit,
-  first-call kernel build, parity of our renderer vs gsplat; skipped with its reason without gsplat.
+  first-call time, parity of our renderer vs gsplat. gsplat JIT-builds its CUDA kernels on first use (minutes):
+  that build is never inside this item's cap (``--build-gsplat``, which run_check.sh caps); unbuilt, the item is
+  ``not built`` with the reason; skipped with its reason without CUDA.
 * ``dit``: one denoising step (CFG pair) of the camera-controlled Wan DiT at Wan2.1-1.3B width, 81 frames at
-  256² (``benchmarks/synthesis.py``'s ``build``/``make_inputs``): torch bf16 vs onnxruntime CUDA EP on the
-  product's fp16 graph of the same module (fp32 ``onnxio.export_graph``, then ``onnxio.convert_graph_fp16`` as
-  ``navcrafter models convert-fp16`` does: fp32 normalisations and IO), step times, peak memory
-  (``torch.cuda.max_memory_allocated``;
-  onnxruntime: NVML process memory, which includes the process's CUDA context), and the fp16-ORT vs bf16-torch
-  output difference. Without onnxruntime's CUDA execution provider (``onnxruntime-gpu``) only torch is timed.
+  256² (``benchmarks/synthesis.py``'s ``build``/``make_inputs``), torch bf16: step time and peak memory
+  (``torch.cuda.max_memory_allocated``).
 * ``fun-camera``: the Fun-Camera DiT (``navcrafter.models.synthesis.funcamera``, 1.3B config, same latent grid)
-  the same way, when that module imports with what this needs; otherwise a ``not built`` entry naming why.
+  the same way; ``not built`` only if that module is absent from the tree, a failed import otherwise.
 * ``vggt``: VGGT-1B (``models/geometry/vggt.py``, full config) on 25 frames at 518², bf16 autocast.
 * ``moge``: MoGe-2 ViT-L (normal) at 518² (1,369 tokens), bf16 autocast.
 * ``difix``: the Difix refiner (SD-Turbo size, reference mixing) at 512², fp16.
@@ -33,11 +39,18 @@ its own time cap (a failure, a crash or a timeout of one is recorded and the nex
   takes long even though they are tiny (the Wan VAE graphs unroll 81 frames; ``export-all --preset paper``: 19 min
   wall, 9 min CPU on a shared 2-core machine, 2026-12-02), so it is a separate step that also runs on a CPU machine
   and resumes role by role: ``--prepare-scene-models`` (into ``--scene-models DIR``, default
-  ``OUT/work/scene-models``). That explore path was checked once on the CPU (2 shared cores, onnxruntime CPU, fit on
+  ``WORK/scene-models``). That explore path was checked once on the CPU (2 shared cores, onnxruntime CPU, fit on
   the CPU): the room demo scene finished in 4.3 min (plumbing only, not a GPU number).
+* opt-in ``dit-onnx`` / ``fun-camera-onnx`` (named in ``--items``; own caps): the same modules exported to ONNX
+  (fp32 ``onnxio.export_graph``, then ``onnxio.convert_graph_fp16`` as ``navcrafter models convert-fp16`` does:
+  fp32 normalisations and IO), export and conversion timed; then, where onnxruntime has the CUDA execution provider
+  (``onnxruntime-gpu``), the fp16 graph timed against bf16 torch (NVML process memory, output difference). The CUDA
+  image's onnxruntime is a CPU build and onnxruntime-gpu (~256 MB) cannot travel: there ORT is reported skipped.
 
-Writes ``results.json`` (every item's status, numbers, errors) and ``results.md``. Refuses without CUDA (exit code
-2). ``--device cpu --dry-run`` runs the plumbing with tiny configs on the CPU for the tests: its numbers are NOT
+``--deadline EPOCH`` cuts every cap to the time left and marks items past it ``not run``; ``--keep`` merges a
+rerun of some items into an earlier results.json; ``--work DIR`` keeps scratch (partials, ONNX files) out of
+``--out``. results.md ends with what did not run on the node, and why. Refuses without CUDA (exit code 2).
+``--device cpu --dry-run`` runs the plumbing with tiny configs on the CPU for the tests: its numbers are NOT
 measurements and every output says so.
 """
 

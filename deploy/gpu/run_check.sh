@@ -24,8 +24,14 @@ mkdir -p "$OUTDIR" "$CACHE"
 exec > >(tee -a "$OUTDIR/run_check.log") 2>&1
 say() { echo "run_check [$(($(date +%s) - start)) s]: $*"; }
 die() { say "$*"; exit "${2:-1}"; }
-DRY=0
-case " $* " in *" --dry-run "*) DRY=1 ;; esac
+DRY=0 items=gsplat prev=
+for a in "$@"; do  # no gsplat build for the CPU dry run, nor for an --items list without gsplat
+  [ "$a" = --dry-run ] && DRY=1
+  [ "$prev" = --items ] && items=$a
+  case "$a" in --items=*) items=${a#--items=} ;; esac
+  prev=$a
+done
+case ",$items," in *,gsplat,*) GSPLAT=1 ;; *) GSPLAT=0 ;; esac
 PYBIN=$(dirname "$(command -v "$PY" || echo "$PY")")
 export PATH="$PYBIN:$PATH"  # the image's ninja (and cmake) live beside its python3
 
@@ -64,7 +70,7 @@ cd "$ROOT" || exit 1
 "$PY" benchmarks/gpu_check.py --preflight --out "$OUTDIR" "$@" || die "preflight failed (above; $OUTDIR/preflight.json)" 3
 
 # 5. gsplat's kernels, in a capped step of their own (a cut build resumes on the next run on this machine)
-if [ "$DRY" = 0 ] && [ "${SKIP_GSPLAT_BUILD:-0}" != 1 ]; then
+if [ "$DRY" = 0 ] && [ "$GSPLAT" = 1 ] && [ "${SKIP_GSPLAT_BUILD:-0}" != 1 ]; then
   arch=$(nvidia-smi --query-gpu=compute_cap --format=csv,noheader 2>/dev/null | head -1 | tr -d ' ')
   [ -n "$arch" ] || arch=$("$PY" -c 'import torch; print("%d.%d" % torch.cuda.get_device_capability(0))')
   cap=${GSPLAT_BUILD_CAP:-300}
