@@ -201,6 +201,18 @@ def gsplat_state() -> dict:
     return state
 
 
+def gsplat_build_env() -> None:
+    """``TORCH_CUDA_ARCH_LIST`` = this device's compute capability (e.g. ``9.0``) unless set, and ``MAX_JOBS`` = the CPU
+    count. The build step and the gsplat item must agree: torch's JIT writes the architecture flags into the ninja
+    file, and without the variable it picks ``9.0+PTX`` for the visible card, a different command line, so ninja
+    would rebuild every kernel inside the item's cap."""
+    import torch
+
+    major, minor = torch.cuda.get_device_capability(0)
+    os.environ.setdefault("TORCH_CUDA_ARCH_LIST", f"{major}.{minor}")
+    os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 1))
+
+
 def build_gsplat() -> dict:
     """gsplat's own JIT build (``import gsplat.cuda._backend``, its flags and sources), for this device's compute
     capability only, with ``MAX_JOBS`` = the CPU count; resumable: gsplat deletes its build folder before a fresh
@@ -217,9 +229,7 @@ def build_gsplat() -> dict:
         return state | {"status": "error"}
     if not torch.cuda.is_available():
         return state | {"status": "skipped", "reason": "no CUDA device: gsplat's kernels are built for the device"}
-    major, minor = torch.cuda.get_device_capability(0)
-    os.environ.setdefault("TORCH_CUDA_ARCH_LIST", f"{major}.{minor}")
-    os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 1))
+    gsplat_build_env()
     build, rmtree = Path(state["build_dir"]).resolve(), shutil.rmtree
 
     def keep_objects(path, *args, **kwargs):
@@ -248,6 +258,7 @@ def item_gsplat(ctx: dict) -> dict:
     why = g.refuse_without_cuda()
     if why:
         return {"status": "skipped", "reason": why}
+    gsplat_build_env()  # the build step's flags: loading the built kernels then compiles nothing
     ns = argparse.Namespace(quick=True, gaussians=100_000 if not ctx["quick"] else 50_000, size=128, views=8,
                             iterations=100 if not ctx["quick"] else 60, torch_iterations=3, densify=False)
     r = g.run(ns)

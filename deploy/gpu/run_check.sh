@@ -70,16 +70,18 @@ cd "$ROOT" || exit 1
 "$PY" benchmarks/gpu_check.py --preflight --out "$OUTDIR" "$@" || die "preflight failed (above; $OUTDIR/preflight.json)" 3
 
 # 5. gsplat's kernels, in a capped step of their own (a cut build resumes on the next run on this machine)
-if [ "$DRY" = 0 ] && [ "$GSPLAT" = 1 ] && [ "${SKIP_GSPLAT_BUILD:-0}" != 1 ]; then
-  arch=$(nvidia-smi --query-gpu=compute_cap --format=csv,noheader 2>/dev/null | head -1 | tr -d ' ')
+if [ "$DRY" = 0 ]; then  # the same flags for the build and the gsplat item (else ninja rebuilds in the item)
+  arch=${TORCH_CUDA_ARCH_LIST:-$(nvidia-smi --query-gpu=compute_cap --format=csv,noheader 2>/dev/null | head -1 | tr -d ' ')}
   [ -n "$arch" ] || arch=$("$PY" -c 'import torch; print("%d.%d" % torch.cuda.get_device_capability(0))')
+  export TORCH_CUDA_ARCH_LIST=$arch MAX_JOBS=${MAX_JOBS:-$(nproc)}
+fi
+if [ "$DRY" = 0 ] && [ "$GSPLAT" = 1 ] && [ "${SKIP_GSPLAT_BUILD:-0}" != 1 ]; then
   cap=${GSPLAT_BUILD_CAP:-300}
   left=$((DEADLINE - $(date +%s) - 180))  # keep 3 min for the items
   [ "$left" -lt "$cap" ] && cap=$left
   if [ "$cap" -gt 30 ]; then
-    say "building gsplat (TORCH_CUDA_ARCH_LIST=$arch MAX_JOBS=$(nproc), cap $cap s) ..."
-    TORCH_CUDA_ARCH_LIST=$arch MAX_JOBS=$(nproc) timeout -k 10 "$cap" "$PY" benchmarks/gpu_check.py --build-gsplat \
-      --out "$OUTDIR" >"$OUTDIR/gsplat-build.log" 2>&1
+    say "building gsplat (TORCH_CUDA_ARCH_LIST=$arch MAX_JOBS=$MAX_JOBS, cap $cap s) ..."
+    timeout -k 10 "$cap" "$PY" benchmarks/gpu_check.py --build-gsplat --out "$OUTDIR" >"$OUTDIR/gsplat-build.log" 2>&1
     rc=$?
     [ "$rc" = 124 ] && say "gsplat build cut at its cap ($cap s): run this again on the same machine to resume it"
     say "gsplat build exit $rc (log: gsplat-build.log)"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -222,3 +223,26 @@ def test_gsplat_build_keeps_what_a_killed_build_left(gpu_check, tmp_path, monkey
     assert left.read_text() == "object"  # the killed build's objects survived
     assert shutil.rmtree is rmtree
     assert gpu_check.build_gsplat()["note"] == "already built"
+
+
+def test_gsplat_item_loads_with_the_build_steps_arch_flags(gpu_check, tmp_path, monkeypatch):
+    """Without TORCH_CUDA_ARCH_LIST torch's JIT picks '9.0+PTX' for the card, not the build step's '9.0': another
+    command line, so ninja would recompile every kernel inside the item's cap. The item sets the build's value."""
+    import types
+
+    import torch
+
+    monkeypatch.delenv("TORCH_CUDA_ARCH_LIST", raising=False)
+    monkeypatch.delenv("MAX_JOBS", raising=False)
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda *a: (9, 0))
+    monkeypatch.setattr(gpu_check, "gsplat_state", lambda: {"installed": True, "built": True})
+    seen = {}
+
+    def run(ns):
+        seen["arch"] = os.environ.get("TORCH_CUDA_ARCH_LIST")
+        return {"status": "ok"}
+
+    fake = types.SimpleNamespace(refuse_without_cuda=lambda: None, run=run, markdown=lambda r: "")
+    monkeypatch.setattr(gpu_check, "_bench_import", lambda name: fake)
+    r = gpu_check.item_gsplat({"device": "cuda", "dry_run": False, "quick": True, "work": str(tmp_path)})
+    assert r["status"] == "ok" and seen["arch"] == "9.0"
