@@ -23,7 +23,7 @@ DEADLINE=$((start + BUDGET))
 mkdir -p "$OUTDIR" "$CACHE"
 exec > >(tee -a "$OUTDIR/run_check.log") 2>&1
 say() { echo "run_check [$(($(date +%s) - start)) s]: $*"; }
-die() { say "$*"; exit "${2:-1}"; }
+die() { say "$1"; exit "${2:-1}"; }
 DRY=0 items=gsplat prev=
 for a in "$@"; do  # no gsplat build for the CPU dry run, nor for an --items list without gsplat
   [ "$a" = --dry-run ] && DRY=1

@@ -246,3 +246,13 @@ def test_gsplat_item_loads_with_the_build_steps_arch_flags(gpu_check, tmp_path, 
     monkeypatch.setattr(gpu_check, "_bench_import", lambda name: fake)
     r = gpu_check.item_gsplat({"device": "cuda", "dry_run": False, "quick": True, "work": str(tmp_path)})
     assert r["status"] == "ok" and seen["arch"] == "9.0"
+
+
+def test_explore_says_why_it_cannot_run_without_the_flow_stack(gpu_check, tmp_path, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
+    r = gpu_check.item_scene({"device": "cuda", "dry_run": False, "quick": False, "work": str(tmp_path), "cap": 600,
+                              "with_explore": True})
+    assert r["status"] == "ok" and r["explore"]["status"] == "skipped" and "open3d" in r["explore"]["reason"]
