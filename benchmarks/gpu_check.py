@@ -1,24 +1,30 @@
 """The prepared GPU check: every CUDA measurement the project still owes, as one command on one GPU in < 8 minutes.
 
-    python benchmarks/gpu_check.py --out bench-out/gpu-check            # ~7 min at most (per-item time caps)
+On a bare, air-gapped CUDA node (the project's folder copied there, not installed) run it through
+``deploy/gpu/run_check.sh`` (deploy/gpu/README.md): it brings the missing wheels, makes ``navcrafter`` importable,
+builds gsplat in a capped step of its own and runs this under a deadline. Directly, where navcrafter is installed:
+
+    python benchmarks/gpu_check.py --out bench-out/gpu-check            # ~6.5 min at most (per-item time caps)
     python benchmarks/gpu_check.py --out bench-out/gpu-check --quick    # ~5 min at most, smaller sizes
+    python benchmarks/gpu_check.py --preflight [--out DIR]              # what the node has; exit 3 with the reasons
+    python benchmarks/gpu_check.py --build-gsplat [--out DIR]           # gsplat's JIT build (resumable), run capped
+    python benchmarks/gpu_check.py --out bench-out/gpu-check --items dit,dit-onnx   # + the opt-in ONNX export
     python benchmarks/gpu_check.py --out bench-out/gpu-check --prepare-scene-models   # once, any machine
     python benchmarks/gpu_check.py --out bench-out/gpu-check --with-explore           # + the whole flow
 
 Random weights everywhere (timing, memory and precision only; no quality). Items, each in its own subprocess with
-its own time cap (a failure, a crash or a timeout of one is recorded and the next one runs):
+its own time cap (a failure, a crash, a failed import or a timeout of one is recorded and the next one runs);
+``results.json`` / ``results.md`` are rewritten after every item, so a crash or a kill keeps what was measured:
 
 * ``gsplat``: ``benchmarks/gsplat_fit.py``'s ``run`` (its quick size): iterations/s of the gsplat-backed fit,
-  first-call kernel build, parity of our renderer vs gsplat; skipped with its reason without gsplat.
+  first-call time, parity of our renderer vs gsplat. gsplat JIT-builds its CUDA kernels on first use (minutes):
+  that build is never inside this item's cap (``--build-gsplat``, which run_check.sh caps); unbuilt, the item is
+  ``not built`` with the reason; skipped with its reason without CUDA.
 * ``dit``: one denoising step (CFG pair) of the camera-controlled Wan DiT at Wan2.1-1.3B width, 81 frames at
-  256² (``benchmarks/synthesis.py``'s ``build``/``make_inputs``): torch bf16 vs onnxruntime CUDA EP on the
-  product's fp16 graph of the same module (fp32 ``onnxio.export_graph``, then ``onnxio.convert_graph_fp16`` as
-  ``navcrafter models convert-fp16`` does: fp32 normalisations and IO), step times, peak memory
-  (``torch.cuda.max_memory_allocated``;
-  onnxruntime: NVML process memory, which includes the process's CUDA context), and the fp16-ORT vs bf16-torch
-  output difference. Without onnxruntime's CUDA execution provider (``onnxruntime-gpu``) only torch is timed.
+  256² (``benchmarks/synthesis.py``'s ``build``/``make_inputs``), torch bf16: step time and peak memory
+  (``torch.cuda.max_memory_allocated``).
 * ``fun-camera``: the Fun-Camera DiT (``navcrafter.models.synthesis.funcamera``, 1.3B config, same latent grid)
-  the same way, when that module imports with what this needs; otherwise a ``not built`` entry naming why.
+  the same way; ``not built`` only if that module is absent from the tree, a failed import otherwise.
 * ``vggt``: VGGT-1B (``models/geometry/vggt.py``, full config) on 25 frames at 518², bf16 autocast.
 * ``moge``: MoGe-2 ViT-L (normal) at 518² (1,369 tokens), bf16 autocast.
 * ``difix``: the Difix refiner (SD-Turbo size, reference mixing) at 512², fp16.
@@ -33,11 +39,18 @@ its own time cap (a failure, a crash or a timeout of one is recorded and the nex
   takes long even though they are tiny (the Wan VAE graphs unroll 81 frames; ``export-all --preset paper``: 19 min
   wall, 9 min CPU on a shared 2-core machine, 2026-12-02), so it is a separate step that also runs on a CPU machine
   and resumes role by role: ``--prepare-scene-models`` (into ``--scene-models DIR``, default
-  ``OUT/work/scene-models``). That explore path was checked once on the CPU (2 shared cores, onnxruntime CPU, fit on
+  ``WORK/scene-models``). That explore path was checked once on the CPU (2 shared cores, onnxruntime CPU, fit on
   the CPU): the room demo scene finished in 4.3 min (plumbing only, not a GPU number).
+* opt-in ``dit-onnx`` / ``fun-camera-onnx`` (named in ``--items``; own caps): the same modules exported to ONNX
+  (fp32 ``onnxio.export_graph``, then ``onnxio.convert_graph_fp16`` as ``navcrafter models convert-fp16`` does:
+  fp32 normalisations and IO), export and conversion timed; then, where onnxruntime has the CUDA execution provider
+  (``onnxruntime-gpu``), the fp16 graph timed against bf16 torch (NVML process memory, output difference). The CUDA
+  image's onnxruntime is a CPU build and onnxruntime-gpu (~256 MB) cannot travel: there ORT is reported skipped.
 
-Writes ``results.json`` (every item's status, numbers, errors) and ``results.md``. Refuses without CUDA (exit code
-2). ``--device cpu --dry-run`` runs the plumbing with tiny configs on the CPU for the tests: its numbers are NOT
+``--deadline EPOCH`` cuts every cap to the time left and marks items past it ``not run``; ``--keep`` merges a
+rerun of some items into an earlier results.json; ``--work DIR`` keeps scratch (partials, ONNX files) out of
+``--out``. results.md ends with what did not run on the node, and why. Refuses without CUDA (exit code 2).
+``--device cpu --dry-run`` runs the plumbing with tiny configs on the CPU for the tests: its numbers are NOT
 measurements and every output says so.
 """
 
@@ -58,13 +71,23 @@ PAPER_SCENE_MIN = 4.79  # NavCrafter, Table V: minutes per scene
 DRY_RUN_LABEL = "DRY RUN (CPU, tiny configs): plumbing only, NOT a measurement"
 EXPLORE_CAP = 600  # --with-explore: the scene item's cap (beyond the 8-minute budget)
 
-# name -> (full cap s, quick cap s): the full caps sum to 415 s (~7 min), the quick ones to 305 s. The two DiT items
-# include exporting a 1.3B-parameter module to ONNX (dynamo + onnxscript's optimiser), the bulk of their time; what
-# an item measured before its cap is kept ("partial").
+# name -> (full cap s, quick cap s), each sized for what the item does on one GPU once gsplat is built (estimates: no
+# GPU was lent to measure them): a fresh process importing torch, diffusers and transformers (~10 s), building the
+# module with random weights on the GPU, a warm-up and 2-3 timed calls. The full caps sum to 390 s, the quick ones to
+# 290 s. gsplat's JIT build is never inside an item: it is its own step (``--build-gsplat``, run_check.sh caps it),
+# and the gsplat item reports ``not built`` without it. What an item measured before its cap is kept ("partial").
 ITEMS: dict[str, tuple[int, int]] = {
-    "gsplat": (50, 40), "dit": (140, 100), "fun-camera": (80, 60), "vggt": (30, 20), "moge": (20, 15),
-    "difix": (20, 15), "training": (60, 40), "scene": (15, 15),
+    "gsplat": (60, 45), "dit": (60, 45), "fun-camera": (60, 45), "vggt": (45, 30), "moge": (30, 25),
+    "difix": (30, 25), "training": (90, 60), "scene": (15, 15),
 }
+# opt-in (named in --items): the ONNX export of the 1.3B-width DiTs (dynamo export + onnxscript's optimiser, then the
+# fp16 conversion: minutes of CPU work on one core, so never inside the default items), and onnxruntime on the
+# product's fp16 graph where a CUDA execution provider exists. The image's onnxruntime is a CPU build and
+# onnxruntime-gpu (~256 MB) cannot travel in 64 MiB: there these items time the export and say that ORT did not run.
+OPT_IN: dict[str, tuple[int, int]] = {"dit-onnx": (300, 240), "fun-camera-onnx": (240, 180)}
+CAPS = ITEMS | OPT_IN
+MIN_ITEM_S = 10  # with --deadline: an item that would get less than this is "not run" (out of time)
+GSPLAT_EXT = "gsplat_cuda"  # the name gsplat 1.5 JIT-builds its kernels under (gsplat/cuda/_backend.py)
 
 
 def _bench_import(name: str):
@@ -146,11 +169,96 @@ def _max_rel(a, b) -> float:
 # --------------------------------------------------------------------------------------------------
 # Items (each runs in its own process; ctx: device, dry_run, quick, work)
 # --------------------------------------------------------------------------------------------------
+def gsplat_state() -> dict:
+    """Whether gsplat is installed and its CUDA kernels are built, without importing ``gsplat.cuda._backend`` (whose
+    import starts the JIT build): a prebuilt ``gsplat/csrc*.so``, or ``gsplat_cuda.so`` in torch's extension build
+    folder (``TORCH_EXTENSIONS_DIR``, which run_check.sh points at its cache)."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec("gsplat")
+    except (ImportError, ValueError) as exc:
+        spec, why = None, f"{type(exc).__name__}: {exc}"
+    else:
+        why = "gsplat is not installed (carry its wheel: deploy/gpu/wheels.txt)"
+    if spec is None or not spec.origin:
+        return {"installed": False, "built": False, "reason": why}
+    pkg = Path(spec.origin).parent
+    state = {"installed": True, "path": str(pkg)}
+    if prebuilt := sorted(pkg.glob("csrc*.so")):
+        return state | {"built": True, "library": str(prebuilt[0])}
+    try:
+        from torch.utils.cpp_extension import _get_build_directory
+
+        build = Path(_get_build_directory(GSPLAT_EXT, verbose=False))
+    except Exception as exc:  # a private torch helper: say so if it moved
+        return state | {"built": False, "reason": f"torch's extension folder is unknown ({type(exc).__name__}: {exc})"}
+    lib = build / f"{GSPLAT_EXT}.so"
+    state.update(build_dir=str(build), library=str(lib), built=lib.is_file())
+    if not state["built"]:
+        state["reason"] = (f"gsplat's CUDA kernels are not built ({lib} missing): build them first in their own "
+                           "capped step (`gpu_check.py --build-gsplat`, run_check.sh does it); never inside an item")
+    return state
+
+
+def gsplat_build_env() -> None:
+    """``TORCH_CUDA_ARCH_LIST`` = this device's compute capability (e.g. ``9.0``) unless set, and ``MAX_JOBS`` = the CPU
+    count. The build step and the gsplat item must agree: torch's JIT writes the architecture flags into the ninja
+    file, and without the variable it picks ``9.0+PTX`` for the visible card, a different command line, so ninja
+    would rebuild every kernel inside the item's cap."""
+    import torch
+
+    major, minor = torch.cuda.get_device_capability(0)
+    os.environ.setdefault("TORCH_CUDA_ARCH_LIST", f"{major}.{minor}")
+    os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 1))
+
+
+def build_gsplat() -> dict:
+    """gsplat's own JIT build (``import gsplat.cuda._backend``, its flags and sources), for this device's compute
+    capability only, with ``MAX_JOBS`` = the CPU count; resumable: gsplat deletes its build folder before a fresh
+    build, which would throw away the objects a killed build left, so that one deletion is skipped here and ninja
+    goes on from them. Run it under a time cap (run_check.sh: ``timeout``); a second run finishes a cut one."""
+    import shutil
+
+    import torch
+
+    state = gsplat_state()
+    if state.get("built"):
+        return state | {"status": "ok", "note": "already built"}
+    if not state["installed"]:
+        return state | {"status": "error"}
+    if not torch.cuda.is_available():
+        return state | {"status": "skipped", "reason": "no CUDA device: gsplat's kernels are built for the device"}
+    gsplat_build_env()
+    build, rmtree = Path(state["build_dir"]).resolve(), shutil.rmtree
+
+    def keep_objects(path, *args, **kwargs):
+        if Path(path).resolve() == build:
+            return None
+        return rmtree(path, *args, **kwargs)
+
+    t0 = time.perf_counter()
+    shutil.rmtree = keep_objects
+    try:
+        from gsplat.cuda._backend import _C
+    finally:
+        shutil.rmtree = rmtree
+    res = gsplat_state() | {"seconds": time.perf_counter() - t0, "arch": os.environ["TORCH_CUDA_ARCH_LIST"],
+                            "max_jobs": os.environ["MAX_JOBS"]}
+    if _C is None:
+        return res | {"status": "error", "reason": "gsplat found no CUDA toolkit (nvcc) and built nothing"}
+    return res | {"status": "ok" if res["built"] else "error"}
+
+
 def item_gsplat(ctx: dict) -> dict:
+    state = gsplat_state()
+    if ctx["device"] == "cuda" and not state.get("built"):  # its JIT build would not fit an item's cap
+        return {"status": "not built", "reason": state["reason"], "gsplat": state}
     g = _bench_import("gsplat_fit")
     why = g.refuse_without_cuda()
     if why:
         return {"status": "skipped", "reason": why}
+    gsplat_build_env()  # the build step's flags: loading the built kernels then compiles nothing
     ns = argparse.Namespace(quick=True, gaussians=100_000 if not ctx["quick"] else 50_000, size=128, views=8,
                             iterations=100 if not ctx["quick"] else 60, torch_iterations=3, densify=False)
     r = g.run(ns)
@@ -190,12 +298,12 @@ def _ort_timed(sess, feeds: dict, device: str, repeats: int) -> dict:
 def _torch_vs_ort(make_module, inputs: dict, names: list[str], outputs: list[str], ctx: dict, tag: str,
                   meta: dict) -> dict:
     """One module (``make_module()``; built here so that no caller keeps it alive while onnxruntime runs): torch
-    (bf16 on CUDA, fp32 in a dry run) timing, then an ONNX export of the same weights on ORT: on CUDA the product's
-    fp16 path (an fp32 export converted by ``onnxio.convert_graph_fp16``, as ``navcrafter models convert-fp16`` does:
-    fp16 with fp32 normalisations and inputs/outputs), in a dry run the fp32 export."""
+    (bf16 on CUDA, fp32 in a dry run) timing; with ``ctx["onnx"]`` (the opt-in ``*-onnx`` items) then an ONNX export
+    of the same weights on ORT: on CUDA the product's fp16 path (an fp32 export converted by
+    ``onnxio.convert_graph_fp16``, as ``navcrafter models convert-fp16`` does: fp16 with fp32 normalisations and
+    inputs/outputs), in a dry run the fp32 export. Without a CUDA execution provider the graph is exported and
+    converted (timed) and onnxruntime is reported as skipped, with the reason."""
     import torch
-
-    from navcrafter.models.runtime.onnxio import convert_graph_fp16, export_graph
 
     device, repeats = ctx["device"], 2 if ctx["quick"] or ctx["dry_run"] else 3
     tdtype = torch.bfloat16 if device == "cuda" else torch.float32
@@ -218,14 +326,21 @@ def _torch_vs_ort(make_module, inputs: dict, names: list[str], outputs: list[str
         ref = holder["module"](*holder["args"])
     ref = (ref[0] if isinstance(ref, (tuple, list)) else ref).float().cpu().numpy()
     save_partial(ctx, res)
+    if not ctx.get("onnx"):
+        res["status"] = "ok"
+        res["ort"] = {"status": "not run", "reason": f"the ONNX export and onnxruntime are the opt-in item "
+                      f"{tag.replace('_', '-')}-onnx (--items ...,{tag.replace('_', '-')}-onnx)"}
+        return res
+    no_ep = None
     if device == "cuda":
         import onnxruntime
 
         if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
-            res["status"] = "ok"
-            res["ort"] = {"status": "skipped", "reason": f"onnxruntime {onnxruntime.__version__} has no CUDA "
-                          "execution provider here (install onnxruntime-gpu matching the CUDA version)"}
-            return res
+            no_ep = (f"onnxruntime {onnxruntime.__version__} has no CUDA execution provider here (a CPU build; "
+                     "onnxruntime-gpu matching the CUDA version is needed, ~256 MB, too big to carry): the graph was "
+                     "exported and converted, not run")
+    from navcrafter.models.runtime.onnxio import convert_graph_fp16, export_graph
+
     holder["module"] = holder["module"].to(dtype=torch.float32)
     holder["args"] = cast(torch.float32)
     path = Path(ctx["work"]) / f"{tag}.onnx"
@@ -240,6 +355,10 @@ def _torch_vs_ort(make_module, inputs: dict, names: list[str], outputs: list[str
         path = Path(ctx["work"]) / convert_graph_fp16(path, path.with_name(f"{tag}.fp16.onnx")).file
         res["convert_fp16_s"] = time.perf_counter() - t0
         save_partial(ctx, res)
+    if no_ep:
+        res["status"] = "ok"
+        res["ort"] = {"status": "skipped", "reason": no_ep}
+        return res
     feeds = {n: a.cpu().numpy() for n, a in zip(names, holder["args"])}
     holder.clear()
     _free(device)
@@ -278,21 +397,15 @@ def item_dit(ctx: dict) -> dict:
 
 
 def item_fun_camera(ctx: dict) -> dict:
-    import importlib.util
+    import importlib
 
     name = "navcrafter.models.synthesis.funcamera"
     try:
-        found = importlib.util.find_spec(name) is not None
-    except (ImportError, ValueError):
-        found = False
-    if not found:
-        return {"status": "not built", "reason": f"{name} does not exist yet (being built); rerun when it does"}
-    import importlib
-
-    try:
         mod = importlib.import_module(name)
-    except Exception as exc:  # a half-built module: record why
-        return {"status": "not built", "reason": f"{name} does not import: {type(exc).__name__}: {exc}"}
+    except ModuleNotFoundError as exc:
+        if exc.name != name:  # navcrafter itself, or a dependency: a failed import, reported as one
+            raise
+        return {"status": "not built", "reason": f"{name} does not exist in this tree"}
     needed = ("FunCameraConfig", "build_fun_camera", "fun_example_inputs", "_FunExportWrapper", "FUN_DIT_INPUTS",
               "FUN_DIT_OUTPUTS")
     if lacking := [n for n in needed if not hasattr(mod, n)]:
@@ -412,12 +525,10 @@ def _navcrafter() -> list[str]:
 def prepare_scene_models(models: Path, deadline: float | None = None) -> dict:
     """Tiny random-weight models exported at the paper's clip size, one role at a time (a finished role is kept:
     an interrupted preparation resumes). CPU is enough; ~20 min on 2 cores (the VAE graphs unroll 81 frames)."""
-    from navcrafter.flows.cli.options import run_config
-
-    s = run_config("paper").synthesis
+    s = paper_settings()["synthesis"]
     out = {}
-    roles = {"synthesizer": ["export-synthesizer", "--frames", str(s.num_frames), "--height", str(s.height),
-                             "--width", str(s.width)],
+    roles = {"synthesizer": ["export-synthesizer", "--frames", str(s["num_frames"]), "--height", str(s["height"]),
+                             "--width", str(s["width"])],
              "geometry": ["export-geometry"], "monodepth": ["export-monodepth"]}
     for role, args in roles.items():
         if (models / role / "manifest.json").is_file():
@@ -456,14 +567,33 @@ def _scene_explore(ctx: dict, deadline: float) -> dict:
     return res
 
 
+def paper_settings() -> dict:
+    """The paper preset's numbers that the scene composition and the explore models use (schemas layer: pydantic
+    and yaml, no CLI)."""
+    from navcrafter.schemas.config import RunConfig
+
+    cfg = RunConfig.load(None, preset="paper")
+    return {"iterations": cfg.iterations, "synthesis": {"steps": cfg.synthesis.steps,
+                                                        "num_frames": cfg.synthesis.num_frames,
+                                                        "height": cfg.synthesis.height, "width": cfg.synthesis.width},
+            "lift_max_views": cfg.lift.max_views, "fit_iterations": cfg.fit.iterations}
+
+
 def item_scene(ctx: dict) -> dict:
-    res: dict = {"status": "ok", "paper_min_per_scene": PAPER_SCENE_MIN}
+    res: dict = {"status": "ok", "paper_min_per_scene": PAPER_SCENE_MIN, "paper_settings": paper_settings()}
     if ctx["dry_run"]:
         res["explore"] = {"status": "not run in a dry run"}
         return res
     if not ctx.get("with_explore"):
         res["explore"] = {"status": "not run", "reason": "pass --with-explore (after --prepare-scene-models) to "
                                                          "time the whole flow as well (beyond the 8-minute budget)"}
+        return res
+    import importlib.util
+
+    if lacking := [m for m in ("prefect", "zarr", "open3d") if importlib.util.find_spec(m) is None]:
+        res["explore"] = {"status": "skipped", "reason": f"the explore flow needs {', '.join(lacking)}, not "
+                          "installed here (not on the air-gapped CUDA image, and too big to carry: open3d alone is "
+                          "~900 MB installed); the learned-model time above is composed without it"}
         return res
     deadline = time.time() + ctx["cap"] - 5
     try:
@@ -478,14 +608,13 @@ def item_scene(ctx: dict) -> dict:
 
 def compose_scene(results: dict) -> dict:
     """Learned-model time of one paper-settings scene from the measured items (a lower bound: VAE encode/decode,
-    CLIP image encoding and data movement are not measured here)."""
-    from navcrafter.flows.cli.options import run_config
-
-    cfg = run_config("paper")
-    n, steps, frames = cfg.iterations, cfg.synthesis.steps, cfg.lift.max_views + 1
+    CLIP image encoding and data movement are not measured here). Pure arithmetic on the results (the paper
+    settings come from the scene item's own process), so it cannot fail on an import in the parent."""
+    cfg = results["scene"]["paper_settings"]
+    n, steps, frames = cfg["iterations"], cfg["synthesis"]["steps"], cfg["lift_max_views"] + 1
     terms, missing = {}, []
     dit = results.get("dit", {})
-    dit = dit if dit.get("status") == "ok" else dit.get("partial", {})  # torch timed before an ORT failure
+    dit = dit if dit.get("status") == "ok" else dit.get("partial", {})  # torch timed before a later failure
     if "torch" in dit:
         terms["dit"] = n * steps * dit["torch"]["median_s"]
     else:
@@ -503,7 +632,7 @@ def compose_scene(results: dict) -> dict:
         missing.append("moge")
     gs = results.get("gsplat", {})
     if gs.get("gsplat_fit"):
-        terms["fit"] = cfg.fit.iterations / gs["gsplat_fit"]["its_per_s"]
+        terms["fit"] = cfg["fit_iterations"] / gs["gsplat_fit"]["its_per_s"]
     else:
         missing.append("fit (gsplat)")
     total = sum(terms.values())
@@ -512,8 +641,17 @@ def compose_scene(results: dict) -> dict:
             "missing": missing, "dit_width": dit.get("config")}
 
 
+def item_dit_onnx(ctx: dict) -> dict:
+    return item_dit(dict(ctx, onnx=True))
+
+
+def item_fun_camera_onnx(ctx: dict) -> dict:
+    return item_fun_camera(dict(ctx, onnx=True))
+
+
 FUNCS = {"gsplat": item_gsplat, "dit": item_dit, "fun-camera": item_fun_camera, "vggt": item_vggt,
-         "moge": item_moge, "difix": item_difix, "training": item_training, "scene": item_scene}
+         "moge": item_moge, "difix": item_difix, "training": item_training, "scene": item_scene,
+         "dit-onnx": item_dit_onnx, "fun-camera-onnx": item_fun_camera_onnx}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -562,54 +700,221 @@ def run_item_subprocess(name: str, ctx: dict, cap: float) -> dict:
     return out
 
 
+def item_error(exc: BaseException) -> dict:
+    """An item's exception as its result. A failed import is reported as one, naming the missing module and what
+    to do (never as a module that "does not exist yet")."""
+    tb = traceback.format_exc()[-3000:]
+    if isinstance(exc, ImportError):
+        missing = getattr(exc, "name", None) or ""
+        if missing.split(".")[0] == "navcrafter":
+            hint = ("navcrafter is not importable here: run the check through deploy/gpu/run_check.sh (it makes the "
+                    "tree importable without installing it) or install the project")
+        elif missing:
+            hint = f"the module {missing!r} is missing here: carry its wheel (deploy/gpu/wheels.txt)"
+        else:
+            hint = "an import failed inside a module: see the traceback"
+        return {"status": "import error", "missing_module": missing or None, "error": f"{type(exc).__name__}: {exc}",
+                "reason": f"failed import ({type(exc).__name__}: {exc}); {hint}", "traceback": tb}
+    return {"status": "error", "error": f"{type(exc).__name__}: {exc}", "traceback": tb}
+
+
 def child(name: str, spec: str) -> int:
     ctx = json.loads(spec)
     Path(ctx["work"]).mkdir(parents=True, exist_ok=True)
     try:
         res = FUNCS[name](ctx)
     except Exception as exc:  # the parent records it; the other items still run
-        res = {"status": "error", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()[-3000:]}
+        res = item_error(exc)
     print(json.dumps(res, default=str))
     return 0
 
 
-def run_all(ctx: dict, items: list[str], inline: bool = False) -> dict:
-    results = {}
+def _compose(results: dict) -> dict:
+    try:
+        return compose_scene(results)
+    except Exception as exc:  # recorded, never fatal: the measured items are already written
+        return {"status": "error", "error": f"{type(exc).__name__}: {exc}"}
+
+
+def run_all(ctx: dict, items: list[str], inline: bool = False, deadline: float | None = None,
+            on_item=None, previous: dict | None = None) -> dict:
+    """Each item in its own process under its cap (``--inline``: in this one, no caps). ``deadline`` (epoch s): an
+    item's cap is cut to the time left, and an item with less than ``MIN_ITEM_S`` left is ``not run``.
+    ``on_item(results)`` runs after every item (main rewrites results.json/results.md there)."""
+    results = dict(previous or {})
     for name in items:
-        cap = ITEMS[name][1 if ctx["quick"] else 0] * (4 if ctx["dry_run"] else 1)
+        cap = CAPS[name][1 if ctx["quick"] else 0] * (4 if ctx["dry_run"] else 1)
         if name == "scene" and ctx.get("with_explore"):
             cap = EXPLORE_CAP
-        print(f"gpu_check: {name} (cap {cap} s) ...", file=sys.stderr, flush=True)
-        if inline:
-            t0 = time.perf_counter()
-            try:
-                r = FUNCS[name](dict(ctx, cap=cap))
-            except Exception as exc:
-                r = {"status": "error", "error": f"{type(exc).__name__}: {exc}"}
-            r["wall_s"] = time.perf_counter() - t0
+        left = None if deadline is None else deadline - time.time()
+        if left is not None and left < MIN_ITEM_S:
+            results[name] = {"status": "not run", "cap_s": cap,
+                             "reason": f"out of time: {max(left, 0):.0f} s left of the run's budget (--deadline); "
+                                       f"rerun with --items {name} --keep"}
         else:
-            r = run_item_subprocess(name, ctx, cap)
-        results[name] = r
-        print(f"gpu_check: {name}: {r.get('status')} in {r.get('wall_s', 0):.1f} s", file=sys.stderr, flush=True)
-    if "scene" in results and results["scene"].get("status") == "ok":
-        results["scene"]["composed"] = compose_scene(results)
+            if left is not None and left < cap:
+                cap = int(left)
+            print(f"gpu_check: {name} (cap {cap} s) ...", file=sys.stderr, flush=True)
+            if inline:
+                t0 = time.perf_counter()
+                try:
+                    r = FUNCS[name](dict(ctx, cap=cap))
+                except Exception as exc:
+                    r = item_error(exc)
+                r["wall_s"] = time.perf_counter() - t0
+            else:
+                r = run_item_subprocess(name, ctx, cap)
+            results[name] = r
+        print(f"gpu_check: {name}: {results[name].get('status')} in {results[name].get('wall_s', 0):.1f} s",
+              file=sys.stderr, flush=True)
+        if results.get("scene", {}).get("status") == "ok":
+            results["scene"]["composed"] = _compose(results)
+        if on_item:
+            on_item(results)
     return results
 
 
 def _env() -> dict:
-    import torch
+    """The node, as far as it can be read; never fatal (a missing torch or onnxruntime is recorded)."""
+    env: dict = {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()}
+    try:
+        import torch
 
-    env = {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda,
-           "machine": platform.machine()}
+        env.update(torch=torch.__version__, cuda=torch.version.cuda,
+                   device=torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu")
+    except Exception as exc:
+        env.update(torch=None, device="unknown", torch_error=f"{type(exc).__name__}: {exc}")
     try:
         import onnxruntime
 
         env["onnxruntime"] = onnxruntime.__version__
         env["ort_providers"] = onnxruntime.get_available_providers()
-    except ImportError:
+    except Exception as exc:
         env["onnxruntime"] = None
-    env["device"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
+        env["onnxruntime_error"] = f"{type(exc).__name__}: {exc}"
     return env
+
+
+# --------------------------------------------------------------------------------------------------
+# Preflight: what the node has, before any minute is spent on it
+# --------------------------------------------------------------------------------------------------
+# module -> (what needs it, required): a required one failing makes the preflight fail (most items would fail)
+PREFLIGHT_MODULES: dict[str, tuple[str, bool]] = {
+    "navcrafter.models": ("everything (the project's tree)", True),
+    "pydantic": ("schemas.config: gsplat, training, scene", True),
+    "diffusers": ("dit, fun-camera, difix, training (Wan / SD modules)", True),
+    "transformers": ("moge, difix (DINOv2 / CLIP modules)", True),
+    "navcrafter.schemas.config": ("gsplat, training, scene", True),
+    "navcrafter.models.synthesis.camcontrol": ("dit, training", True),
+    "navcrafter.models.geometry.vggt": ("vggt", True),
+    "navcrafter.models.geometry.moge": ("moge", True),
+    "navcrafter.models.refiner.difix": ("difix", True),
+    "navcrafter.models.gaussians.train": ("gsplat", True),
+    "navcrafter.models.synthesis.training": ("training", True),
+    "navcrafter.models.synthesis.funcamera": ("fun-camera", False),
+    "onnx": ("the opt-in *-onnx items", False),
+    "onnxscript": ("the opt-in *-onnx items (dynamo export)", False),
+    "navcrafter.models.runtime.onnxio": ("the opt-in *-onnx items", False),
+    "gsplat": ("gsplat (its package only: importing it builds nothing)", False),
+}
+# the sibling benchmark scripts the items run (benchmarks/ is not a package)
+PREFLIGHT_BENCH: dict[str, tuple[str, bool]] = {
+    "synthesis": ("dit, the *-onnx items", True), "gsplat_fit": ("gsplat", True),
+    "camera_training_gpu": ("training", True),
+}
+
+
+def _tool(cmd: list[str], line: int = -1) -> str | None:
+    """``EXE: a line of its output`` (the last by default), or None when it is not on the PATH."""
+    import shutil
+
+    exe = shutil.which(cmd[0])
+    if exe is None:
+        return None
+    try:
+        p = subprocess.run([exe, *cmd[1:]], capture_output=True, text=True, timeout=30)
+        lines = (p.stdout or p.stderr).strip().splitlines()
+        return f"{exe}: {lines[line] if lines else ''}".strip()
+    except (OSError, subprocess.SubprocessError) as exc:
+        return f"{exe}: {type(exc).__name__}: {exc}"
+
+
+def preflight(device: str = "cuda") -> dict:
+    """Imports, CUDA, onnxruntime's execution providers, nvcc / the C++ compiler / ninja, whether gsplat is built.
+    ``ok`` is False when the check cannot usefully run (no torch, no CUDA device, navcrafter or a module most items
+    need does not import); the rest are reported as limits (what will be skipped, and why)."""
+    import importlib
+
+    checks: list[dict] = []
+
+    def add(name, ok, detail, required):
+        checks.append({"check": name, "ok": bool(ok), "required": required, "detail": detail})
+
+    add("python", True, f"{platform.python_version()} ({sys.executable})", False)
+    try:
+        import torch
+
+        add("torch", True, f"{torch.__version__} (CUDA build: {torch.version.cuda or 'no'})", True)
+        cuda = torch.cuda.is_available()
+        if cuda:
+            props = torch.cuda.get_device_properties(0)
+            detail = (f"{props.name}, compute capability {props.major}.{props.minor}, "
+                      f"{props.total_memory / 2**30:.0f} GiB, {torch.cuda.device_count()} device(s)")
+        else:
+            detail = "torch sees no CUDA device" + (" (fine for the CPU dry run)" if device == "cpu" else "")
+        add("cuda device", cuda, detail, device == "cuda")
+    except Exception as exc:
+        add("torch", False, f"{type(exc).__name__}: {exc}", True)
+    for mod, (needed_by, required) in PREFLIGHT_MODULES.items():
+        try:
+            m = importlib.import_module(mod)
+            detail = f"{getattr(m, '__version__', '')} {Path(getattr(m, '__file__', '') or '').parent}".strip()
+            add(f"import {mod}", True, detail, required)
+        except Exception as exc:
+            add(f"import {mod}", False, f"{item_error(exc).get('reason') or exc} (needed by: {needed_by})", required)
+    for mod, (needed_by, required) in PREFLIGHT_BENCH.items():
+        try:
+            _bench_import(mod)
+            add(f"import benchmarks/{mod}.py", True, "", required)
+        except Exception as exc:
+            add(f"import benchmarks/{mod}.py", False, f"{item_error(exc).get('reason') or exc} (needed by: "
+                f"{needed_by})", required)
+    try:
+        import onnxruntime
+
+        providers = onnxruntime.get_available_providers()
+        add("onnxruntime CUDA execution provider", "CUDAExecutionProvider" in providers,
+            f"onnxruntime {onnxruntime.__version__}: {providers}" + (
+                "" if "CUDAExecutionProvider" in providers else
+                "; a CPU build: the ONNX-on-GPU halves of the DiT items cannot run here (onnxruntime-gpu, ~256 MB, "
+                "cannot travel)"), False)
+    except Exception as exc:
+        add("onnxruntime", False, f"{type(exc).__name__}: {exc}", False)
+    try:
+        from torch.utils.cpp_extension import _find_cuda_home
+
+        home = _find_cuda_home()
+    except Exception:
+        home = None
+    nvcc = _tool([str(Path(home) / "bin" / "nvcc") if home else "nvcc", "--version"])
+    add("nvcc", nvcc is not None, f"{nvcc} (CUDA_HOME {home})" if nvcc else "no CUDA compiler: gsplat cannot be "
+        "built", False)
+    cxx = _tool(["c++", "--version"], 0) or _tool(["g++", "--version"], 0)
+    add("c++ compiler", cxx is not None, (cxx or "none on the PATH").splitlines()[0], False)
+    ninja = _tool(["ninja", "--version"])
+    add("ninja", ninja is not None, ninja or "not on the PATH (torch's JIT builds need it)", False)
+    st = gsplat_state()
+    add("gsplat built", st.get("built", False), st.get("library") if st.get("built") else st.get("reason"), False)
+    failed = [c for c in checks if c["required"] and not c["ok"]]
+    return {"ok": not failed, "device": device, "checks": checks, "gsplat": st,
+            "fatal": [f"{c['check']}: {c['detail']}" for c in failed]}
+
+
+def preflight_text(pf: dict) -> str:
+    lines = [f"{'ok ' if c['ok'] else ('FAIL' if c['required'] else 'no  ')} {c['check']}: {c['detail']}"
+             for c in pf["checks"]]
+    lines.append("preflight: " + ("ok" if pf["ok"] else "FAILED: " + "; ".join(pf["fatal"])))
+    return "\n".join(lines)
 
 
 def _s(x) -> str:
@@ -620,13 +925,57 @@ def _gib(x) -> str:
     return "—" if x is None else f"{x:.1f} GiB"
 
 
+def _dit_row(d: dict) -> tuple[str, str]:
+    ort = d.get("ort", {})
+    text = f"torch {d['torch_dtype']} {_s(d['torch']['median_s'])}"
+    if "export_s" in d:
+        text += f"; ONNX export {d['export_s']:.0f} s"
+        if "convert_fp16_s" in d:
+            text += f", fp16 conversion {d['convert_fp16_s']:.0f} s"
+    mem = f"torch {_gib(d['torch'].get('peak_gib'))}"
+    if "median_s" in ort:
+        text += (f" vs onnxruntime {d['onnx_dtype']} {_s(ort['median_s'])} (×{d['ort_over_torch']:.2f}); "
+                 f"max rel. diff {d['ort_vs_torch_max_rel_diff']:.1e}")
+        mem += f", ORT {_gib(ort.get('peak_gib'))}"
+    elif ort:
+        text += f"; onnxruntime {ort.get('status')}: {ort.get('reason')}"
+    return text, mem
+
+
+def limits(report: dict) -> list[str]:
+    """What could not run on this node, and why (results.md says it; results.json holds it as ``limits``)."""
+    r, env, out = report["items"], report["env"], []
+    providers = env.get("ort_providers") or []
+    if report.get("device") == "cuda" and "CUDAExecutionProvider" not in providers:
+        out.append(f"onnxruntime {env.get('onnxruntime')} has no CUDA execution provider here ({providers}): the "
+                   "ONNX-on-GPU half of the DiT items cannot run (onnxruntime-gpu, ~256 MB, cannot travel in 64 "
+                   "MiB); `dit` / `fun-camera` time torch only, the opt-in `dit-onnx` / `fun-camera-onnx` export and "
+                   "convert the graph and do not run it")
+    for name, it in r.items():
+        status = it.get("status")
+        if status in ("ok",):
+            continue
+        why = it.get("reason") or (it.get("error") or "").strip().splitlines()[-1:] or ["?"]
+        why = why if isinstance(why, str) else why[0]
+        out.append(f"`{name}`: {status}: {why}")
+    not_asked = [n for n in OPT_IN if n not in r]
+    if not_asked:
+        out.append(f"opt-in items not asked for: {', '.join(not_asked)} (add them to --items; own caps "
+                   f"{', '.join(f'{n} {OPT_IN[n][0]} s' for n in not_asked)})")
+    return out
+
+
 def markdown(report: dict) -> str:
     r, env = report["items"], report["env"]
     lines = [f"# GPU check{' — quick' if report['quick'] else ''}", ""]
     if report["dry_run"]:
         lines += [f"**{DRY_RUN_LABEL}.**", ""]
-    lines += [f"{env['device']}; torch {env['torch']} (CUDA {env['cuda']}), onnxruntime {env.get('onnxruntime')}; "
-              f"random weights everywhere; {report['wall_s']:.0f} s in all.", "",
+    if report.get("running"):
+        lines += [f"**Incomplete: written after item {len(r)} of {len(report.get('asked', r))}; the run was still "
+                  "going (a cut run keeps what it measured).**", ""]
+    lines += [f"{env.get('device')}; torch {env.get('torch')} (CUDA {env.get('cuda')}), onnxruntime "
+              f"{env.get('onnxruntime')}; Python {env.get('python')}; random weights everywhere; "
+              f"{report['wall_s']:.0f} s in all.", "",
               "| item | status | result | peak memory | wall (cap) |", "|---|---|---|---|---|"]
 
     def row(name, result, mem):
@@ -637,7 +986,7 @@ def markdown(report: dict) -> str:
         if status != "ok":
             result = it.get("reason") or (it.get("error") or "").strip().splitlines()[-1:] or [""]
             result = result if isinstance(result, str) else result[0]
-            result = result.replace("|", "/")[:160]
+            result = result.replace("|", "/")[:240]
             if "torch" in it.get("partial", {}):
                 result = (f"torch {it['partial'].get('torch_dtype')} {_s(it['partial']['torch']['median_s'])} "
                           f"(then stopped: {status}) " + result).strip()
@@ -653,16 +1002,7 @@ def markdown(report: dict) -> str:
         _gib(gf.get("peak_mem_gib")))
     for name in ("dit", "fun-camera"):
         d = r.get(name, {})
-        if d.get("status") == "ok" and d.get("ort", {}).get("status") == "skipped":
-            row(name, f"torch {d['torch_dtype']} {_s(d['torch']['median_s'])}; onnxruntime: {d['ort']['reason']}",
-                f"torch {_gib(d['torch'].get('peak_gib'))}")
-        elif d.get("status") == "ok":
-            row(name, f"torch {d['torch_dtype']} {_s(d['torch']['median_s'])} vs onnxruntime {d['onnx_dtype']} "
-                f"{_s(d['ort']['median_s'])} (×{d['ort_over_torch']:.2f}; export {d['export_s']:.0f} s); "
-                f"max rel. diff {d['ort_vs_torch_max_rel_diff']:.1e}",
-                f"torch {_gib(d['torch'].get('peak_gib'))}, ORT {_gib(d['ort'].get('peak_gib'))}")
-        else:
-            row(name, "", "—")
+        row(name, *(_dit_row(d) if d.get("status") == "ok" else ("", "—")))
     v = r.get("vggt", {})
     row("vggt", f"{_s(v.get('median_s'))} for {v.get('frames')} frames at {v.get('size')}²", _gib(v.get("peak_gib")))
     m = r.get("moge", {})
@@ -673,10 +1013,15 @@ def markdown(report: dict) -> str:
     t = r.get("training", {})
     row("training", f"train step {_s(t.get('train_step_s'))}, sampling step (CFG pair) "
         f"{_s(t.get('sample_step_cfg_pair_s'))}", f"{_gib(t.get('train_peak_gib'))} / {_gib(t.get('sample_peak_gib'))}")
+    for name in OPT_IN:
+        d = r.get(name, {})
+        row(name, *(_dit_row(d) if d.get("status") == "ok" else ("", "—")))
     sc = r.get("scene", {})
     comp, ex = sc.get("composed") or {}, sc.get("explore") or {}
     summary = ""
-    if comp:
+    if comp.get("status") == "error":
+        summary = f"composition failed: {comp['error']}"
+    elif comp:
         summary = (f"learned models composed: {comp['total_min']:.2f} min/scene vs the paper's {PAPER_SCENE_MIN} "
                    f"(×{comp['over_paper']:.2f}; DiT at {comp.get('dit_width')} width"
                    + (f"; missing {', '.join(comp['missing'])}" if comp["missing"] else "") + ")")
@@ -685,27 +1030,48 @@ def markdown(report: dict) -> str:
     elif ex:
         summary += f"; explore flow: {ex.get('status')}"
     row("scene", summary, "—")
+    lim = report.get("limits") or []
+    if lim:
+        lines += ["", "## What did not run here, and why", ""] + [f"- {x}" for x in lim]
     lines += ["", "Notes: DiT = one call on the classifier-free-guidance pair (batch 2), 81 frames at 256² "
-              "(21 × 16 × 16 latent tokens per sample); onnxruntime runs the fp16 graph `models convert-fp16` makes "
-              "of the same module (fp32 norms) on the CUDA execution provider, so its output differs from bf16 torch "
-              "by rounding. The composed scene time is "
-              "a lower bound (N × steps × DiT step + VGGT per lift + MoGe + fit iterations / it/s; no VAE, no CLIP) at "
-              "the 1.3B width, not the 14B base's. Random weights: no number here says anything about quality.", ""]
+              "(21 × 16 × 16 latent tokens per sample), torch bf16; the opt-in `*-onnx` items export the same module "
+              "to ONNX and, where onnxruntime has a CUDA execution provider, run the fp16 graph `models convert-fp16` "
+              "makes of it (fp32 norms), whose output differs from bf16 torch by rounding. The composed scene time "
+              "is a lower bound (N × steps × DiT step + VGGT per lift + MoGe + fit iterations / it/s; no VAE, no "
+              "CLIP) at the 1.3B width, not the 14B base's. Random weights: no number here says anything about "
+              "quality.", ""]
     return "\n".join(lines)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path)
     ap.add_argument("--quick", action="store_true", help="smaller sizes and caps (~5 min at most)")
-    ap.add_argument("--items", default=",".join(ITEMS), help=f"comma-separated subset of {', '.join(ITEMS)}")
+    ap.add_argument("--items", default=",".join(ITEMS), help=f"comma-separated subset of {', '.join(ITEMS)}, "
+                    f"and the opt-in {', '.join(OPT_IN)}")
     ap.add_argument("--device", default="cuda", choices=("cuda", "cpu"))
     ap.add_argument("--dry-run", action="store_true", help="with --device cpu: tiny configs, plumbing only (tests); "
                                                             "NOT a measurement")
     ap.add_argument("--inline", action="store_true", help="run the items in this process (no caps; tests)")
+    ap.add_argument("--work", type=Path, help="scratch folder: partial results, ONNX files, scene models (default "
+                                              "OUT/work; run_check.sh keeps it out of $OUT)")
+    ap.add_argument("--deadline", type=float, help="epoch seconds by which the run must have written its results: "
+                    "caps are cut to the time left, items past it are `not run` (run_check.sh sets it)")
+    ap.add_argument("--keep", action="store_true", help="keep the items of an earlier results.json in --out (a rerun "
+                                                        "of some items)")
+    ap.add_argument("--preflight", action="store_true", help="only check the node (imports, CUDA, onnxruntime's "
+                    "providers, nvcc / compiler / ninja, gsplat built) and exit: 0 ok, 3 with the reasons")
+    ap.add_argument("--build-gsplat", action="store_true", help="only build gsplat's CUDA kernels (its JIT build, "
+                    "resumable; run it under a time cap) and exit: 0 built, 4 not")
     ap.add_argument("--with-explore", action="store_true", help="also time the whole explore flow (backend onnx, "
                     f"tiny random-weight models at the paper's clip size; cap {EXPLORE_CAP} s, beyond the budget)")
-    ap.add_argument("--scene-models", type=Path, help="prepared models for --with-explore (default OUT/work/"
+    ap.add_argument("--scene-models", type=Path, help="prepared models for --with-explore (default WORK/"
                                                       "scene-models)")
     ap.add_argument("--prepare-scene-models", action="store_true", help="only export those models (CPU is enough; "
                                                                         "many minutes), then exit")
@@ -714,13 +1080,28 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.item:
         return child(args.item, args.spec)
+    if args.preflight:
+        pf = preflight("cpu" if args.dry_run else args.device)
+        print(preflight_text(pf), file=sys.stderr)
+        if args.out:
+            args.out.mkdir(parents=True, exist_ok=True)
+            _write_atomic(args.out / "preflight.json", json.dumps(pf, indent=1, default=str))
+        return 0 if pf["ok"] else 3
+    if args.build_gsplat:
+        res = build_gsplat()
+        print(json.dumps(res, default=str))
+        if args.out:
+            args.out.mkdir(parents=True, exist_ok=True)
+            _write_atomic(args.out / "gsplat-build.json", json.dumps(res, indent=1, default=str))
+        return 0 if res.get("built") else 4
     if args.out is None:
         ap.error("--out DIR is required")
     items = [i.strip() for i in args.items.split(",") if i.strip()]
-    if bad := [i for i in items if i not in ITEMS]:
-        ap.error(f"unknown item(s) {bad}; choose from {list(ITEMS)}")
+    if bad := [i for i in items if i not in CAPS]:
+        ap.error(f"unknown item(s) {bad}; choose from {list(ITEMS)} or the opt-in {list(OPT_IN)}")
+    work = args.work or args.out / "work"
     if args.prepare_scene_models:
-        models = args.scene_models or args.out / "work" / "scene-models"
+        models = args.scene_models or work / "scene-models"
         print(json.dumps(prepare_scene_models(models)))
         print(f"gpu_check: scene models ready in {models}", file=sys.stderr)
         return 0
@@ -734,18 +1115,31 @@ def main(argv: list[str] | None = None) -> int:
               f"`--device cpu --dry-run` only exercises the plumbing.", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    ctx = {"device": args.device, "dry_run": args.dry_run, "quick": args.quick, "work": str(args.out / "work"),
+    ctx = {"device": args.device, "dry_run": args.dry_run, "quick": args.quick, "work": str(work),
            "with_explore": args.with_explore, "scene_models": str(args.scene_models) if args.scene_models else None}
     os.makedirs(ctx["work"], exist_ok=True)
-    t0 = time.perf_counter()
-    results = run_all(ctx, items, inline=args.inline)
-    report = {"label": DRY_RUN_LABEL if args.dry_run else "measurement (random weights)", "dry_run": args.dry_run,
-              "quick": args.quick, "env": _env(), "items": results, "wall_s": time.perf_counter() - t0,
-              "paper_min_per_scene": PAPER_SCENE_MIN}
-    (args.out / "results.json").write_text(json.dumps(report, indent=1, default=str))
-    md = markdown(report)
-    (args.out / "results.md").write_text(md)
-    print(md)
+    previous = {}
+    if args.keep and (args.out / "results.json").is_file():
+        try:
+            previous = json.loads((args.out / "results.json").read_text()).get("items", {})
+        except ValueError:
+            previous = {}
+    env, t0 = _env(), time.perf_counter()
+    base = {"label": DRY_RUN_LABEL if args.dry_run else "measurement (random weights)", "dry_run": args.dry_run,
+            "quick": args.quick, "device": args.device, "env": env, "asked": items,
+            "paper_min_per_scene": PAPER_SCENE_MIN}
+
+    def write(results: dict, running: bool = True) -> dict:
+        report = base | {"items": results, "wall_s": time.perf_counter() - t0, "running": running}
+        report["limits"] = limits(report)
+        _write_atomic(args.out / "results.json", json.dumps(report, indent=1, default=str))
+        _write_atomic(args.out / "results.md", markdown(report))
+        return report
+
+    write(previous)
+    results = run_all(ctx, items, inline=args.inline, deadline=args.deadline, on_item=write, previous=previous)
+    report = write(results, running=False)
+    print(markdown(report))
     return 0
 
 

@@ -4,6 +4,8 @@ numbers are not measurements)."""
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import pytest
 
@@ -31,7 +33,8 @@ def test_refuses_without_cuda(gpu_check, tmp_path, monkeypatch, capsys):
 def test_item_caps_fit_the_budget(gpu_check):
     assert sum(full for full, _ in gpu_check.ITEMS.values()) <= 8 * 60 - 30
     assert sum(quick for _, quick in gpu_check.ITEMS.values()) <= 6 * 60
-    assert set(gpu_check.ITEMS) == set(gpu_check.FUNCS)
+    assert set(gpu_check.ITEMS) | set(gpu_check.OPT_IN) == set(gpu_check.FUNCS)
+    assert not set(gpu_check.ITEMS) & set(gpu_check.OPT_IN)
 
 
 def test_dry_run_plumbing(gpu_check, tmp_path):
@@ -55,9 +58,13 @@ def test_dry_run_plumbing(gpu_check, tmp_path):
 
 @pytest.mark.slow
 def test_dit_torch_vs_onnxruntime_dry_run(gpu_check, tmp_path):
-    """The DiT item end to end on the CPU: tiny config, torch fp32 vs its ONNX export on onnxruntime."""
+    """The opt-in ONNX item end to end on the CPU: tiny config, torch fp32 vs its ONNX export on onnxruntime; the
+    default DiT item times torch only and says where the export went."""
     ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path), "cap": 100}
-    res = gpu_check.item_dit(ctx)
+    plain = gpu_check.item_dit(ctx)
+    assert plain["status"] == "ok" and plain["ort"]["status"] == "not run" and "dit-onnx" in plain["ort"]["reason"]
+    assert "export_s" not in plain and not list(tmp_path.glob("*.onnx"))
+    res = gpu_check.item_dit_onnx(ctx)
     assert res["status"] == "ok" and res["config"] == "tiny"
     assert res["ort"]["providers"] == ["CPUExecutionProvider"]
     assert res["ort_vs_torch_max_rel_diff"] < 1e-4  # same weights, fp32 on both
@@ -94,3 +101,156 @@ def test_full_size_geometry_and_refiner_wire_up_on_the_meta_device(gpu_check, tm
     assert moge["status"] == "ok" and moge["tokens"] == 37 * 37 and moge["parameters"] > 3e8
     difix = gpu_check.item_difix(ctx)
     assert difix["status"] == "ok" and difix["size"] == 512 and difix["parameters"] > 9e8
+
+
+def test_failed_imports_are_reported_as_such(gpu_check, tmp_path, monkeypatch):
+    """A missing navcrafter (the tree not importable) or a missing dependency is a failed import naming the module,
+    never 'does not exist yet'; a fun-camera module that really is absent is 'not built'."""
+    import importlib
+
+    real_import = importlib.import_module
+
+    def no_navcrafter(name, *a, **k):
+        if name.startswith("navcrafter"):
+            raise ModuleNotFoundError("No module named 'navcrafter'", name="navcrafter")
+        return real_import(name, *a, **k)
+
+    ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path), "cap": 100}
+    monkeypatch.setattr(importlib, "import_module", no_navcrafter)
+    with pytest.raises(ModuleNotFoundError) as exc:
+        gpu_check.item_fun_camera(ctx)
+    r = gpu_check.item_error(exc.value)
+    assert r["status"] == "import error" and r["missing_module"] == "navcrafter"
+    assert "run_check.sh" in r["reason"] and "does not exist" not in r["reason"]
+
+    def no_funcamera(name, *a, **k):
+        if name == "navcrafter.models.synthesis.funcamera":
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(importlib, "import_module", no_funcamera)
+    assert gpu_check.item_fun_camera(ctx)["status"] == "not built"
+    monkeypatch.undo()
+
+    r = gpu_check.item_error(ModuleNotFoundError("No module named 'pydantic'", name="pydantic"))
+    assert r["status"] == "import error" and r["missing_module"] == "pydantic" and "wheels.txt" in r["reason"]
+
+
+def test_results_written_after_every_item_and_deadline(gpu_check, tmp_path, monkeypatch):
+    """results.json / results.md are rewritten after each item (a kill keeps what was measured); past the run's
+    deadline an item is 'not run' with the reason; a composition failure is recorded, not fatal."""
+    seen = []
+    monkeypatch.setitem(gpu_check.FUNCS, "moge", lambda ctx: {"status": "ok", "median_s": 0.5, "size": [1, 1],
+                                                               "tokens": 1})
+    monkeypatch.setitem(gpu_check.FUNCS, "scene", lambda ctx: {"status": "ok", "paper_settings": {}})
+    ctx = {"device": "cpu", "dry_run": True, "quick": True, "work": str(tmp_path)}
+    r = gpu_check.run_all(ctx, ["moge", "scene", "vggt"], inline=True, deadline=None,
+                          on_item=lambda res: seen.append(list(res)))
+    assert seen == [["moge"], ["moge", "scene"], ["moge", "scene", "vggt"]]
+    assert r["scene"]["composed"]["status"] == "error" and "KeyError" in r["scene"]["composed"]["error"]
+    import time
+
+    r = gpu_check.run_all(ctx, ["moge", "vggt"], inline=True, deadline=time.time() + 5)
+    assert r["moge"]["status"] == "not run" and "out of time" in r["moge"]["reason"]
+    assert r["vggt"]["status"] == "not run"
+
+
+def test_gsplat_not_built_is_reported_never_built_inside_an_item(gpu_check, tmp_path, monkeypatch):
+    monkeypatch.setattr(gpu_check, "gsplat_state", lambda: {"installed": True, "built": False, "reason": "not built"})
+    monkeypatch.setattr(gpu_check, "_bench_import", lambda name: pytest.fail("the item must not start gsplat"))
+    r = gpu_check.item_gsplat({"device": "cuda", "dry_run": False, "quick": False, "work": str(tmp_path)})
+    assert r["status"] == "not built" and r["reason"] == "not built"
+
+
+def test_preflight_and_gsplat_build_without_cuda(gpu_check, tmp_path):
+    """Here (no GPU): the CPU preflight passes its required checks (imports, torch) and reports the limits; the
+    CUDA preflight fails fast naming the missing device; the gsplat build says why it did not build."""
+    pf = gpu_check.preflight("cpu")
+    checks = {c["check"]: c for c in pf["checks"]}
+    assert pf["ok"], pf["fatal"]
+    assert checks["import navcrafter.models.synthesis.camcontrol"]["ok"]
+    assert not checks["gsplat built"]["ok"]
+    pf = gpu_check.preflight("cuda")
+    assert not pf["ok"] and any(f.startswith("cuda device") for f in pf["fatal"])
+    assert gpu_check.main(["--preflight", "--out", str(tmp_path)]) == 3
+    assert json.loads((tmp_path / "preflight.json").read_text())["ok"] is False
+    res = gpu_check.build_gsplat()
+    assert res["status"] in ("skipped", "error") and not res["built"]
+
+
+def test_gsplat_build_keeps_what_a_killed_build_left(gpu_check, tmp_path, monkeypatch):
+    """gsplat deletes its build folder before a fresh build (so a build killed at a cap starts over); the build
+    step skips that one deletion, so ninja resumes from the objects. Played with a stand-in gsplat whose
+    ``cuda._backend`` import does what gsplat 1.5.3's does: rmtree(build folder), then build gsplat_cuda.so."""
+    import shutil
+
+    import torch
+
+    pkg = tmp_path / "fake" / "gsplat"
+    (pkg / "cuda").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "cuda" / "__init__.py").write_text("")
+    (pkg / "cuda" / "_backend.py").write_text(
+        "import os, shutil\n"
+        "from torch.utils.cpp_extension import _get_build_directory\n"
+        "build = _get_build_directory('gsplat_cuda', verbose=False)\n"
+        "shutil.rmtree(build)\n"
+        "os.makedirs(build, exist_ok=True)\n"
+        "open(os.path.join(build, 'gsplat_cuda.so'), 'w').write('built')\n"
+        "_C = object()\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "fake"))
+    for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    monkeypatch.delenv("TORCH_CUDA_ARCH_LIST", raising=False)
+    monkeypatch.delenv("MAX_JOBS", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda *a: (9, 0))
+    left = tmp_path / "ext" / "gsplat_cuda" / "a_killed_build.o"
+    left.parent.mkdir(parents=True)
+    left.write_text("object")
+    st = gpu_check.gsplat_state()
+    assert st["installed"] and not st["built"] and "--build-gsplat" in st["reason"]
+    rmtree = shutil.rmtree
+    try:
+        res = gpu_check.build_gsplat()
+    finally:
+        for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+            del sys.modules[name]
+    assert res["status"] == "ok" and res["built"] and res["arch"] == "9.0"
+    assert left.read_text() == "object"  # the killed build's objects survived
+    assert shutil.rmtree is rmtree
+    assert gpu_check.build_gsplat()["note"] == "already built"
+
+
+def test_gsplat_item_loads_with_the_build_steps_arch_flags(gpu_check, tmp_path, monkeypatch):
+    """Without TORCH_CUDA_ARCH_LIST torch's JIT picks '9.0+PTX' for the card, not the build step's '9.0': another
+    command line, so ninja would recompile every kernel inside the item's cap. The item sets the build's value."""
+    import types
+
+    import torch
+
+    monkeypatch.delenv("TORCH_CUDA_ARCH_LIST", raising=False)
+    monkeypatch.delenv("MAX_JOBS", raising=False)
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda *a: (9, 0))
+    monkeypatch.setattr(gpu_check, "gsplat_state", lambda: {"installed": True, "built": True})
+    seen = {}
+
+    def run(ns):
+        seen["arch"] = os.environ.get("TORCH_CUDA_ARCH_LIST")
+        return {"status": "ok"}
+
+    fake = types.SimpleNamespace(refuse_without_cuda=lambda: None, run=run, markdown=lambda r: "")
+    monkeypatch.setattr(gpu_check, "_bench_import", lambda name: fake)
+    r = gpu_check.item_gsplat({"device": "cuda", "dry_run": False, "quick": True, "work": str(tmp_path)})
+    assert r["status"] == "ok" and seen["arch"] == "9.0"
+
+
+def test_explore_says_why_it_cannot_run_without_the_flow_stack(gpu_check, tmp_path, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
+    r = gpu_check.item_scene({"device": "cuda", "dry_run": False, "quick": False, "work": str(tmp_path), "cap": 600,
+                              "with_explore": True})
+    assert r["status"] == "ok" and r["explore"]["status"] == "skipped" and "open3d" in r["explore"]["reason"]
