@@ -623,3 +623,123 @@ def gather_slots(offsets, gids, n_tiles, n_chunks, slots, grads):
                 if g >= g_lo and g < g_hi:
                     for j in range(n_s):
                         grads[c, g, j] += slots[k, j]
+
+
+# --------------------------------------------------------------------------------------------------
+# Spherical harmonics (the 3DGS convention of models/gaussians/sh.py)
+# --------------------------------------------------------------------------------------------------
+_C0 = 0.28209479177387814
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+       1.445305721320277, -0.5900435899266435)
+
+
+@_jit
+def _sh_basis(degree, x, y, z, b, db):
+    """The ``(degree + 1)^2`` basis values at the unit direction (x, y, z) into ``b`` [16] and, when ``db`` has
+    rows, their derivatives into ``db`` [16, 3] (sh.py's ``sh_basis`` term by term)."""
+    grad = db.shape[0] > 0
+    b[0] = _C0
+    if grad:
+        for i in range(16):
+            db[i, 0] = db[i, 1] = db[i, 2] = 0.0
+    if degree >= 1:
+        b[1], b[2], b[3] = -_C1 * y, _C1 * z, -_C1 * x
+        if grad:
+            db[1, 1], db[2, 2], db[3, 0] = -_C1, _C1, -_C1
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        b[4] = _C2[0] * x * y
+        b[5] = _C2[1] * y * z
+        b[6] = _C2[2] * (2.0 * zz - xx - yy)
+        b[7] = _C2[3] * x * z
+        b[8] = _C2[4] * (xx - yy)
+        if grad:
+            db[4, 0], db[4, 1] = _C2[0] * y, _C2[0] * x
+            db[5, 1], db[5, 2] = _C2[1] * z, _C2[1] * y
+            db[6, 0], db[6, 1], db[6, 2] = -2.0 * _C2[2] * x, -2.0 * _C2[2] * y, 4.0 * _C2[2] * z
+            db[7, 0], db[7, 2] = _C2[3] * z, _C2[3] * x
+            db[8, 0], db[8, 1] = 2.0 * _C2[4] * x, -2.0 * _C2[4] * y
+    if degree >= 3:
+        xx, yy, zz = x * x, y * y, z * z
+        b[9] = _C3[0] * y * (3.0 * xx - yy)
+        b[10] = _C3[1] * x * y * z
+        b[11] = _C3[2] * y * (4.0 * zz - xx - yy)
+        b[12] = _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+        b[13] = _C3[4] * x * (4.0 * zz - xx - yy)
+        b[14] = _C3[5] * z * (xx - yy)
+        b[15] = _C3[6] * x * (xx - 3.0 * yy)
+        if grad:
+            db[9, 0], db[9, 1] = _C3[0] * 6.0 * x * y, _C3[0] * (3.0 * xx - 3.0 * yy)
+            db[10, 0], db[10, 1], db[10, 2] = _C3[1] * y * z, _C3[1] * x * z, _C3[1] * x * y
+            db[11, 0], db[11, 1], db[11, 2] = (-2.0 * _C3[2] * x * y, _C3[2] * (4.0 * zz - xx - 3.0 * yy),
+                                               8.0 * _C3[2] * y * z)
+            db[12, 0], db[12, 1], db[12, 2] = (-6.0 * _C3[3] * x * z, -6.0 * _C3[3] * y * z,
+                                               _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy))
+            db[13, 0], db[13, 1], db[13, 2] = (_C3[4] * (4.0 * zz - 3.0 * xx - yy), -2.0 * _C3[4] * x * y,
+                                               8.0 * _C3[4] * x * z)
+            db[14, 0], db[14, 1], db[14, 2] = 2.0 * _C3[5] * x * z, -2.0 * _C3[5] * y * z, _C3[5] * (xx - yy)
+            db[15, 0], db[15, 1] = _C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * _C3[6] * x * y
+
+
+@_jit
+def _unit_dir(means, campos, c, g):
+    dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
+    nrm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # torch.nn.functional.normalize's eps
+    return dx / nrm, dy / nrm, dz / nrm, nrm
+
+
+@_pjit
+def sh_forward(degree, means, campos, coeffs, rgb):
+    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
+    along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``)."""
+    n_cam, n = campos.shape[0], means.shape[0]
+    nb = (degree + 1) * (degree + 1)
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        b, db = np.empty(16), np.empty((0, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for c in range(n_cam):
+                x, y, z, _ = _unit_dir(means, campos, c, g)
+                _sh_basis(degree, x, y, z, b, db)
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(nb):
+                        acc += b[k] * coeffs[g, k, j]
+                    rgb[c, g, j] = max(acc + 0.5, 0.0)
+
+
+@_pjit
+def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
+    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
+    order; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``)."""
+    n_cam, n = campos.shape[0], means.shape[0]
+    nb = (degree + 1) * (degree + 1)
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        b, db = np.empty(16), np.empty((16, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for k in range(v_coeffs.shape[1]):
+                v_coeffs[g, k, 0] = v_coeffs[g, k, 1] = v_coeffs[g, k, 2] = 0.0
+            v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
+            for c in range(n_cam):
+                x, y, z, nrm = _unit_dir(means, campos, c, g)
+                _sh_basis(degree, x, y, z, b, db)
+                vd0 = vd1 = vd2 = 0.0
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(nb):
+                        acc += b[k] * coeffs[g, k, j]
+                    if acc + 0.5 < 0.0:
+                        continue
+                    v = v_rgb[c, g, j]
+                    for k in range(nb):
+                        v_coeffs[g, k, j] += b[k] * v
+                        vc = coeffs[g, k, j] * v
+                        vd0 += db[k, 0] * vc
+                        vd1 += db[k, 1] * vc
+                        vd2 += db[k, 2] * vc
+                # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
+                dot = x * vd0 + y * vd1 + z * vd2
+                v_means[g, 0] += (vd0 - x * dot) / nrm
+                v_means[g, 1] += (vd1 - y * dot) / nrm
+                v_means[g, 2] += (vd2 - z * dot) / nrm

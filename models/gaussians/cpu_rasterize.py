@@ -33,7 +33,13 @@ import torch
 from torch import Tensor
 
 from navcrafter.models.gaussians import cpu_kernels as K
-from navcrafter.models.gaussians.rasterize import DEFAULT_ALPHA_CLAMP, RenderMode, _check_inputs, render_gaussians
+from navcrafter.models.gaussians.rasterize import (
+    DEFAULT_ALPHA_CLAMP,
+    RenderMode,
+    _check_inputs,
+    render_gaussians,
+)
+from navcrafter.models.gaussians.rasterize import resolve_colors as torch_resolve_colors
 
 _LOCK = threading.Lock()
 
@@ -87,6 +93,36 @@ class _Covar(torch.autograd.Function):
 def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
     """:func:`~navcrafter.models.gaussians.rasterize.quat_scale_to_covar` on the compiled kernels."""
     return _Covar.apply(quats, scales)
+
+
+class _SH(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, degree, means, coeffs, campos):
+        m, co, cp = _np(means), _np(coeffs), _np(campos)
+        rgb = np.empty((len(cp), len(m), 3))
+        with _LOCK:
+            K.sh_forward(degree, m, cp, co, rgb)
+        ctx.arrays, ctx.degree, ctx.likes = (m, co, cp, rgb), degree, (means, coeffs)
+        return _out(rgb, means)
+
+    @staticmethod
+    def backward(ctx, v_rgb):
+        m, co, cp, rgb = ctx.arrays
+        v_m, v_co = np.empty_like(m), np.empty_like(co)
+        with _LOCK:
+            K.sh_backward(ctx.degree, m, cp, co, rgb, _np(v_rgb), v_m, v_co)
+        return None, _out(v_m, ctx.likes[0]), _out(v_co, ctx.likes[1]), None
+
+
+def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: int | None) -> Tensor:
+    """:func:`~navcrafter.models.gaussians.rasterize.resolve_colors` with the SH of shared coefficients
+    [N, K, 3] evaluated by the compiled kernels (per-camera coefficients and plain features: PyTorch's)."""
+    if sh_degree is None or colors.dim() != 3:
+        return torch_resolve_colors(means, colors, viewmats, sh_degree)
+    if colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2 or not 0 <= sh_degree <= 3:
+        return torch_resolve_colors(means, colors, viewmats, sh_degree)  # its checks name the problem
+    campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]
+    return _SH.apply(int(sh_degree), means, colors, campos)
 
 
 class _Project(torch.autograd.Function):
@@ -251,4 +287,4 @@ def rasterization(
                             Ks, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
                             eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
-                            alpha_clamp=alpha_clamp)
+                            alpha_clamp=alpha_clamp, colors_fn=resolve_colors)
