@@ -80,6 +80,8 @@ def instrument() -> None:
     for cls in (cpu_rasterize._Covar, cpu_rasterize._Project, cpu_rasterize._Composite):
         cls.backward = staticmethod(timed("rasterization backward", cls.backward))
     rasterize_module.resolve_colors = timed("SH evaluation (forward)", rasterize_module.resolve_colors)
+    if hasattr(cpu_rasterize, "resolve_colors"):  # the compiled SH (its backward is in "other backward")
+        cpu_rasterize.resolve_colors = timed("SH evaluation (forward)", cpu_rasterize.resolve_colors)
     T = train.GaussianTrainer
     T.losses = timed("losses (forward)", T.losses)
     T.step = timed("iteration", T.step)
