@@ -96,7 +96,7 @@ def instrument() -> None:
     fit_task.render_points = timed("cloud rendered into frames (step)", fit_task.render_points)
     fit_task.resize_image = timed("data loading: resize (step)", fit_task.resize_image)
     fit_task.frame_truth = timed("data loading: read (step)", fit_task.frame_truth)
-    SimulationMonoDepth.predict = timed("monocular depth (step, simulated role)", SimulationMonoDepth.predict)
+    SimulationMonoDepth.predict = timed("monocular depth, simulated role (step)", SimulationMonoDepth.predict)
     fit_task.load_lpips = timed("LPIPS weights (step)", fit_task.load_lpips)
     fit_task.heldout_metrics = timed("held-out metrics (step)", fit_task.heldout_metrics)
 
