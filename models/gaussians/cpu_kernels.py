@@ -1,6 +1,7 @@
 """Compiled CPU kernels of the 3DGS rasterizer (numba): projection, tile binning, compositing, backward passes.
 
-Plain functions over NumPy arrays, ``float64`` arithmetic inside whatever the input dtype; the autograd glue
+Plain functions over NumPy arrays: ``float64`` arithmetic per Gaussian (covariances, projection, SH, records)
+whatever the input dtype, and the compositing in the dtype of its inputs (see below); the autograd glue
 and the gsplat-shaped entry point are in :mod:`~navcrafter.models.gaussians.cpu_rasterize`. The maths is the
 one of :mod:`~navcrafter.models.gaussians.rasterize` (the PyTorch renderer these kernels are checked against):
 EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, per tile a

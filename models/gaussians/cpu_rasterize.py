@@ -1,15 +1,15 @@
 """The compiled CPU rasterizer: gsplat's ``rasterization`` contract on numba kernels (the default on the CPU).
 
 :func:`rasterization` takes exactly the arguments of :func:`~navcrafter.models.gaussians.rasterize.rasterization`
-(gsplat's signature) and gives the same results: the render modes, SH evaluation and input checks are that
-module's (``render_gaussians``); projection, tile binning and sorting, compositing and their backward passes
-run in :mod:`~navcrafter.models.gaussians.cpu_kernels` (float64 arithmetic, results in the inputs' dtype).
+(gsplat's signature) and gives the same results: the render modes and input checks are that module's
+(``render_gaussians``); covariances, projection, SH of shared coefficients, tile binning and sorting, compositing
+and their backward passes run in :mod:`~navcrafter.models.gaussians.cpu_kernels` (float64 arithmetic except the
+compositing, which computes in the inputs' dtype: float32 in a fit; results in the inputs' dtype).
 Tests hold both to each other and to the brute-force reference (``tests/models/gaussians/test_cpu_rasterizer.py``);
 ``benchmarks/rasterizer.py`` times them.
 
 Differentiable with respect to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (features or SH),
-``covars`` and ``backgrounds`` (the quaternion/scale -> covariance step is compiled too; SH evaluation stays in
-PyTorch); ``viewmats``
+``covars`` and ``backgrounds`` (per-camera SH coefficients [C, N, K, 3] are evaluated by PyTorch); ``viewmats``
 and ``Ks`` are not differentiated: a camera that needs gradients is refused with a pointer to the PyTorch
 renderer. ``meta["means2d"]`` is part of the graph (densification's ``retain_grad()`` works).
 
