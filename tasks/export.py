@@ -5,7 +5,9 @@
 * ``trajectory.json``    per frame: iteration, index, OpenCV camera-to-world pose, intrinsics;
 * ``trajectory.parquet`` the same rows with the ``schemas.tables.TRAJECTORIES`` schema;
 * when the fit ran (``fit.enabled``): ``gaussians.ply`` (the standard 3DGS PLY, ``models/gaussians/ply.py``)
-  and ``flythrough.mp4`` (the Gaussians rendered along the explored trajectory at the fit's resolution).
+  and ``flythrough.mp4`` (the Gaussians rendered along the explored trajectory at the fit's cameras and
+  resolution, each distinct frame once; the held-out frames' renders the fit (or refine) step stored are reused,
+  not rendered again: :func:`flythrough_frames`).
 
 Outputs of the simulation backend say so: a PLY header comment (both PLYs), a label burnt into the videos,
 a ``backend``/``label`` field in the JSON and a ``backend`` column in the table.
@@ -24,7 +26,7 @@ from navcrafter.models.gaussians.ply import save_ply
 from navcrafter.models.gaussians.train import render_model
 from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
-from navcrafter.schemas.layout import FIT, SYNTHESIZE
+from navcrafter.schemas.layout import FIT, REFINE, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
 from navcrafter.tasks.backends import run_band, run_label
 from navcrafter.tasks.readers import CameraPath, camera_path, load_gaussians, load_refined_gaussians
@@ -42,8 +44,8 @@ def trajectory_rows(path: CameraPath, scene_id: str, backend: str) -> list[dict]
     return rows
 
 
-def write_gaussian_exports(writer, scene, path: CameraPath, comments: list[str], band: str | None,
-                           fps: int, refined: bool = False) -> None:
+def write_gaussian_exports(writer, scene, comments: list[str], band: str | None, fps: int,
+                           refined: bool = False) -> None:
     """``gaussians.ply`` and ``flythrough.mp4`` of the fitted model (``gaussians`` group), or of the refined
     one (``renders`` group) when ``refined``."""
     model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
@@ -57,10 +59,28 @@ def write_gaussian_exports(writer, scene, path: CameraPath, comments: list[str],
     finally:
         if os.path.exists(ply):
             os.unlink(ply)
-    w, h = scene.status(FIT).attrs["resolution"]
-    K = np.stack([path.intrinsics(f).resize(w, h).K for f in range(len(path))])
-    frames = render_model(model, path.c2w, K, w, h)
+    frames = flythrough_frames(scene, model, refined)
     writer.write_file("flythrough.mp4", encode_mp4(label_frames(frames, band) if band else frames, fps))
+
+
+FLYTHROUGH_BATCH = 8  # cameras per rasterizer call
+
+
+def flythrough_frames(scene, model, refined: bool) -> np.ndarray:
+    """``model`` rendered at every camera of the fit (the explored trajectory as the geometry model estimated
+    it, the cameras the Gaussians were fitted at, each distinct frame once) at the fit's resolution: the
+    held-out frames' renders of the same model are the fit's ``holdout_renders`` (the refine step's when
+    ``refined``), reused as stored; the other frames are rendered in batches."""
+
+    g = scene.read_all(FIT)
+    w, h = scene.status(FIT).attrs["resolution"]
+    held = np.asarray(g["holdout"], dtype=bool)
+    stored = scene.read(REFINE, None, "holdout_renders") if refined else g["holdout_renders"]
+    frames = np.empty((len(held), h, w, 3), dtype=np.uint8)
+    frames[held] = stored
+    rest = np.nonzero(~held)[0]
+    frames[rest] = render_model(model, g["c2w"][rest], g["K"][rest], w, h, batch=FLYTHROUGH_BATCH)
+    return frames
 
 
 def export(ctx: StepContext) -> dict:
@@ -90,7 +110,7 @@ def export(ctx: StepContext) -> dict:
         doc["label"] = label
     writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
     if config.fit.enabled:
-        write_gaussian_exports(writer, scene, path, comments, band,
+        write_gaussian_exports(writer, scene, comments, band,
                                config.synthesis.fps, refined=config.refine.enabled)
     table = to_table("trajectories", rows)
     buf = io.BytesIO()

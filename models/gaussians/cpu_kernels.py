@@ -1,6 +1,7 @@
 """Compiled CPU kernels of the 3DGS rasterizer (numba): projection, tile binning, compositing, backward passes.
 
-Plain functions over NumPy arrays, ``float64`` arithmetic inside whatever the input dtype; the autograd glue
+Plain functions over NumPy arrays: ``float64`` arithmetic per Gaussian (covariances, projection, SH, records)
+whatever the input dtype, and the compositing in the dtype of its inputs (see below); the autograd glue
 and the gsplat-shaped entry point are in :mod:`~navcrafter.models.gaussians.cpu_rasterize`. The maths is the
 one of :mod:`~navcrafter.models.gaussians.rasterize` (the PyTorch renderer these kernels are checked against):
 EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, per tile a
@@ -26,11 +27,15 @@ import numpy as np
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER = "workqueue"
 
+CHUNK = 512  # Gaussians per parallel chunk of the per-Gaussian kernels (scratch arrays allocated per chunk)
 ALPHA_THRESHOLD = 1.0 / 255.0
 TRANSMITTANCE_STOP = 1e-4
 
 _jit = numba.njit(cache=True, fastmath=False, nogil=True)
 _pjit = numba.njit(cache=True, fastmath=False, nogil=True, parallel=True)
+_FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}  # not nnan / ninf: the code compares and clamps
+_fjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True)
+_pfjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, parallel=True)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -47,49 +52,53 @@ def _rotmat(w, x, y, z, R):
 def covar_forward(quats, scales, covars):
     """``covars`` [N, 3, 3] = ``R diag(s)^2 R^T`` of (w, x, y, z) ``quats`` [N, 4] (normalised here, as
     ``torch.nn.functional.normalize``) and ``scales`` [N, 3]."""
-    for g in numba.prange(quats.shape[0]):
-        nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
-        R = np.empty((3, 3))
-        _rotmat(quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm, R)
-        for i in range(3):
-            for j in range(3):
-                acc = 0.0
-                for k in range(3):
-                    acc += R[i, k] * scales[g, k] * scales[g, k] * R[j, k]
-                covars[g, i, j] = acc
+    n = quats.shape[0]
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        R = np.empty((3, 3))  # scratch per chunk: a heap allocation per Gaussian cost more than its maths
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
+            _rotmat(quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm, R)
+            for i in range(3):
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        acc += R[i, k] * scales[g, k] * scales[g, k] * R[j, k]
+                    covars[g, i, j] = acc
 
 
 @_pjit
 def covar_backward(quats, scales, v_covars, v_quats, v_scales):
     """Gradients of :func:`covar_forward` into ``v_quats`` [N, 4] and ``v_scales`` [N, 3]."""
-    for g in numba.prange(quats.shape[0]):
-        nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
-        w, x, y, z = quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm
+    n = quats.shape[0]
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         R = np.empty((3, 3))
-        _rotmat(w, x, y, z, R)
-        # Sigma = M M^T, M = R diag(s): v_M = (G + G^T) M
         vR = np.empty((3, 3))
-        for j in range(3):
-            v_scales[g, j] = 0.0
-        for i in range(3):
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
+            w, x, y, z = quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm
+            _rotmat(w, x, y, z, R)
+            # Sigma = M M^T, M = R diag(s): v_M = (G + G^T) M
             for j in range(3):
-                vm = 0.0
-                for k in range(3):
-                    vm += (v_covars[g, i, k] + v_covars[g, k, i]) * R[k, j] * scales[g, j]
-                vR[i, j] = vm * scales[g, j]
-                v_scales[g, j] += vm * R[i, j]
-        vw = 2 * (-z * vR[0, 1] + y * vR[0, 2] + z * vR[1, 0] - x * vR[1, 2] - y * vR[2, 0] + x * vR[2, 1])
-        vx = 2 * (y * vR[0, 1] + z * vR[0, 2] + y * vR[1, 0] - 2 * x * vR[1, 1] - w * vR[1, 2] + z * vR[2, 0]
-                  + w * vR[2, 1] - 2 * x * vR[2, 2])
-        vy = 2 * (-2 * y * vR[0, 0] + x * vR[0, 1] + w * vR[0, 2] + x * vR[1, 0] + z * vR[1, 2] - w * vR[2, 0]
-                  + z * vR[2, 1] - 2 * y * vR[2, 2])
-        vz = 2 * (-2 * z * vR[0, 0] - w * vR[0, 1] + x * vR[0, 2] + w * vR[1, 0] - 2 * z * vR[1, 1] + y * vR[1, 2]
-                  + x * vR[2, 0] + y * vR[2, 1])
-        dot = w * vw + x * vx + y * vy + z * vz
-        v_quats[g, 0] = (vw - w * dot) / nrm
-        v_quats[g, 1] = (vx - x * dot) / nrm
-        v_quats[g, 2] = (vy - y * dot) / nrm
-        v_quats[g, 3] = (vz - z * dot) / nrm
+                v_scales[g, j] = 0.0
+            for i in range(3):
+                for j in range(3):
+                    vm = 0.0
+                    for k in range(3):
+                        vm += (v_covars[g, i, k] + v_covars[g, k, i]) * R[k, j] * scales[g, j]
+                    vR[i, j] = vm * scales[g, j]
+                    v_scales[g, j] += vm * R[i, j]
+            vw = 2 * (-z * vR[0, 1] + y * vR[0, 2] + z * vR[1, 0] - x * vR[1, 2] - y * vR[2, 0] + x * vR[2, 1])
+            vx = 2 * (y * vR[0, 1] + z * vR[0, 2] + y * vR[1, 0] - 2 * x * vR[1, 1] - w * vR[1, 2] + z * vR[2, 0]
+                      + w * vR[2, 1] - 2 * x * vR[2, 2])
+            vy = 2 * (-2 * y * vR[0, 0] + x * vR[0, 1] + w * vR[0, 2] + x * vR[1, 0] + z * vR[1, 2] - w * vR[2, 0]
+                      + z * vR[2, 1] - 2 * y * vR[2, 2])
+            vz = 2 * (-2 * z * vR[0, 0] - w * vR[0, 1] + x * vR[0, 2] + w * vR[1, 0] - 2 * z * vR[1, 1] + y * vR[1, 2]
+                      + x * vR[2, 0] + y * vR[2, 1])
+            dot = w * vw + x * vx + y * vy + z * vz
+            v_quats[g, 0] = (vw - w * dot) / nrm
+            v_quats[g, 1] = (vx - x * dot) / nrm
+            v_quats[g, 2] = (vy - y * dot) / nrm
+            v_quats[g, 3] = (vz - z * dot) / nrm
 
 
 # --------------------------------------------------------------------------------------------------
@@ -145,31 +154,32 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
     [C, 3, 3]; writes ``means2d`` [C, N, 2], ``depths`` [C, N], ``conics`` [C, N, 3], ``radii`` [C, N]
     (int32, 0 = culled) and ``comps`` [C, N] (antialiasing compensation)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
-    for idx in numba.prange(n_cam * n):
-        c, g = idx // n, idx % n
+    for ch in numba.prange((n_cam * n + CHUNK - 1) // CHUNK):
         Sc = np.empty((3, 3))
-        x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
-                                                                          height, near, far, c, g, Sc)
-        depths[c, g] = z
-        a, b, d = _cov2d(Sc, j00, j02, j11, j12)
-        means2d[c, g, 0] = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
-        means2d[c, g, 1] = (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y + Ks[c, 1, 2] * zs) / zs
-        det_orig = a * d - b * b
-        a += eps2d
-        d += eps2d
-        det = a * d - b * b
-        valid = depth_ok and det > 0
-        det_safe = det if valid else 1.0
-        conics[c, g, 0] = d / det_safe
-        conics[c, g, 1] = -b / det_safe
-        conics[c, g, 2] = a / det_safe
-        comps[c, g] = math.sqrt(max(det_orig / det_safe, 0.0))
-        bb = 0.5 * (a + d)
-        v1 = bb + math.sqrt(max(bb * bb - det_safe, 0.01))
-        radius = math.ceil(3.0 * math.sqrt(v1))
-        u, v = means2d[c, g, 0], means2d[c, g, 1]
-        inside = (u + radius > 0) and (u - radius < width) and (v + radius > 0) and (v - radius < height)
-        radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
+        for idx in range(ch * CHUNK, min((ch + 1) * CHUNK, n_cam * n)):
+            c, g = idx // n, idx % n
+            x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
+                                                                              height, near, far, c, g, Sc)
+            depths[c, g] = z
+            a, b, d = _cov2d(Sc, j00, j02, j11, j12)
+            means2d[c, g, 0] = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
+            means2d[c, g, 1] = (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y + Ks[c, 1, 2] * zs) / zs
+            det_orig = a * d - b * b
+            a += eps2d
+            d += eps2d
+            det = a * d - b * b
+            valid = depth_ok and det > 0
+            det_safe = det if valid else 1.0
+            conics[c, g, 0] = d / det_safe
+            conics[c, g, 1] = -b / det_safe
+            conics[c, g, 2] = a / det_safe
+            comps[c, g] = math.sqrt(max(det_orig / det_safe, 0.0))
+            bb = 0.5 * (a + d)
+            v1 = bb + math.sqrt(max(bb * bb - det_safe, 0.01))
+            radius = math.ceil(3.0 * math.sqrt(v1))
+            u, v = means2d[c, g, 0], means2d[c, g, 1]
+            inside = (u + radius > 0) and (u - radius < width) and (v + radius > 0) and (v - radius < height)
+            radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
 
 
 @_pjit
@@ -178,99 +188,96 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
     """Gradients of :func:`project_forward`'s outputs into ``v_means`` [N, 3] and ``v_covars`` [N, 3, 3]
     (cameras summed in order per Gaussian)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
-    for g in numba.prange(n):
-        Sc = np.empty((3, 3))
-        for k in range(3):
-            v_means[g, k] = 0.0
-            for j in range(3):
-                v_covars[g, k, j] = 0.0
-        for c in range(n_cam):
-            R = viewmats[c, :3, :3]
-            x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
-                                                                              height, near, far, c, g, Sc)
-            fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-            lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
-            rx, ry = x / zs, y / zs
-            x_clamped = rx < -lxn or rx > lxp
-            y_clamped = ry < -lyn or ry > lyp
-            a0, b0, d0 = _cov2d(Sc, j00, j02, j11, j12)
-            a, d = a0 + eps2d, d0 + eps2d
-            det = a * d - b0 * b0
-            valid = depth_ok and det > 0
-            if not valid:
-                # culled: conics are constants (det_safe = 1 branch) and never rasterized; only depth flows
-                v_z = v_depths[c, g]
-                for k in range(3):
-                    v_means[g, k] += R[2, k] * v_z
-                continue
-            # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
-            q00, q01, q11 = d / det, -b0 / det, a / det
-            g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
-            # Q G Q (symmetric 2x2)
-            t00 = q00 * g00 + q01 * g01
-            t01 = q00 * g01 + q01 * g11
-            t10 = q01 * g00 + q11 * g01
-            t11 = q01 * g01 + q11 * g11
-            m00 = -(t00 * q00 + t01 * q01)
-            m01 = -(t00 * q01 + t01 * q11)
-            m11 = -(t10 * q01 + t11 * q11)
-            if use_comps:
-                det_orig = a0 * d0 - b0 * b0
-                ratio = det_orig / det
-                if ratio > 0:
-                    comp = math.sqrt(ratio)
-                    f = 0.5 / comp * v_comps[c, g] / (det * det)
-                    m00 += f * (d0 * det - det_orig * d)
-                    m11 += f * (a0 * det - det_orig * a)
-                    m01 += 0.5 * f * (-2.0 * b0 * det + 2.0 * b0 * det_orig)
-            # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric)
-            J = np.zeros((2, 3))
-            J[0, 0], J[0, 2], J[1, 1], J[1, 2] = j00, j02, j11, j12
-            Gm = np.empty((2, 2))
-            Gm[0, 0], Gm[0, 1], Gm[1, 0], Gm[1, 1] = m00, m01, m01, m11
-            GJ = np.empty((2, 3))
-            for i in range(2):
-                for k in range(3):
-                    GJ[i, k] = Gm[i, 0] * J[0, k] + Gm[i, 1] * J[1, k]
-            v_Sc = np.empty((3, 3))
-            for i in range(3):
-                for k in range(3):
-                    v_Sc[i, k] = J[0, i] * GJ[0, k] + J[1, i] * GJ[1, k]
-            v_J = np.empty((2, 3))
-            for i in range(2):
-                for k in range(3):
-                    v_J[i, k] = 2.0 * (GJ[i, 0] * Sc[0, k] + GJ[i, 1] * Sc[1, k] + GJ[i, 2] * Sc[2, k])
-            # J's dependence on zs, tx, ty
-            zs2, zs3 = zs * zs, zs * zs * zs
-            v_zs = -fx / zs2 * v_J[0, 0] - fy / zs2 * v_J[1, 1]
-            v_tx = -fx / zs2 * v_J[0, 2]
-            v_ty = -fy / zs2 * v_J[1, 2]
-            v_zs += 2.0 * fx * tx / zs3 * v_J[0, 2] + 2.0 * fy * ty / zs3 * v_J[1, 2]
-            v_x, v_y = 0.0, 0.0
-            if x_clamped:
-                v_zs += min(max(rx, -lxn), lxp) * v_tx
-            else:
-                v_x += v_tx
-            if y_clamped:
-                v_zs += min(max(ry, -lyn), lyp) * v_ty
-            else:
-                v_y += v_ty
-            # means2d = (K[:2] @ (x, y, zs)) / zs
-            vu, vv = v_means2d[c, g, 0], v_means2d[c, g, 1]
-            v_x += (Ks[c, 0, 0] * vu + Ks[c, 1, 0] * vv) / zs
-            v_y += (Ks[c, 0, 1] * vu + Ks[c, 1, 1] * vv) / zs
-            v_zs += -(vu * (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y) + vv * (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y)) / zs2
-            v_z = v_depths[c, g] + v_zs  # depth_ok holds here
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        Sc, J, Gm, GJ = np.empty((3, 3)), np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3))
+        v_Sc, v_J = np.empty((3, 3)), np.empty((2, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for k in range(3):
-                v_means[g, k] += R[0, k] * v_x + R[1, k] * v_y + R[2, k] * v_z
-            # Sc = R S R^T: dL/dS = R^T v_Sc R
-            for i in range(3):
+                v_means[g, k] = 0.0
+                for j in range(3):
+                    v_covars[g, k, j] = 0.0
+            for c in range(n_cam):
+                R = viewmats[c, :3, :3]
+                x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
+                                                                                  height, near, far, c, g, Sc)
+                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+                lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+                rx, ry = x / zs, y / zs
+                x_clamped = rx < -lxn or rx > lxp
+                y_clamped = ry < -lyn or ry > lyp
+                a0, b0, d0 = _cov2d(Sc, j00, j02, j11, j12)
+                a, d = a0 + eps2d, d0 + eps2d
+                det = a * d - b0 * b0
+                valid = depth_ok and det > 0
+                if not valid:
+                    # culled: conics are constants (det_safe = 1 branch) and never rasterized; only depth flows
+                    v_z = v_depths[c, g]
+                    for k in range(3):
+                        v_means[g, k] += R[2, k] * v_z
+                    continue
+                # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+                q00, q01, q11 = d / det, -b0 / det, a / det
+                g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
+                # Q G Q (symmetric 2x2)
+                t00 = q00 * g00 + q01 * g01
+                t01 = q00 * g01 + q01 * g11
+                t10 = q01 * g00 + q11 * g01
+                t11 = q01 * g01 + q11 * g11
+                m00 = -(t00 * q00 + t01 * q01)
+                m01 = -(t00 * q01 + t01 * q11)
+                m11 = -(t10 * q01 + t11 * q11)
+                if use_comps:
+                    det_orig = a0 * d0 - b0 * b0
+                    ratio = det_orig / det
+                    if ratio > 0:
+                        comp = math.sqrt(ratio)
+                        f = 0.5 / comp * v_comps[c, g] / (det * det)
+                        m00 += f * (d0 * det - det_orig * d)
+                        m11 += f * (a0 * det - det_orig * a)
+                        m01 += 0.5 * f * (-2.0 * b0 * det + 2.0 * b0 * det_orig)
+                # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric)
+                J[0, 0], J[0, 2], J[1, 1], J[1, 2] = j00, j02, j11, j12
+                Gm[0, 0], Gm[0, 1], Gm[1, 0], Gm[1, 1] = m00, m01, m01, m11
+                for i in range(2):
+                    for k in range(3):
+                        GJ[i, k] = Gm[i, 0] * J[0, k] + Gm[i, 1] * J[1, k]
+                for i in range(3):
+                    for k in range(3):
+                        v_Sc[i, k] = J[0, i] * GJ[0, k] + J[1, i] * GJ[1, k]
+                for i in range(2):
+                    for k in range(3):
+                        v_J[i, k] = 2.0 * (GJ[i, 0] * Sc[0, k] + GJ[i, 1] * Sc[1, k] + GJ[i, 2] * Sc[2, k])
+                # J's dependence on zs, tx, ty
+                zs2, zs3 = zs * zs, zs * zs * zs
+                v_zs = -fx / zs2 * v_J[0, 0] - fy / zs2 * v_J[1, 1]
+                v_tx = -fx / zs2 * v_J[0, 2]
+                v_ty = -fy / zs2 * v_J[1, 2]
+                v_zs += 2.0 * fx * tx / zs3 * v_J[0, 2] + 2.0 * fy * ty / zs3 * v_J[1, 2]
+                v_x, v_y = 0.0, 0.0
+                if x_clamped:
+                    v_zs += min(max(rx, -lxn), lxp) * v_tx
+                else:
+                    v_x += v_tx
+                if y_clamped:
+                    v_zs += min(max(ry, -lyn), lyp) * v_ty
+                else:
+                    v_y += v_ty
+                # means2d = (K[:2] @ (x, y, zs)) / zs
+                vu, vv = v_means2d[c, g, 0], v_means2d[c, g, 1]
+                v_x += (Ks[c, 0, 0] * vu + Ks[c, 1, 0] * vv) / zs
+                v_y += (Ks[c, 0, 1] * vu + Ks[c, 1, 1] * vv) / zs
+                v_zs += -(vu * (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y) + vv * (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y)) / zs2
+                v_z = v_depths[c, g] + v_zs  # depth_ok holds here
                 for k in range(3):
-                    s = 0.0
-                    for p in range(3):
-                        for q in range(3):
-                            s += R[p, i] * v_Sc[p, q] * R[q, k]
-                    v_covars[g, i, k] += s
+                    v_means[g, k] += R[0, k] * v_x + R[1, k] * v_y + R[2, k] * v_z
+                # Sc = R S R^T: dL/dS = R^T v_Sc R
+                for i in range(3):
+                    for k in range(3):
+                        s = 0.0
+                        for p in range(3):
+                            for q in range(3):
+                                s += R[p, i] * v_Sc[p, q] * R[q, k]
+                        v_covars[g, i, k] += s
 
 
 # --------------------------------------------------------------------------------------------------
@@ -343,47 +350,68 @@ def sort_tiles(offsets, gids, depths, n_tiles):
 # --------------------------------------------------------------------------------------------------
 # Compositing
 # --------------------------------------------------------------------------------------------------
-@_jit
-def _entry_box(m2x, m2y, q0, q1, q2, opacity, x_lo, x_hi, y_lo, y_hi):
-    """The pixels ``[x0, x1) x [y0, y1)`` of the tile ``[x_lo, x_hi) x [y_lo, y_hi)`` inside the bounding box
-    of a Gaussian's ``alpha >= 1/255`` ellipse ``q <= 2 ln(255 o)``, plus a pixel of margin (outside it every
-    pixel's alpha is below the threshold; the PyTorch renderer enumerates the same boxes)."""
-    extent = 2.0 * math.log(max(opacity * 255.0, 1.0))
-    if extent <= 0.0:
-        return 0, 0, 0, 0
-    inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
-    half_w = math.sqrt(extent * q2 * inv_det) + 1.0
-    half_h = math.sqrt(extent * q0 * inv_det) + 1.0
-    u, v = m2x - 0.5, m2y - 0.5
-    x0 = max(max(math.floor(u - half_w), 0), x_lo)
-    x1 = min(min(math.floor(u + half_w), x_hi - 1) + 1, x_hi)
-    y0 = max(max(math.floor(v - half_h), 0), y_lo)
-    y1 = min(min(math.floor(v + half_h), y_hi - 1) + 1, y_hi)
-    return x0, x1, y0, y1
+# The compositing kernels run in the dtype of their inputs (float32 in a fit, float64 in the parity tests): every
+# constant comes from ``cst`` (:func:`composite_constants`) and every pixel centre from an array of that dtype, so
+# no float64 literal promotes the per-pixel arithmetic. Fast-math without ``nnan``/``ninf`` (the code compares
+# and clamps; no infinities or NaNs are assumed away); the per-tile code is the same on any thread count.
+SIGMA_MARGIN = 1e-3  # a sigma cut's margin above ln(255 o): far above float32 rounding of the row spans
 
 
-@_jit
-def _sigma_cut(opacity):
-    """A ``sigma`` above which ``opacity * exp(-sigma) < 1/255`` for certain (``ln(255 o)`` plus a margin far
-    above rounding), so the exponential is skipped there; pairs below it take the exact test."""
-    return math.log(max(opacity * 255.0, 1e-300)) + 1e-6
+def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
+    """The compositing kernels' constants in the arithmetic's dtype: alpha clamp, 1/255, the transmittance
+    stop, 0.5, 1, 0, 2."""
+    return np.array([alpha_clamp, ALPHA_THRESHOLD, TRANSMITTANCE_STOP, 0.5, 1.0, 0.0, 2.0], dtype=dtype)
 
 
-@_jit
-def _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1):
-    """The columns ``[rx0, rx1)`` of ``[x0, x1)`` in one pixel row (offset ``dy`` from the mean) where ``sigma``
-    can be <= ``sigma_max``: the roots of ``q0/2 dx^2 + q1 dy dx + q2/2 dy^2 - sigma_max``, widened by a pixel.
-    ``sigma_max`` carries its own margin (``_sigma_cut``), so every pixel the exact test accepts is inside."""
-    if q0 <= 0.0:
-        return x0, x1
-    b = q1 * dy
-    disc = b * b - q0 * (q2 * dy * dy - 2.0 * sigma_max)
-    if disc < 0.0:
-        return x0, x0
-    root = math.sqrt(disc)
-    lo = mx - 0.5 + (-b - root) / q0
-    hi = mx - 0.5 + (-b + root) / q0
-    return max(x0, math.floor(lo)), max(min(x1, math.floor(hi) + 1), x0)
+# A list entry's record (:func:`pack_gaussians`, gathered per tile in list order by :func:`gather_entries`): the
+# compositing loops read one contiguous row per entry instead of five scattered arrays.
+R_MX, R_MY, R_Q0, R_Q1, R_Q2, R_O, R_CUT, R_INVQ0, R_X0, R_X1, R_Y0, R_Y1, R_FEAT = range(13)
+
+
+@_pjit
+def pack_gaussians(means2d, conics, opacities, colors, radii, width, height, rec):
+    """Per (camera, Gaussian), computed once per call instead of once per list entry, into ``rec`` [C, N,
+    13 + D] (the compositing dtype): the 2D mean, conic, opacity, the ``sigma`` above which ``o exp(-sigma) <
+    1/255`` for certain (``ln(255 o)`` plus ``SIGMA_MARGIN``; pairs below it take the exact test), ``1 / q0``,
+    the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 ln(255 o)`` plus a pixel of
+    margin (the PyTorch renderer enumerates the same boxes; empty when culled or never visible; clipped to the
+    image) and its features. float64 arithmetic: this is per Gaussian, not per pixel."""
+    n_cam, n = radii.shape
+    n_feat = colors.shape[2]
+    for idx in numba.prange(n_cam * n):
+        c, g = idx // n, idx % n
+        o = float(opacities[c, g])
+        q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
+        rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
+        rec[c, g, R_Q0], rec[c, g, R_Q1], rec[c, g, R_Q2], rec[c, g, R_O] = q0, q1, q2, o
+        rec[c, g, R_CUT] = math.log(max(o * 255.0, 1e-300)) + SIGMA_MARGIN
+        rec[c, g, R_INVQ0] = 1.0 / q0 if q0 > 0.0 else 0.0
+        for f in range(n_feat):
+            rec[c, g, R_FEAT + f] = colors[c, g, f]
+        extent = 2.0 * math.log(max(o * 255.0, 1.0))
+        if radii[c, g] <= 0 or extent <= 0.0:
+            rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
+            continue
+        inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
+        half_w = math.sqrt(extent * q2 * inv_det) + 1.0
+        half_h = math.sqrt(extent * q0 * inv_det) + 1.0
+        u, v = float(means2d[c, g, 0]) - 0.5, float(means2d[c, g, 1]) - 0.5
+        rec[c, g, R_X0] = min(max(math.floor(u - half_w), 0), width)
+        rec[c, g, R_X1] = min(max(math.floor(u + half_w) + 1, 0), width)
+        rec[c, g, R_Y0] = min(max(math.floor(v - half_h), 0), height)
+        rec[c, g, R_Y1] = min(max(math.floor(v + half_h) + 1, 0), height)
+
+
+@_pjit
+def gather_entries(offsets, gids, n_tiles, rec, ent):
+    """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel)."""
+    n_rec = rec.shape[2]
+    for t in numba.prange(offsets.shape[0] - 1):
+        c = t // n_tiles
+        for k in range(offsets[t], offsets[t + 1]):
+            g = gids[k]
+            for j in range(n_rec):
+                ent[k, j] = rec[c, g, j]
 
 
 @_jit
@@ -395,25 +423,33 @@ def _tile(t, n_tiles, tile_w, tile_size, width, height):
     return c, x_lo, min(x_lo + tile_size, width), y_lo, min(y_lo + tile_size, height)
 
 
-@_jit
-def _entry(means2d, conics, opacities, c, g, x_lo, x_hi, y_lo, y_hi):
-    """What a list entry's pixels need: Gaussian g's 2D mean, conic, opacity, ``sigma`` cut and its alpha box
-    inside the tile."""
-    mx, my = means2d[c, g, 0], means2d[c, g, 1]
-    q0, q1, q2, o = conics[c, g, 0], conics[c, g, 1], conics[c, g, 2], opacities[c, g]
-    x0, x1, y0, y1 = _entry_box(mx, my, q0, q1, q2, o, x_lo, x_hi, y_lo, y_hi)
-    return mx, my, q0, q1, q2, o, _sigma_cut(o), x0, x1, y0, y1
+@_fjit
+def _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1):
+    """The columns ``[rx0, rx1)`` of ``[x0, x1)`` in one pixel row (offset ``dy`` from the mean) where ``sigma``
+    can be <= ``cut``: the roots of ``q0/2 dx^2 + q1 dy dx + q2/2 dy^2 - cut``. ``cut`` carries its own margin
+    (``SIGMA_MARGIN``), so every pixel the exact test accepts is inside."""
+    if q0 <= zero:
+        return x0, x1
+    b = q1 * dy
+    disc = b * b - q0 * (q2 * dy * dy - two * cut)
+    if disc < zero:
+        return x0, x0
+    root = math.sqrt(disc)
+    lo = mx - half + (-b - root) * inv_q0
+    hi = mx - half + (-b + root) * inv_q0
+    return max(x0, math.floor(lo)), max(min(x1, math.floor(hi) + 1), x0)
 
 
-@_pjit
-def composite_forward(means2d, conics, colors, opacities, offsets, gids, width, height, tile_size, tile_w,
-                      alpha_clamp, backgrounds, use_bg, render, t_final, last):
+@_pfjit
+def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, render, t_final, last):
     """Front-to-back compositing: ``render`` [C, H, W, D], ``t_final`` [C, H, W] (final transmittance),
     ``last`` [C, H, W] (one past the list position of the pixel's last contribution).
 
     Per tile, Gaussian-major: the tile's list is walked once in depth order and each entry visits only the
-    pixels of its alpha box, so the work is the candidate pairs, not pixels x list length; each pixel still
-    sees its Gaussians front to back with the same arithmetic as a per-pixel loop."""
+    pixels of its alpha box, row by row within the row's span of its ellipse, so the work is the candidate
+    pairs, not pixels x list length; each pixel still sees its Gaussians front to back with the same arithmetic
+    as a per-pixel loop. The tile's state (transmittance, accumulated features) lives in contiguous arrays."""
+    alpha_clamp, athr, tstop, half, one, zero, two = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
     n_cam = render.shape[0]
     n_feat = render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
@@ -423,57 +459,71 @@ def composite_forward(means2d, conics, colors, opacities, offsets, gids, width, 
         lo, hi = offsets[t], offsets[t + 1]
         tw = x_hi - x_lo
         n_px = tw * (y_hi - y_lo)
-        T = np.ones(n_px)
-        acc = np.zeros((n_px, n_feat))
+        T = np.ones(n_px, cst.dtype)
+        acc = np.zeros(n_px * n_feat, cst.dtype)
         done = np.zeros(n_px, dtype=np.bool_)
         end = np.full(n_px, lo, dtype=np.int64)
+        xc = np.empty(tw, cst.dtype)
+        for i in range(tw):
+            xc[i] = x_lo + i + 0.5
+        yc = np.empty(y_hi - y_lo, cst.dtype)
+        for i in range(y_hi - y_lo):
+            yc[i] = y_lo + i + 0.5
         n_done = 0
         for k in range(lo, hi):
             if n_done == n_px:
                 break
-            g = gids[k]
-            mx, my, q0, q1, q2, o, sigma_max, x0, x1, y0, y1 = _entry(means2d, conics, opacities, c, g,
-                                                                      x_lo, x_hi, y_lo, y_hi)
+            e_ = ent[k]
+            x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
+            y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
+            if x0 >= x1 or y0 >= y1:
+                continue
+            mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
+            o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
             for py in range(y0, y1):
-                dy = py + 0.5 - my
-                rx0, rx1 = _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1)
+                dy = yc[py - y_lo] - my
+                rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
+                row = (py - y_lo) * tw - x_lo
                 for px in range(rx0, rx1):
-                    p = (py - y_lo) * tw + (px - x_lo)
+                    p = row + px
                     if done[p]:
                         continue
-                    dx = px + 0.5 - mx
-                    sigma = 0.5 * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
-                    if sigma < 0.0 or sigma > sigma_max:
+                    dx = xc[px - x_lo] - mx
+                    sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+                    if sigma < zero or sigma > cut:
                         continue
                     alpha = min(alpha_clamp, o * math.exp(-sigma))
-                    if alpha < ALPHA_THRESHOLD:
+                    if alpha < athr:
                         continue
-                    nt = T[p] * (1.0 - alpha)
-                    if nt <= TRANSMITTANCE_STOP:
+                    tp = T[p]
+                    nt = tp * (one - alpha)
+                    if nt <= tstop:
                         done[p] = True
                         n_done += 1
                         continue
-                    w = alpha * T[p]
+                    w = alpha * tp
                     for f in range(n_feat):
-                        acc[p, f] += w * colors[c, g, f]
+                        acc[p * n_feat + f] += w * e_[R_FEAT + f]
                     T[p] = nt
                     end[p] = k + 1
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
                 p = (py - y_lo) * tw + (px - x_lo)
                 for f in range(n_feat):
-                    render[c, py, px, f] = acc[p, f] + (T[p] * backgrounds[c, f] if use_bg else 0.0)
+                    render[c, py, px, f] = acc[p * n_feat + f] + (T[p] * backgrounds[c, f] if use_bg else zero)
                 t_final[c, py, px] = T[p]
                 last[c, py, px] = end[p]
 
 
-@_pjit
-def composite_backward(means2d, conics, colors, opacities, offsets, gids, width, height, tile_size, tile_w,
-                       alpha_clamp, backgrounds, use_bg, t_final, last, v_render, v_alphas,
-                       s_means2d, s_conics, s_colors, s_opacities):
+@_pfjit
+def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final, last,
+                       v_render, v_alphas, slots):
     """Gradients of each list entry (tile, Gaussian) into the slots ``s_*`` [n_isects, ...] (a tile writes
     only its own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
-    front, so each pixel sees its contributions in reverse order (transmittance recovered by division)."""
+    front, so each pixel sees its contributions in reverse order (transmittance recovered by division from
+    forward's final transmittance; forward's last index skips the pairs behind a pixel's stop). Per-entry sums
+    are float64."""
+    alpha_clamp, athr, half, one, zero, two = cst[0], cst[1], cst[3], cst[4], cst[5], cst[6]
     n_cam = v_render.shape[0]
     n_feat = v_render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
@@ -483,74 +533,214 @@ def composite_backward(means2d, conics, colors, opacities, offsets, gids, width,
         lo, hi = offsets[t], offsets[t + 1]
         tw = x_hi - x_lo
         n_px = tw * (y_hi - y_lo)
-        T = np.empty(n_px)
-        behind = np.empty((n_px, n_feat))
+        T = np.empty(n_px, cst.dtype)
+        va = np.empty(n_px, cst.dtype)
+        lastl = np.empty(n_px, np.int64)
+        behind = np.empty(n_px * n_feat, cst.dtype)
+        vr = np.empty(n_px * n_feat, cst.dtype)
+        gcol = np.empty(n_feat)
+        xc = np.empty(tw, cst.dtype)
+        for i in range(tw):
+            xc[i] = x_lo + i + 0.5
+        yc = np.empty(y_hi - y_lo, cst.dtype)
+        for i in range(y_hi - y_lo):
+            yc[i] = y_lo + i + 0.5
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
                 p = (py - y_lo) * tw + (px - x_lo)
                 T[p] = t_final[c, py, px]
+                va[p] = v_alphas[c, py, px] * t_final[c, py, px]
+                lastl[p] = last[c, py, px]
                 for f in range(n_feat):
-                    behind[p, f] = T[p] * backgrounds[c, f] if use_bg else 0.0
+                    behind[p * n_feat + f] = T[p] * backgrounds[c, f] if use_bg else zero
+                    vr[p * n_feat + f] = v_render[c, py, px, f]
         for k in range(hi - 1, lo - 1, -1):
-            g = gids[k]
-            mx, my, q0, q1, q2, o, sigma_max, x0, x1, y0, y1 = _entry(means2d, conics, opacities, c, g,
-                                                                      x_lo, x_hi, y_lo, y_hi)
+            e_ = ent[k]
             g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
             for f in range(n_feat):
-                s_colors[k, f] = 0.0
-            for py in range(y0, y1):
-                dy = py + 0.5 - my
-                rx0, rx1 = _row_span(dy, mx, q0, q1, q2, sigma_max, x0, x1)
-                for px in range(rx0, rx1):
-                    if k >= last[c, py, px]:
-                        continue
-                    p = (py - y_lo) * tw + (px - x_lo)
-                    dx = px + 0.5 - mx
-                    sigma = 0.5 * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
-                    if sigma < 0.0 or sigma > sigma_max:
-                        continue
-                    e = math.exp(-sigma)
-                    raw = o * e
-                    alpha = min(alpha_clamp, raw)
-                    if alpha < ALPHA_THRESHOLD:
-                        continue
-                    ra = 1.0 / (1.0 - alpha)
-                    Ti = T[p] * ra
-                    w = alpha * Ti
-                    v_alpha = v_alphas[c, py, px] * t_final[c, py, px] * ra
-                    for f in range(n_feat):
-                        vc = v_render[c, py, px, f]
-                        s_colors[k, f] += w * vc
-                        v_alpha += vc * (Ti * colors[c, g, f] - behind[p, f] * ra)
-                        behind[p, f] += w * colors[c, g, f]
-                    T[p] = Ti
-                    if raw <= alpha_clamp:
-                        g_o += v_alpha * e
-                        v_sigma = -v_alpha * alpha
-                        g_q0 += 0.5 * v_sigma * dx * dx
-                        g_q1 += v_sigma * dx * dy
-                        g_q2 += 0.5 * v_sigma * dy * dy
-                        g_mx -= v_sigma * (q0 * dx + q1 * dy)
-                        g_my -= v_sigma * (q1 * dx + q2 * dy)
-            s_means2d[k, 0], s_means2d[k, 1] = g_mx, g_my
-            s_conics[k, 0], s_conics[k, 1], s_conics[k, 2] = g_q0, g_q1, g_q2
-            s_opacities[k] = g_o
+                gcol[f] = 0.0
+            x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
+            y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
+            if x0 < x1 and y0 < y1:
+                mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
+                o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
+                for py in range(y0, y1):
+                    dy = yc[py - y_lo] - my
+                    rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
+                    row = (py - y_lo) * tw - x_lo
+                    for px in range(rx0, rx1):
+                        p = row + px
+                        if k >= lastl[p]:
+                            continue
+                        dx = xc[px - x_lo] - mx
+                        sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+                        if sigma < zero or sigma > cut:
+                            continue
+                        e = math.exp(-sigma)
+                        raw = o * e
+                        alpha = min(alpha_clamp, raw)
+                        if alpha < athr:
+                            continue
+                        ra = one / (one - alpha)
+                        Ti = T[p] * ra
+                        w = alpha * Ti
+                        v_alpha = va[p] * ra
+                        for f in range(n_feat):
+                            vc = vr[p * n_feat + f]
+                            cf = e_[R_FEAT + f]
+                            gcol[f] += w * vc
+                            v_alpha += vc * (Ti * cf - behind[p * n_feat + f] * ra)
+                            behind[p * n_feat + f] += w * cf
+                        T[p] = Ti
+                        if raw <= alpha_clamp:
+                            g_o += v_alpha * e
+                            v_sigma = -v_alpha * alpha
+                            hv = half * v_sigma
+                            g_q0 += hv * dx * dx
+                            g_q1 += v_sigma * dx * dy
+                            g_q2 += hv * dy * dy
+                            g_mx -= v_sigma * (q0 * dx + q1 * dy)
+                            g_my -= v_sigma * (q1 * dx + q2 * dy)
+            slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
+            slots[k, 5] = g_o
+            for f in range(n_feat):
+                slots[k, 6 + f] = gcol[f]
+
+
+@_pjit
+def gather_slots(offsets, gids, n_tiles, n_chunks, slots, grads):
+    """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features) = the sums of the list entries' ``slots``
+    [n_isects, 6 + D] per (camera, Gaussian), in list order (deterministic for any thread count): each parallel
+    chunk (``n_chunks``: the thread count) owns a range of Gaussians and scans the list for them."""
+    n_s = slots.shape[1]
+    n = grads.shape[1]
+    step = (n + n_chunks - 1) // n_chunks
+    for ch in numba.prange(n_chunks):
+        g_lo, g_hi = ch * step, min((ch + 1) * step, n)
+        for t in range(offsets.shape[0] - 1):
+            c = t // n_tiles
+            for k in range(offsets[t], offsets[t + 1]):
+                g = gids[k]
+                if g >= g_lo and g < g_hi:
+                    for j in range(n_s):
+                        grads[c, g, j] += slots[k, j]
+
+
+# --------------------------------------------------------------------------------------------------
+# Spherical harmonics (the 3DGS convention of models/gaussians/sh.py)
+# --------------------------------------------------------------------------------------------------
+_C0 = 0.28209479177387814
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+       1.445305721320277, -0.5900435899266435)
 
 
 @_jit
-def gather_slots(offsets, gids, n_tiles, s_means2d, s_conics, s_colors, s_opacities,
-                 v_means2d, v_conics, v_colors, v_opacities):
-    """Sum the list entries' gradients per (camera, Gaussian), in list order (deterministic)."""
-    n_feat = s_colors.shape[1]
-    for t in range(offsets.shape[0] - 1):
-        c = t // n_tiles
-        for k in range(offsets[t], offsets[t + 1]):
-            g = gids[k]
-            v_means2d[c, g, 0] += s_means2d[k, 0]
-            v_means2d[c, g, 1] += s_means2d[k, 1]
-            v_conics[c, g, 0] += s_conics[k, 0]
-            v_conics[c, g, 1] += s_conics[k, 1]
-            v_conics[c, g, 2] += s_conics[k, 2]
-            v_opacities[c, g] += s_opacities[k]
-            for f in range(n_feat):
-                v_colors[c, g, f] += s_colors[k, f]
+def _sh_basis(degree, x, y, z, b, db):
+    """The ``(degree + 1)^2`` basis values at the unit direction (x, y, z) into ``b`` [16] and, when ``db`` has
+    rows, their derivatives into ``db`` [16, 3] (sh.py's ``sh_basis`` term by term)."""
+    grad = db.shape[0] > 0
+    b[0] = _C0
+    if grad:
+        for i in range(16):
+            db[i, 0] = db[i, 1] = db[i, 2] = 0.0
+    if degree >= 1:
+        b[1], b[2], b[3] = -_C1 * y, _C1 * z, -_C1 * x
+        if grad:
+            db[1, 1], db[2, 2], db[3, 0] = -_C1, _C1, -_C1
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        b[4] = _C2[0] * x * y
+        b[5] = _C2[1] * y * z
+        b[6] = _C2[2] * (2.0 * zz - xx - yy)
+        b[7] = _C2[3] * x * z
+        b[8] = _C2[4] * (xx - yy)
+        if grad:
+            db[4, 0], db[4, 1] = _C2[0] * y, _C2[0] * x
+            db[5, 1], db[5, 2] = _C2[1] * z, _C2[1] * y
+            db[6, 0], db[6, 1], db[6, 2] = -2.0 * _C2[2] * x, -2.0 * _C2[2] * y, 4.0 * _C2[2] * z
+            db[7, 0], db[7, 2] = _C2[3] * z, _C2[3] * x
+            db[8, 0], db[8, 1] = 2.0 * _C2[4] * x, -2.0 * _C2[4] * y
+    if degree >= 3:
+        xx, yy, zz = x * x, y * y, z * z
+        b[9] = _C3[0] * y * (3.0 * xx - yy)
+        b[10] = _C3[1] * x * y * z
+        b[11] = _C3[2] * y * (4.0 * zz - xx - yy)
+        b[12] = _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+        b[13] = _C3[4] * x * (4.0 * zz - xx - yy)
+        b[14] = _C3[5] * z * (xx - yy)
+        b[15] = _C3[6] * x * (xx - 3.0 * yy)
+        if grad:
+            db[9, 0], db[9, 1] = _C3[0] * 6.0 * x * y, _C3[0] * (3.0 * xx - 3.0 * yy)
+            db[10, 0], db[10, 1], db[10, 2] = _C3[1] * y * z, _C3[1] * x * z, _C3[1] * x * y
+            db[11, 0], db[11, 1], db[11, 2] = (-2.0 * _C3[2] * x * y, _C3[2] * (4.0 * zz - xx - 3.0 * yy),
+                                               8.0 * _C3[2] * y * z)
+            db[12, 0], db[12, 1], db[12, 2] = (-6.0 * _C3[3] * x * z, -6.0 * _C3[3] * y * z,
+                                               _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy))
+            db[13, 0], db[13, 1], db[13, 2] = (_C3[4] * (4.0 * zz - 3.0 * xx - yy), -2.0 * _C3[4] * x * y,
+                                               8.0 * _C3[4] * x * z)
+            db[14, 0], db[14, 1], db[14, 2] = 2.0 * _C3[5] * x * z, -2.0 * _C3[5] * y * z, _C3[5] * (xx - yy)
+            db[15, 0], db[15, 1] = _C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * _C3[6] * x * y
+
+
+@_jit
+def _unit_dir(means, campos, c, g):
+    dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
+    nrm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # torch.nn.functional.normalize's eps
+    return dx / nrm, dy / nrm, dz / nrm, nrm
+
+
+@_pjit
+def sh_forward(degree, means, campos, coeffs, rgb):
+    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
+    along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``)."""
+    n_cam, n = campos.shape[0], means.shape[0]
+    nb = (degree + 1) * (degree + 1)
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        b, db = np.empty(16), np.empty((0, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for c in range(n_cam):
+                x, y, z, _ = _unit_dir(means, campos, c, g)
+                _sh_basis(degree, x, y, z, b, db)
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(nb):
+                        acc += b[k] * coeffs[g, k, j]
+                    rgb[c, g, j] = max(acc + 0.5, 0.0)
+
+
+@_pjit
+def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
+    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
+    order; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``)."""
+    n_cam, n = campos.shape[0], means.shape[0]
+    nb = (degree + 1) * (degree + 1)
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        b, db = np.empty(16), np.empty((16, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for k in range(v_coeffs.shape[1]):
+                v_coeffs[g, k, 0] = v_coeffs[g, k, 1] = v_coeffs[g, k, 2] = 0.0
+            v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
+            for c in range(n_cam):
+                x, y, z, nrm = _unit_dir(means, campos, c, g)
+                _sh_basis(degree, x, y, z, b, db)
+                vd0 = vd1 = vd2 = 0.0
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(nb):
+                        acc += b[k] * coeffs[g, k, j]
+                    if acc + 0.5 < 0.0:
+                        continue
+                    v = v_rgb[c, g, j]
+                    for k in range(nb):
+                        v_coeffs[g, k, j] += b[k] * v
+                        vc = coeffs[g, k, j] * v
+                        vd0 += db[k, 0] * vc
+                        vd1 += db[k, 1] * vc
+                        vd2 += db[k, 2] * vc
+                # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
+                dot = x * vd0 + y * vd1 + z * vd2
+                v_means[g, 0] += (vd0 - x * dot) / nrm
+                v_means[g, 1] += (vd1 - y * dot) / nrm
+                v_means[g, 2] += (vd2 - z * dot) / nrm

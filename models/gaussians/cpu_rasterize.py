@@ -1,15 +1,15 @@
 """The compiled CPU rasterizer: gsplat's ``rasterization`` contract on numba kernels (the default on the CPU).
 
 :func:`rasterization` takes exactly the arguments of :func:`~navcrafter.models.gaussians.rasterize.rasterization`
-(gsplat's signature) and gives the same results: the render modes, SH evaluation and input checks are that
-module's (``render_gaussians``); projection, tile binning and sorting, compositing and their backward passes
-run in :mod:`~navcrafter.models.gaussians.cpu_kernels` (float64 arithmetic, results in the inputs' dtype).
+(gsplat's signature) and gives the same results: the render modes and input checks are that module's
+(``render_gaussians``); covariances, projection, SH of shared coefficients, tile binning and sorting, compositing
+and their backward passes run in :mod:`~navcrafter.models.gaussians.cpu_kernels` (float64 arithmetic except the
+compositing, which computes in the inputs' dtype: float32 in a fit; results in the inputs' dtype).
 Tests hold both to each other and to the brute-force reference (``tests/models/gaussians/test_cpu_rasterizer.py``);
 ``benchmarks/rasterizer.py`` times them.
 
 Differentiable with respect to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (features or SH),
-``covars`` and ``backgrounds`` (the quaternion/scale -> covariance step is compiled too; SH evaluation stays in
-PyTorch); ``viewmats``
+``covars`` and ``backgrounds`` (per-camera SH coefficients [C, N, K, 3] are evaluated by PyTorch); ``viewmats``
 and ``Ks`` are not differentiated: a camera that needs gradients is refused with a pointer to the PyTorch
 renderer. ``meta["means2d"]`` is part of the graph (densification's ``retain_grad()`` works).
 
@@ -27,20 +27,25 @@ from __future__ import annotations
 import threading
 from typing import Literal
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
 
 from navcrafter.models.gaussians import cpu_kernels as K
-from navcrafter.models.gaussians.rasterize import DEFAULT_ALPHA_CLAMP, RenderMode, _check_inputs, render_gaussians
+from navcrafter.models.gaussians.rasterize import (
+    DEFAULT_ALPHA_CLAMP,
+    RenderMode,
+    _check_inputs,
+    render_gaussians,
+)
+from navcrafter.models.gaussians.rasterize import resolve_colors as torch_resolve_colors
 
 _LOCK = threading.Lock()
 
 
 def set_threads(threads: int | None) -> int:
     """Use ``threads`` of numba's threads (None: all of them); returns the number in use."""
-    import numba
-
     top = numba.config.NUMBA_NUM_THREADS
     if threads is not None:
         if threads < 1:
@@ -55,6 +60,11 @@ def _np(t: Tensor) -> np.ndarray:
     """A float64, C-contiguous NumPy copy of ``t`` (always a copy: the autograd functions keep these arrays for
     the backward pass, and a view would silently follow an in-place change of a float64 input)."""
     return np.array(t.detach().to(device="cpu", dtype=torch.float64).numpy(), dtype=np.float64, order="C", copy=True)
+
+
+def _np_native(t: Tensor, dtype) -> np.ndarray:
+    """A C-contiguous NumPy copy of ``t`` in ``dtype`` (float32 or float64: the compositing kernels' arithmetic)."""
+    return np.array(t.detach().to(device="cpu").numpy(), dtype=dtype, order="C", copy=True)
 
 
 def _out(a: np.ndarray, like: Tensor) -> Tensor:
@@ -83,6 +93,36 @@ class _Covar(torch.autograd.Function):
 def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
     """:func:`~navcrafter.models.gaussians.rasterize.quat_scale_to_covar` on the compiled kernels."""
     return _Covar.apply(quats, scales)
+
+
+class _SH(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, degree, means, coeffs, campos):
+        m, co, cp = _np(means), _np(coeffs), _np(campos)
+        rgb = np.empty((len(cp), len(m), 3))
+        with _LOCK:
+            K.sh_forward(degree, m, cp, co, rgb)
+        ctx.arrays, ctx.degree, ctx.likes = (m, co, cp, rgb), degree, (means, coeffs)
+        return _out(rgb, means)
+
+    @staticmethod
+    def backward(ctx, v_rgb):
+        m, co, cp, rgb = ctx.arrays
+        v_m, v_co = np.empty_like(m), np.empty_like(co)
+        with _LOCK:
+            K.sh_backward(ctx.degree, m, cp, co, rgb, _np(v_rgb), v_m, v_co)
+        return None, _out(v_m, ctx.likes[0]), _out(v_co, ctx.likes[1]), None
+
+
+def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: int | None) -> Tensor:
+    """:func:`~navcrafter.models.gaussians.rasterize.resolve_colors` with the SH of shared coefficients
+    [N, K, 3] evaluated by the compiled kernels (per-camera coefficients and plain features: PyTorch's)."""
+    if sh_degree is None or colors.dim() != 3:
+        return torch_resolve_colors(means, colors, viewmats, sh_degree)
+    if colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2 or not 0 <= sh_degree <= 3:
+        return torch_resolve_colors(means, colors, viewmats, sh_degree)  # its checks name the problem
+    campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]
+    return _SH.apply(int(sh_degree), means, colors, campos)
 
 
 class _Project(torch.autograd.Function):
@@ -143,13 +183,17 @@ class _Composite(torch.autograd.Function):
         n_cam, n = radii.shape
         d = colors.shape[-1]
         tile_w, tile_h = -(-width // tile_size), -(-height // tile_size)
-        m2, con, col, opa = _np(means2d), _np(conics), _np(colors), _np(opacities)
+        # the compositing arithmetic is float32 for float32 inputs (the fit), float64 otherwise
+        dt = np.float32 if means2d.dtype == torch.float32 else np.float64
+        m2, con, col, opa = (_np_native(x, dt) for x in (means2d, conics, colors, opacities))
         use_bg = backgrounds is not None
-        bg = _np(backgrounds) if use_bg else np.zeros((n_cam, d))
+        bg = _np_native(backgrounds, dt) if use_bg else np.zeros((n_cam, d), dt)
+        cst = K.composite_constants(alpha_clamp, dt)
         rad = np.ascontiguousarray(radii.cpu().numpy())
         bounds = np.empty((n_cam, n, 4), dtype=np.int64)
-        render = np.empty((n_cam, height, width, d))
-        t_final = np.empty((n_cam, height, width))
+        rec = np.empty((n_cam, n, K.R_FEAT + d), dtype=dt)
+        render = np.empty((n_cam, height, width, d), dt)
+        t_final = np.empty((n_cam, height, width), dt)
         last = np.empty((n_cam, height, width), dtype=np.int64)
         offsets = np.empty(n_cam * tile_w * tile_h + 1, dtype=np.int64)
         with _LOCK:
@@ -157,10 +201,13 @@ class _Composite(torch.autograd.Function):
             gids = np.empty(n_isects, dtype=np.int64)
             K.bin_gaussians(bounds, tile_w, tile_h, offsets, gids)
             K.sort_tiles(offsets, gids, _np(depths), tile_w * tile_h)
-            K.composite_forward(m2, con, col, opa, offsets, gids, width, height, tile_size, tile_w, alpha_clamp,
-                                bg, use_bg, render, t_final, last)
-        ctx.arrays = (m2, con, col, opa, bg, offsets, gids, t_final, last)
-        ctx.scalars = (width, height, tile_size, tile_w, alpha_clamp, use_bg)
+            K.pack_gaussians(m2, con, opa, col, rad, width, height, rec)
+            ent = np.empty((n_isects, rec.shape[2]), dtype=dt)
+            K.gather_entries(offsets, gids, tile_w * tile_h, rec, ent)
+            K.composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, render, t_final, last)
+        ctx.arrays = (ent, bg, cst, offsets, gids, t_final, last)
+        ctx.shape = (n_cam, n, d)
+        ctx.scalars = (width, height, tile_size, tile_w, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
         info.update({"tile_width": tile_w, "tile_height": tile_h, "n_isects": int(n_isects),
                     "tiles_per_gauss": torch.from_numpy((bounds[..., 1] - bounds[..., 0])
@@ -170,25 +217,25 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        m2, con, col, opa, bg, offsets, gids, t_final, last = ctx.arrays
-        width, height, tile_size, tile_w, alpha_clamp, use_bg = ctx.scalars
-        n_cam, n, d = col.shape
-        vr = np.zeros((n_cam, height, width, d)) if v_render is None else _np(v_render)
-        va = np.zeros((n_cam, height, width)) if v_alphas is None else _np(v_alphas)[..., 0]
+        ent, bg, cst, offsets, gids, t_final, last = ctx.arrays
+        width, height, tile_size, tile_w, use_bg = ctx.scalars
+        n_cam, n, d = ctx.shape
+        dt = ent.dtype
+        vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_native(v_render, dt)
+        va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_native(v_alphas[..., 0], dt)
         n_isects = len(gids)
-        s_m2, s_con = np.empty((n_isects, 2)), np.empty((n_isects, 3))
-        s_col, s_opa = np.empty((n_isects, d)), np.empty(n_isects)
-        v_m2, v_con = np.zeros((n_cam, n, 2)), np.zeros((n_cam, n, 3))
-        v_col, v_opa = np.zeros((n_cam, n, d)), np.zeros((n_cam, n))
+        slots = np.empty((n_isects, 6 + d))
+        grads = np.zeros((n_cam, n, 6 + d))
         with _LOCK:
-            K.composite_backward(m2, con, col, opa, offsets, gids, width, height, tile_size, tile_w, alpha_clamp,
-                                 bg, use_bg, t_final, last, vr, va, s_m2, s_con, s_col, s_opa)
-            K.gather_slots(offsets, gids, tile_w * ((height + tile_size - 1) // tile_size), s_m2, s_con, s_col,
-                           s_opa, v_m2, v_con, v_col, v_opa)
+            K.composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, t_final, last, vr, va,
+                                 slots)
+            K.gather_slots(offsets, gids, tile_w * ((height + tile_size - 1) // tile_size), numba.get_num_threads(),
+                           slots, grads)
+        v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
         v_bg = None
         if use_bg and ctx.needs_input_grad[4]:
-            v_bg = _out(np.einsum("chw,chwd->cd", t_final, vr), l_bg)
+            v_bg = _out(np.einsum("chw,chwd->cd", t_final.astype(np.float64), vr.astype(np.float64)), l_bg)
         return (_out(v_m2, l_m2), _out(v_con, l_con), _out(v_col, l_col), _out(v_opa, l_opa), v_bg,
                 None, None, None, None, None, None, None)
 
@@ -240,4 +287,4 @@ def rasterization(
                             Ks, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
                             eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
-                            alpha_clamp=alpha_clamp)
+                            alpha_clamp=alpha_clamp, colors_fn=resolve_colors)

@@ -424,10 +424,11 @@ def rasterization(
 
 def render_gaussians(project, composite, means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
                      near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
-                     rasterize_mode, covars, alpha_clamp) -> tuple[Tensor, Tensor, dict]:
+                     rasterize_mode, covars, alpha_clamp, colors_fn=None) -> tuple[Tensor, Tensor, dict]:
     """:func:`rasterization`'s body over a pair of kernels: ``project`` (:func:`project_gaussians`'s contract)
-    and ``composite`` (:func:`rasterize_to_pixels`'s); the compiled CPU kernels
-    (``models.gaussians.cpu_rasterize``) plug in here, so the render modes, SH and checks are written once."""
+    and ``composite`` (:func:`rasterize_to_pixels`'s), and optionally ``colors_fn`` (:func:`resolve_colors`'s;
+    the default); the compiled CPU kernels (``models.gaussians.cpu_rasterize``) plug in here, so the render
+    modes, SH and checks are written once."""
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, render_mode, covars)
     if rasterize_mode not in ("classic", "antialiased"):
         raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
@@ -461,7 +462,7 @@ def render_gaussians(project, composite, means, quats, scales, opacities, colors
         if backgrounds is not None:
             backgrounds = torch.zeros(n_cam, 1, dtype=means.dtype, device=means.device)
     else:
-        feats = resolve_colors(means, colors, viewmats, sh_degree)
+        feats = (colors_fn or resolve_colors)(means, colors, viewmats, sh_degree)
         if render_mode in ("RGB+D", "RGB+ED"):
             feats = torch.cat([feats, depths[..., None]], dim=-1)
             if backgrounds is not None:
