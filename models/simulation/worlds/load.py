@@ -199,11 +199,13 @@ def cloud_surface(pcd: o3d.geometry.PointCloud, path: Path) -> tuple[dict, list[
         notes.append(f"{path}: {len(pts)} points thinned to {len(down.points)} (voxel {voxel:.3g}) before meshing")
         pcd = down
     spacing = float(np.median(np.asarray(pcd.compute_nearest_neighbor_distance())))
-    if not pcd.has_normals():
+    had_normals = pcd.has_normals()
+    if not had_normals:
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * spacing, max_nn=30))
         centre = np.asarray(pcd.get_axis_aligned_bounding_box().get_center())
         pcd.orient_normals_towards_camera_location(centre)
-        notes.append(f"{path}: no normals in the file: estimated, and oriented towards the scan's centre")
+        notes.append(f"{path}: no normals in the file: estimated, and oriented towards the scan's centre "
+                     f"(occupancy by ray parity, not by the surface's facing)")
     radii = o3d.utility.DoubleVector([1.5 * spacing, 3 * spacing, 6 * spacing])
     mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pcd, radii)
     if len(mesh.triangles) == 0:
@@ -217,7 +219,7 @@ def cloud_surface(pcd: o3d.geometry.PointCloud, path: Path) -> tuple[dict, list[
     fn = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     flip = (fn * vn).sum(1) < 0
     corners[flip] = corners[flip][:, ::-1]
-    out = {"corners": corners, "colour": "neutral"}
+    out = {"corners": corners, "colour": "neutral", "occupancy": "backface" if had_normals else "parity"}
     if pcd.has_colors():
         C = np.asarray(pcd.colors)[_nearest(np.asarray(pcd.points), V)][T]
         C[flip] = C[flip][:, ::-1]
@@ -493,7 +495,8 @@ def load_world(path: str | Path, *, scale: float = 1.0, up: str = "auto", name: 
     to_gt = M.copy()
     to_gt[:3, :3] *= scale  # file coordinates -> ground truth (metres)
     info = {"file": str(path), "format": fmt, "scale": scale, "up": how, "file_to_world": to_gt.tolist(),
-            "colour": data["colour"], "triangles": len(corners), "warnings": notes}
+            "colour": data["colour"], "triangles": len(corners), "warnings": notes,
+            "occupancy": data.pop("occupancy", "backface")}
     if data["colour"] == "neutral":
         info["colour_note"] = NEUTRAL_NOTE
     return World(name or path.stem, corners, data.pop("colour"), data.get("corner_rgb"), data.get("uvs"),

@@ -10,7 +10,11 @@ Occupancy is conservative (``ScanRaycaster.compute_occupancy``): a point counts 
 outside the scan's bounds, when more than ``ESCAPE_FRACTION`` of ``OCCUPANCY_DIRECTIONS`` rays from it hit no
 surface (it is in unscanned space: outside the room's shell, beyond a hole), or when more than
 ``BACKFACE_FRACTION`` of the rays that hit see the back of a surface (inside an object or behind a wall:
-scanned surfaces face the space the scanner was in). So collision counts treat unknown space as an
+scanned surfaces face the space the scanner was in). That needs the triangles' winding, which meshes and
+fused RGB-D carry; a surface meshed from a point cloud without normals has estimated ones, so there the
+``parity`` rule replaces it: a ray that hits counts against the point when it crosses the surface an even
+number of times (inside a closed object, or outside the room's shell; from a room's free space a ray crosses
+its shell once, plus twice per object it passes through). So collision counts treat unknown space as an
 obstacle, never as free space.
 """
 
@@ -31,6 +35,7 @@ ESCAPE_FRACTION = 0.6
 BACKFACE_FRACTION = 0.5
 OCCUPANCY_DIRECTIONS = 48
 NEUTRAL_ALBEDO = 0.7
+OCCUPANCY_RULES = ("backface", "parity")
 
 
 def sphere_directions(n: int) -> np.ndarray:
@@ -60,7 +65,10 @@ def texture_lookup(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 class ScanRaycaster:
     """Open3D raycasting of a triangle soup, with the conservative occupancy of the module docstring."""
 
-    def __init__(self, corners: np.ndarray) -> None:
+    def __init__(self, corners: np.ndarray, rule: str = "backface") -> None:
+        if rule not in OCCUPANCY_RULES:
+            raise ValueError(f"occupancy rule {rule!r} not in {OCCUPANCY_RULES}")
+        self.rule = rule
         self.corners = np.asarray(corners, dtype=np.float32)
         self._rc = o3d.t.geometry.RaycastingScene()
         n = len(self.corners)
@@ -76,7 +84,8 @@ class ScanRaycaster:
         return self._rc.compute_distance(points)
 
     def unknown_fractions(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per point: the fraction of rays that escape, and of hits that see a back face."""
+        """Per point: the fraction of rays that escape, and of hits that see a back face (``parity``: that cross
+        the surface an even number of times)."""
         p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         if len(p) == 0:
             return np.zeros(0), np.zeros(0)
@@ -86,6 +95,9 @@ class ScanRaycaster:
         hit = np.isfinite(ans["t_hit"].numpy()).reshape(len(p), D)
         back = ((ans["primitive_normals"].numpy() * rays[:, 3:]).sum(1) > 0).reshape(len(p), D) & hit
         escape = 1.0 - hit.mean(1)
+        if self.rule == "parity":
+            crossings = self._rc.count_intersections(o3d.core.Tensor(rays)).numpy().reshape(len(p), D)
+            back = (crossings % 2 == 0) & hit
         backface = back.sum(1) / np.maximum(hit.sum(1), 1)
         return escape, backface
 
@@ -129,7 +141,7 @@ class ScanScene:
     def raycasting(self) -> tuple[ScanRaycaster, np.ndarray]:
         with self._lock:
             if self._rc is None:
-                self._rc = ScanRaycaster(self.world.corners)
+                self._rc = ScanRaycaster(self.world.corners, self.world.info.get("occupancy", "backface"))
             return self._rc, np.zeros(1, dtype=np.int64)
 
     def distance(self, points: np.ndarray) -> np.ndarray:

@@ -6,8 +6,9 @@ conservative occupancy calls them free (``scene.ScanRaycaster``) and the clearan
 ``yaws`` headings with a small downward pitch. Each candidate is rendered (depth only, 48 x 64) and scored by
 its valid-pixel fraction (rays that hit the scan) plus half its depth variety (standard deviation of log depth,
 capped at 1) plus half its reach (median depth over ``REACH_M``, capped at 1: a view across the room, not at
-the wall in front of it, the close frames the exploration metrics penalise); candidates seeing less than ``min_valid`` of valid pixels are dropped. The best are taken
-greedily, each at least ``min_separation_m`` or 60 degrees of heading from those already taken.
+the wall in front of it, the close frames the exploration metrics penalise). Candidates seeing less than
+``min_valid`` valid pixels are dropped; the best are taken greedily, each at least ``min_separation_m`` or 60
+degrees of heading from those already taken.
 """
 
 from __future__ import annotations
