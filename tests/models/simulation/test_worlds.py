@@ -135,7 +135,7 @@ def test_variant_moves_objects_not_structure_and_redraws_colours(obj_room):
     assert max(moved) > 0.05
 
 
-def test_neutral_and_vertex_colour_meshes_and_glb(obj_room, tmp_path):
+def test_neutral_vertex_colour_textured_ply_and_glb_meshes(obj_room, tmp_path):
     import trimesh
 
     _, scene = obj_room
@@ -149,12 +149,24 @@ def test_neutral_and_vertex_colour_meshes_and_glb(obj_room, tmp_path):
     assert w.colour == "neutral" and "neutral grey" in w.info["colour_note"] and any("no colour" in n for n in notes)
     r = render(ScanScene(w), start_views(ScanScene(w), 1, 0.25)[0], Intrinsics.from_fov(60, 32, 24))
     assert np.ptp(r.rgb[r.hit], axis=1).max() == 0  # grey, no invented texture
+    room = trimesh.load(str(sf.write_obj_room(tmp_path / "obj")))
     glb = tmp_path / "room.glb"
-    trimesh.load(str(sf.write_obj_room(tmp_path / "obj"))).export(str(glb))
-    w, _ = _load(glb)
-    assert w.colour == "texture"
-    g = ScanScene(w)
-    np.testing.assert_allclose(_floor_colour(g, -1.0, 1.2), RED, atol=0.02)
+    room.export(str(glb))
+    # a PLY with per-vertex texture coordinates (s, t) and its image named by a TextureFile comment
+    merged = room.dump(concatenate=True)
+    mat = merged.visual.material
+    (getattr(mat, "image", None) or mat.baseColorTexture).convert("RGB").save(tmp_path / "atlas.png")
+    ply = trimesh.exchange.ply.export_ply(merged, encoding="ascii")
+    head, body = ply.split(b"end_header", 1)
+    (tmp_path / "textured.ply").write_bytes(head.replace(b"comment https://github.com/mikedh/trimesh",
+                                                         b"comment TextureFile atlas.png") + b"end_header" + body)
+    assert b"property double s" in head
+    for path in (glb, tmp_path / "textured.ply"):
+        w, _ = _load(path)
+        assert w.colour == "texture", path
+        g = ScanScene(w)
+        np.testing.assert_allclose(_floor_colour(g, -1.0, 1.2), RED, atol=0.03)
+        np.testing.assert_allclose(_floor_colour(g, -1.0, -1.2), BLUE, atol=0.03)
 
 
 @pytest.mark.parametrize("case", ["missing", "empty", "garbage", "nan", "millimetres", "tiny", "unknown",
