@@ -50,7 +50,7 @@ def sphere_directions(n: int) -> np.ndarray:
 def texture_lookup(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear colour ``[N, 3]`` in [0, 1] of a uint8 texture ``[h, w, 3]`` at OpenGL UVs (v up, repeating)."""
     h, w = texture.shape[:2]
-    tex = texture.astype(np.float32) / 255.0
+    tex = texture  # uint8: only the gathered texels are converted (scan textures are often 4k x 4k)
     x = np.mod(uv[:, 0], 1.0) * w - 0.5
     y = (1.0 - np.mod(uv[:, 1], 1.0)) * h - 0.5
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
@@ -59,7 +59,7 @@ def texture_lookup(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     y0, y1 = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
     top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
     bot = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
-    return (top * (1 - fy) + bot * fy).astype(np.float64)
+    return (top * (1 - fy) + bot * fy) / 255.0
 
 
 class ScanRaycaster:

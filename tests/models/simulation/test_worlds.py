@@ -204,3 +204,31 @@ def test_missing_texture_warns_and_falls_back(tmp_path):
     world, notes = _load(path)
     assert any("floor.png" in n and "missing" in n and "neutral" in n for n in notes), notes
     assert world.colour == "neutral" and "colour_note" in world.info
+
+
+def test_honest_synthesizer_hallucinates_a_scan_from_its_patches(obj_room):
+    """With nothing in the cloud every hit pixel is unanchored: the frames come from the scan's per-clip variant
+    (re-coloured patches), not the truth; holes stay no data with depth 0."""
+    from navcrafter.models.roles import SynthesisRequest
+    from navcrafter.models.simulation.backend import SimulationSynthesizer, SimulationTruth
+    from navcrafter.schemas.config import SimulationConfig
+
+    _, scene = obj_room
+    start = start_views(scene, 1, 0.25)[0]
+    K = Intrinsics.from_fov(65.0, 48, 36)
+    truth = SimulationTruth(scene, start, K, world_scale=1.0)
+    from navcrafter.models.camera.cameras import axis_angle_to_matrix
+
+    traj = np.stack([np.eye(4)] * 3)
+    for i, deg in ((1, 5.0), (2, 10.0)):  # a pan in place (the start is only r_safe from a wall)
+        traj[i, :3, :3] = axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.deg2rad(deg))
+    photo = render(scene, start, K).rgb
+    req = SynthesisRequest(photo, traj, K, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), seed=3)
+    cfg = SimulationConfig(drift_rot_deg=0.0, drift_trans=0.0)
+    clip = SimulationSynthesizer(truth, cfg).simulate(req)
+    assert clip.true_quality[1:].max() < 0.05  # nothing anchored: (almost) every pixel hallucinated
+    exact = render(scene, truth.gt_pose(traj[2:])[0], K, supersample=cfg.supersample).rgb
+    assert np.abs(clip.frames[2].astype(int) - exact.astype(int)).mean() > 5  # re-drawn colours
+    none = SimulationSynthesizer(truth, SimulationConfig(drift_rot_deg=0.0, drift_trans=0.0, hallucinate=False))
+    again = none.simulate(req)
+    assert np.abs(again.frames[2].astype(int) - exact.astype(int)).mean() < 1
