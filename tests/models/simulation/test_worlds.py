@@ -232,3 +232,21 @@ def test_honest_synthesizer_hallucinates_a_scan_from_its_patches(obj_room):
     none = SimulationSynthesizer(truth, SimulationConfig(drift_rot_deg=0.0, drift_trans=0.0, hallucinate=False))
     again = none.simulate(req)
     assert np.abs(again.frames[2].astype(int) - exact.astype(int)).mean() < 1
+
+
+def test_tum_poses_read_like_the_redwood_log(obj_room, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    from navcrafter.models.simulation.worlds.load import read_poses
+
+    _, scene = obj_room
+    folder = sf.write_rgbd_sequence(tmp_path / "seq", scene, size=(16, 12))
+    log = read_poses(folder)
+    (folder / "trajectory.log").unlink()
+    lines = [f"{i * 0.1:.1f} " + " ".join(f"{v:.9f}" for v in (*M[:3, 3], *Rotation.from_matrix(M[:3, :3]).as_quat()))
+             for i, M in enumerate(log)]
+    (folder / "poses.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
+    np.testing.assert_allclose(read_poses(folder), log, atol=1e-6)
+    (folder / "poses.txt").write_text("0 1 2 3\n")
+    with pytest.raises(WorldError, match="poses.txt.*8 numbers"):
+        read_poses(folder)
