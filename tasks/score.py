@@ -178,7 +178,8 @@ def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationCon
 
 def _masked_quality_rows(a: np.ndarray, b: np.ndarray, valid: np.ndarray, note: str | None,
                          scene_id: str | None) -> list[dict[str, Any]]:
-    """PSNR and SSIM over the ``valid`` pixels of each frame (frames without any are left out)."""
+    """PSNR over the ``valid`` pixels of each frame, SSIM over its windows that are all valid (frames without any
+    are left out)."""
     from navcrafter.models.metrics.image import SSIM_WINDOW, ssim_map
 
     keep = valid.reshape(len(valid), -1).any(1)
@@ -189,9 +190,9 @@ def _masked_quality_rows(a: np.ndarray, b: np.ndarray, valid: np.ndarray, note: 
     mse = np.array([((x - y) ** 2)[m].mean() for x, y, m in zip(a, b, v, strict=True)])
     with np.errstate(divide="ignore"):
         p = np.minimum(10.0 * np.log10(1.0 / mse), 100.0)
-    r = SSIM_WINDOW // 2
     smap = ssim_map(a, b).mean(-1)
-    vm = v[:, r:v.shape[1] - r, r:v.shape[2] - r]
+    # an SSIM window counts only when all its pixels are scanned
+    vm = np.lib.stride_tricks.sliding_window_view(v, (SSIM_WINDOW, SSIM_WINDOW), axis=(1, 2)).all(axis=(-2, -1))
     s = np.array([m_[w].mean() if w.any() else np.nan for m_, w in zip(smap, vm, strict=True)])
     masked = f"over scanned pixels only ({v.mean():.0%}; holes are no data)"
     full = "; ".join(x for x in (note, masked) if x)

@@ -250,3 +250,20 @@ def test_tum_poses_read_like_the_redwood_log(obj_room, tmp_path):
     (folder / "poses.txt").write_text("0 1 2 3\n")
     with pytest.raises(WorldError, match="poses.txt.*8 numbers"):
         read_poses(folder)
+
+
+def test_table_one_skips_no_data_pixels():
+    from navcrafter.schemas.config import EvaluationConfig
+    from navcrafter.tasks.score import image_quality_rows
+
+    rng = np.random.default_rng(0)
+    real = rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    fake = real.copy()
+    valid = np.ones((2, 32, 32), dtype=bool)
+    valid[:, :, 20:] = False  # a hole in the scan
+    fake[~valid] = 255 - real[~valid]  # whatever the video drew there
+    rows = {r["metric"]: r for r in image_quality_rows(fake, real, EvaluationConfig(), valid=valid)}
+    assert rows["PSNR"]["value"] == 100.0 and "scanned pixels only" in rows["PSNR"]["note"]
+    assert rows["SSIM"]["value"] > 0.99 and "LPIPS" in rows
+    unmasked = {r["metric"]: r for r in image_quality_rows(fake, real, EvaluationConfig())}
+    assert unmasked["PSNR"]["value"] < 20
