@@ -7,7 +7,8 @@ without colour is drawn in neutral grey with headlight shading (labelled as such
 A ray that hits nothing is *no data*: ``NO_DATA_RGB``, depth 0.
 
 Occupancy is conservative (``ScanRaycaster.compute_occupancy``): a point counts as occupied when it lies
-outside the scan's bounds, when more than ``ESCAPE_FRACTION`` of ``OCCUPANCY_DIRECTIONS`` rays from it hit no
+outside the scan's bounds, when more than ``ESCAPE_FRACTION`` of the ``OCCUPANCY_DIRECTIONS`` rays from it that
+point sideways or down (direction z <= ``ESCAPE_MAX_UP``: open sky or a missing ceiling above is fine) hit no
 surface (it is in unscanned space: outside the room's shell, beyond a hole), or when more than
 ``BACKFACE_FRACTION`` of the rays that hit see the back of a surface (inside an object or behind a wall:
 scanned surfaces face the space the scanner was in). That needs the triangles' winding, which meshes and
@@ -32,6 +33,7 @@ from navcrafter.models.simulation.worlds import NO_DATA_RGB, SCAN_KIND, WORLD_VE
 from navcrafter.models.simulation.worlds.world import World
 
 ESCAPE_FRACTION = 0.6
+ESCAPE_MAX_UP = 0.2  # escaping rays are counted among directions at most this far up (z of the unit direction)
 BACKFACE_FRACTION = 0.5
 OCCUPANCY_DIRECTIONS = 48
 NEUTRAL_ALBEDO = 0.7
@@ -94,7 +96,8 @@ class ScanRaycaster:
         ans = self._rc.cast_rays(o3d.core.Tensor(rays))
         hit = np.isfinite(ans["t_hit"].numpy()).reshape(len(p), D)
         back = ((ans["primitive_normals"].numpy() * rays[:, 3:]).sum(1) > 0).reshape(len(p), D) & hit
-        escape = 1.0 - hit.mean(1)
+        low = self.dirs[:, 2] <= ESCAPE_MAX_UP  # open sky or a missing ceiling above is not unscanned ground
+        escape = 1.0 - hit[:, low].mean(1)
         if self.rule == "parity":
             crossings = self._rc.count_intersections(o3d.core.Tensor(rays)).numpy().reshape(len(p), D)
             back = (crossings % 2 == 0) & hit
