@@ -24,6 +24,7 @@ F-score) with its standard error, and the number of scenes ours wins.
     python benchmarks/planning.py --out bench-out/planning                        # 3 kinds x seeds 0-2
     python benchmarks/planning.py --out bench-out/planning-eval --seeds 10-12     # a held-out range
     python benchmarks/planning.py --out bench-out/planning --quick                # seed 0, smaller clips
+    python benchmarks/planning.py --out bench-out/worlds --quick --worlds room.obj scan.pcd  # your own scans
 
 Writes ``results.json`` and ``results.md`` into ``--out`` (``--rerender``: ``results.md`` again from
 ``results.json``). Simulation mode: the "video model" and the "geometry model" are simulated from the ground
@@ -131,6 +132,57 @@ def exploration(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...],
                 row["initial_cloud_sha256"] = digests.pop()
                 rows.append(row)
     return rows
+
+
+# --------------------------------------------------------------------------------------------------
+# Worlds from real scans (--worlds FILE...): models/simulation/worlds
+# --------------------------------------------------------------------------------------------------
+def world_exploration(quick: bool, worlds: list[Path], views: int, up: str = "auto", scale: float = 1.0,
+                      unknown_space: str | None = None) -> dict:
+    """Each scan as a ground-truth world (``navcrafter demo-data --world``), ``views`` start views of it, each
+    explored by every method from the same photo (bit-identical initial clouds, checked): ``{"worlds": {name:
+    {method: M}}, "world_runs": [...]}``, M the method's metrics averaged over the world's start views
+    (``method_summary``), plus the paired comparison of the views (``paired``)."""
+    from navcrafter.models.simulation import GROUNDTRUTH_DIR
+    from navcrafter.models.simulation.worlds.demo import write_world_collection
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="navcrafter-bench-worlds-") as tmp:
+        photos = write_world_collection(Path(tmp) / "photos", worlds, views, up=up, scale=scale,
+                                        r_safe_m=PlanConfig().safe_radius)
+        for photo in photos:
+            record = json.loads((photo.parent / GROUNDTRUTH_DIR / photo.stem / "scene.json").read_text())
+            row, digests = {"world": record["scene"]["name"], "photo": photo.name}, set()
+            for name, strategy in METHODS.items():
+                r, digest = run_one(photo, Path(tmp) / name / photo.stem, bench_config(strategy, quick, unknown_space))
+                digests.add(digest)
+                row[name] = r
+                print(f"{photo.stem} {name:8s} " + " ".join(f"{m}={r[m]:.3f}" for m in PRINTED if m in r), flush=True)
+            if len(digests) != 1:
+                raise AssertionError(f"{photo.stem}: the planners did not start from the same cloud")
+            row["initial_cloud_sha256"] = digests.pop()
+            rows.append(row)
+    names = list(dict.fromkeys(r["world"] for r in rows))
+    return {"worlds": {w: {**summarise([r for r in rows if r["world"] == w])["methods"],
+                           "paired": paired([r for r in rows if r["world"] == w])} for w in names},
+            "world_runs": rows, "world_files": [str(w) for w in worlds], "world_views": views}
+
+
+def worlds_markdown(result: dict) -> str:
+    lines = ["", "## Worlds from real scans", "",
+             f"Each scan is the ground truth (`navcrafter demo-data --world`), {result['world_views']} start view(s) "
+             "per world, every method from the same photos; means over the views. Holes in a scan are no data "
+             "(skipped by the metrics; unscanned space counts as an obstacle for collisions).", "",
+             "| World | Method | Coverage ↑ | Noise ratio ↓ | F-score@2cm ↑ | Collisions ↓ | Close frames ↓ "
+             "(all / last third) | New surface per iteration ↑ |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for world, methods in result["worlds"].items():
+        for name in METHODS:
+            m = methods[name]
+            lines.append(f"| {world} | {LABELS[name]} | {_f(m.get('coverage'))} | {_f(m.get('noise_ratio'))} | "
+                         f"{_f(m.get('fscore'))} | {_f(m.get('collisions'), '.1f')} | "
+                         f"{_f(m.get('close_frames'))} / {_f(m.get('close_frames_last_third'))} | "
+                         f"{_per_iter(m['new_surface_per_iteration'])} |")
+    return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -319,32 +371,43 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=parse_seeds, default=None,
                     help="A-B: scene seeds A..B inclusive per kind; N: seeds 0..N-1 (default 0-2, quick 0-0). "
                     "0-2 is the development range: judge results on another (e.g. 10-12)")
-    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated scene kinds ({', '.join(KINDS)})")
+    ap.add_argument("--kinds", default=None, help=f"comma-separated scene kinds ({', '.join(KINDS)}; default all, "
+                    "none with --worlds)")
+    ap.add_argument("--worlds", type=Path, nargs="+", default=None, metavar="FILE",
+                    help="scans to explore as ground-truth worlds (meshes, point clouds, RGB-D folders: "
+                    "models/simulation/README.md); results under 'worlds' in results.json")
+    ap.add_argument("--world-views", type=int, default=2, help="start views per world (default 2)")
+    ap.add_argument("--up", default="auto", help="up axis of the scans (auto, x, y, z, -x, -y, -z)")
+    ap.add_argument("--scale", type=float, default=1.0, help="scan units to metres")
     ap.add_argument("--skip-timing", action="store_true", help="skip the 1M-point planning-iteration timing")
     ap.add_argument("--rerender", action="store_true", help="only write results.md again from results.json")
     ap.add_argument("--unknown-space", choices=("free", "occupied"), default=None,
                     help="override plan.unknown_space (both planners; default: the config's)")
     args = ap.parse_args(argv)
     if args.rerender:
-        md = markdown(json.loads((args.out / "results.json").read_text()))
+        doc = json.loads((args.out / "results.json").read_text())
+        md = markdown(doc) + (worlds_markdown(doc) if "worlds" in doc else "")
         (args.out / "results.md").write_text(md)
         print(md)
         return 0
     seeds = args.seeds or ((0, 0) if args.quick else DEV_SEEDS)
-    kinds = tuple(k for k in args.kinds.split(",") if k)
+    kinds = tuple(k for k in (args.kinds if args.kinds is not None else "" if args.worlds else ",".join(KINDS))
+                  .split(",") if k)
     unknown = [k for k in kinds if k not in KINDS]
-    if unknown or not kinds:
+    if unknown or not (kinds or args.worlds):
         ap.error(f"--kinds: unknown {unknown or 'none given'}; choose from {', '.join(KINDS)}")
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows = exploration(args.quick, seeds, kinds, args.unknown_space)
+    worlds = (world_exploration(args.quick, args.worlds, args.world_views, args.up, args.scale, args.unknown_space)
+              if args.worlds else {})
     times = {} if args.skip_timing else timing()
     result = {**summarise(rows), "seeds": list(seeds), "kinds": list(kinds), "runs": rows,
               "per_kind": {k: summarise([r for r in rows if r["kind"] == k]) for k in kinds},
               "timing": times, "label": LABEL, "quick": args.quick, "iterations": ITERATIONS,
-              "development_seeds": list(DEV_SEEDS), "wall_seconds": time.perf_counter() - t0}
+              "development_seeds": list(DEV_SEEDS), **worlds, "wall_seconds": time.perf_counter() - t0}
     (args.out / "results.json").write_text(json.dumps(result, indent=1))
-    md = markdown(result)
+    md = markdown(result) + (worlds_markdown(result) if worlds else "")
     (args.out / "results.md").write_text(md)
     print(md)
     return 0

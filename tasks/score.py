@@ -120,8 +120,22 @@ def reference_frames(scene: SceneStore, k: int, idx: np.ndarray) -> np.ndarray |
     return np.stack([render(truth.scene, c2w, K).rgb for c2w in poses])
 
 
+def reference_valid(scene: SceneStore, k: int, idx: np.ndarray) -> np.ndarray | None:
+    """Where the reference frames of ``reference_frames`` show scanned surface ``[N, H, W]`` (a world from a real
+    scan: its holes are *no data*, skipped by the scores); None for generated scenes (every pixel counts)."""
+    truth = simulation_truth(scene)
+    if truth is None or getattr(truth.scene, "kind", None) != "scan":
+        return None
+    from navcrafter.models.simulation.render import render
+
+    H, W = scene.read(SYNTHESIZE, k, "frames").shape[1:3]
+    K = truth.intrinsics_for(H, W)
+    poses = truth.gt_pose(scene.read(PLAN, k, "trajectory")[idx])
+    return np.stack([render(truth.scene, c2w, K, colour=False).hit for c2w in poses])
+
+
 def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> list[dict[str, Any]]:
-    fake, real = [], []
+    fake, real, valid = [], [], []
     for k in range(1, iterations + 1):
         idx = scored_frames(len(scene.read(PLAN, k, "trajectory")), config.evaluation)[0]
         ref = reference_frames(scene, k, idx)
@@ -130,16 +144,24 @@ def synthesis_rows(scene: SceneStore, config: RunConfig, iterations: int) -> lis
             return [row("I", m, status="unavailable", note=note) for m in ("PSNR", "SSIM", "LPIPS")]
         fake.append(scene.read(SYNTHESIZE, k, "frames")[idx])
         real.append(ref)
+        valid.append(reference_valid(scene, k, idx))
     if not fake:
         return [row("I", m, status="unavailable", note="no iterations") for m in ("PSNR", "SSIM", "LPIPS")]
-    return image_quality_rows(np.concatenate(fake), np.concatenate(real), config.evaluation, SIM_REFERENCE_NOTE)
+    mask = None if any(v is None for v in valid) else np.concatenate(valid)
+    return image_quality_rows(np.concatenate(fake), np.concatenate(real), config.evaluation, SIM_REFERENCE_NOTE,
+                              valid=mask)
 
 
 def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationConfig, note: str | None = None,
-                       scene_id: str | None = None) -> list[dict[str, Any]]:
-    """PSNR, SSIM and LPIPS (mean over frames) of uint8 frames ``fake`` against ``real`` (``N x H x W x 3``)."""
+                       scene_id: str | None = None, valid: np.ndarray | None = None) -> list[dict[str, Any]]:
+    """PSNR, SSIM and LPIPS (mean over frames) of uint8 frames ``fake`` against ``real`` (``N x H x W x 3``).
+    ``valid [N, H, W]``: the pixels to score (a scanned world's holes are no data): PSNR and SSIM over them only
+    (LPIPS sees whole frames)."""
 
     a, b = fake.astype(np.float64) / 255.0, real.astype(np.float64) / 255.0
+    if valid is not None and not valid.all():
+        return _masked_quality_rows(a, b, valid, note, scene_id) + image_quality_rows(
+            fake, real, config, note, scene_id)[2:]
     p = np.asarray(psnr(a, b), dtype=np.float64)
     capped = "identical frames give inf, capped at 100 dB" if np.isinf(p).any() else None
     rows = [row("I", "PSNR", float(np.mean(np.minimum(p, 100.0))), "dB",
@@ -155,6 +177,30 @@ def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationCon
     except MetricUnavailable as exc:
         rows.append(row("I", "LPIPS", status="unavailable", note=str(exc), scene_id=scene_id))
     return rows
+
+
+def _masked_quality_rows(a: np.ndarray, b: np.ndarray, valid: np.ndarray, note: str | None,
+                         scene_id: str | None) -> list[dict[str, Any]]:
+    """PSNR over the ``valid`` pixels of each frame, SSIM over its windows that are all valid (frames without any
+    are left out)."""
+    from navcrafter.models.metrics.image import SSIM_WINDOW, ssim_map
+
+    keep = valid.reshape(len(valid), -1).any(1)
+    if not keep.any():
+        return [row("I", m, status="unavailable", note="no scanned surface in any reference frame", scene_id=scene_id)
+                for m in ("PSNR", "SSIM")]
+    a, b, v = a[keep], b[keep], valid[keep]
+    mse = np.array([((x - y) ** 2)[m].mean() for x, y, m in zip(a, b, v, strict=True)])
+    with np.errstate(divide="ignore"):
+        p = np.minimum(10.0 * np.log10(1.0 / mse), 100.0)
+    smap = ssim_map(a, b).mean(-1)
+    # an SSIM window counts only when all its pixels are scanned
+    vm = np.lib.stride_tricks.sliding_window_view(v, (SSIM_WINDOW, SSIM_WINDOW), axis=(1, 2)).all(axis=(-2, -1))
+    s = np.array([m_[w].mean() if w.any() else np.nan for m_, w in zip(smap, vm, strict=True)])
+    masked = f"over scanned pixels only ({v.mean():.0%}; holes are no data)"
+    full = "; ".join(x for x in (note, masked) if x)
+    return [row("I", "PSNR", float(np.mean(p)), "dB", note=full, scene_id=scene_id),
+            row("I", "SSIM", float(np.nanmean(s)), None, note=full, scene_id=scene_id)]
 
 
 # -- table III --------------------------------------------------------------------------------------

@@ -84,6 +84,11 @@ class SimulationTruth:
     @classmethod
     def from_record(cls, record: dict, world_scale: float | None = None) -> SimulationTruth:
         spec = record["scene"]
+        if spec.get("kind") == "scan":  # a world from a real scan (models/simulation/worlds)
+            from navcrafter.models.simulation.worlds.scene import scene_from_record
+
+            return cls(scene_from_record(record), np.asarray(record["photo_c2w"], dtype=np.float64),
+                       Intrinsics.from_dict(record["work_intrinsics"]), world_scale)
         if int(spec.get("generator_version", -1)) != GENERATOR_VERSION:
             raise SimulationError(
                 f"ground truth was made by scene generator v{spec.get('generator_version')}, this is "
@@ -219,6 +224,15 @@ def variant_scene(kind: str, seed: int, variant: int, shift_m: float) -> SimScen
                     base.camera_fov_x_deg)
 
 
+def _variant_of(scene, variant: int, shift_m: float):
+    """The per-clip variant of a generated scene, or of a world from a scan (``worlds.patches``)."""
+    if getattr(scene, "kind", None) == "scan":
+        from navcrafter.models.simulation.worlds.patches import variant_world
+
+        return variant_world(scene, variant, shift_m)
+    return variant_scene(scene.kind, scene.seed, variant, shift_m)
+
+
 class SimulationSynthesizer(_SimulationRole):
 
     def synthesize(self, request: SynthesisRequest) -> np.ndarray:
@@ -248,7 +262,7 @@ class SimulationSynthesizer(_SimulationRole):
         poses_gt = truth.gt_pose(true_c2w)
         w = truth._scale()
         tree = _cloud_tree(truth, request.cloud_points)
-        variant = (variant_scene(truth.scene.kind, truth.scene.seed, int(rng.integers(1 << 31)), cfg.variant_shift_m)
+        variant = (_variant_of(truth.scene, int(rng.integers(1 << 31)), cfg.variant_shift_m)
                    if cfg.hallucinate else None)
         frames = np.empty((T, H, W, 3), dtype=np.uint8)
         depth = np.empty((T, H, W), dtype=np.float32)

@@ -37,6 +37,8 @@ def _cast(scene: SimScene, origins: np.ndarray, dirs: np.ndarray) -> dict[str, n
 def _shade(scene: SimScene, origins: np.ndarray, dirs: np.ndarray, shadows: bool) -> np.ndarray:
     """Linear-light colour ``[N, 3]`` for flat ray arrays."""
     ans = _cast(scene, origins, dirs)
+    if hasattr(scene, "shade_hits"):  # a world from a scan: its own colour (models/simulation/worlds)
+        return scene.shade_hits(ans, origins, dirs)
     t = ans["t_hit"]
     hit = np.isfinite(t)
     colour = np.empty((len(t), 3))

@@ -1,0 +1,111 @@
+"""A world: a scanned surface in the ground-truth frame (metres, z up, floor at z = 0), as a triangle soup
+with its colour source, and its storage (``world.npz`` beside the demo photos' hidden truth)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from navcrafter.models.simulation.worlds import WORLD_VERSION, WorldError
+
+COLOUR_MODES = ("texture", "vertex", "neutral")
+NEUTRAL_NOTE = ("the scan has no colour: rendered in neutral grey with headlight shading (a labelled stand-in, "
+                "not the scene's appearance)")
+
+
+@dataclass
+class World:
+    """A scanned surface. ``corners [F, 3, 3]`` (metres, ground-truth frame) is a triangle soup, so that
+    patches can move without tearing their neighbours. Colour: ``texture`` (``uvs [F, 3, 2]`` in OpenGL
+    convention, v up; ``texture_id [F]`` into ``textures``, -1 where a triangle has none and uses
+    ``corner_rgb``), ``vertex`` (``corner_rgb [F, 3, 3]`` in [0, 1]: vertex or face colours) or ``neutral``."""
+
+    name: str
+    corners: np.ndarray
+    colour: str
+    corner_rgb: np.ndarray | None = None
+    uvs: np.ndarray | None = None
+    texture_id: np.ndarray | None = None
+    textures: list[np.ndarray] = field(default_factory=list)
+    floor: bool = False  # a floor plane was found (or the up axis was given): cameras go at eye height
+    info: dict = field(default_factory=dict)  # source file, format, scale, up, warnings
+
+    def __post_init__(self) -> None:
+        if self.colour not in COLOUR_MODES:
+            raise ValueError(f"colour mode {self.colour!r} not in {COLOUR_MODES}")
+        self.corners = np.ascontiguousarray(self.corners, dtype=np.float32).reshape(-1, 3, 3)
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.corners)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        pts = self.corners.reshape(-1, 3)
+        return pts.min(0).astype(np.float64), pts.max(0).astype(np.float64)
+
+    # -- storage ---------------------------------------------------------------------------------------
+    def to_bytes(self) -> bytes:
+        arrays = {"corners": self.corners}
+        for k in ("corner_rgb", "uvs", "texture_id"):
+            v = getattr(self, k)
+            if v is not None:
+                arrays[k] = v
+        for i, t in enumerate(self.textures):
+            arrays[f"texture_{i}"] = t
+        meta = {"version": WORLD_VERSION, "name": self.name, "colour": self.colour, "floor": self.floor,
+                "textures": len(self.textures), "info": self.info}
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        return buf.getvalue()
+
+    def save(self, path: str | Path) -> str:
+        """Write ``world.npz``; returns its sha256."""
+        data = self.to_bytes()
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_bytes(data)
+        return hashlib.sha256(data).hexdigest()
+
+    @classmethod
+    def from_bytes(cls, data: bytes, where: str) -> World:
+        try:
+            z = np.load(io.BytesIO(data), allow_pickle=False)
+            meta = json.loads(bytes(z["meta"]).decode())
+        except Exception as exc:
+            raise WorldError(f"{where}: not a readable world file ({exc}); run `navcrafter demo-data --world` "
+                             f"again") from exc
+        if int(meta.get("version", -1)) != WORLD_VERSION:
+            raise WorldError(f"{where}: world format v{meta.get('version')} is not this version's "
+                             f"v{WORLD_VERSION}; run `navcrafter demo-data --world` again")
+        get = (lambda k: z[k] if k in z.files else None)
+        return cls(meta["name"], z["corners"], meta["colour"], get("corner_rgb"), get("uvs"), get("texture_id"),
+                   [z[f"texture_{i}"] for i in range(int(meta["textures"]))], bool(meta["floor"]), meta["info"])
+
+    def merged_mesh(self):
+        """The world as an Open3D mesh (welded soup, vertex colours where known) for viewers and the PLY."""
+        import open3d as o3d
+
+        mesh = o3d.geometry.TriangleMesh()
+        mesh.vertices = o3d.utility.Vector3dVector(self.corners.reshape(-1, 3).astype(np.float64))
+        mesh.triangles = o3d.utility.Vector3iVector(np.arange(3 * self.n_triangles).reshape(-1, 3))
+        rgb = self.corner_rgb
+        if self.colour == "texture":
+            from navcrafter.models.simulation.worlds.scene import texture_lookup
+
+            ids = np.repeat(self.texture_id, 3)
+            uv = self.uvs.reshape(-1, 2)
+            rgb = np.full((len(uv), 3), 0.6) if self.corner_rgb is None else self.corner_rgb.reshape(-1, 3)
+            rgb = rgb.astype(np.float64).copy()
+            for t in range(len(self.textures)):
+                sel = ids == t
+                rgb[sel] = texture_lookup(self.textures[t], uv[sel])
+        if rgb is not None:
+            mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(rgb, dtype=np.float64).reshape(-1, 3))
+        else:
+            mesh.paint_uniform_color((0.6, 0.6, 0.6))
+        return mesh
