@@ -34,7 +34,7 @@ import numpy as np
 import open3d as o3d
 
 from navcrafter.models.simulation.worlds import WorldError
-from navcrafter.models.simulation.worlds.world import NEUTRAL_NOTE, World
+from navcrafter.models.simulation.worlds.world import NEUTRAL_NOTE, World, sample_surface
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 CLOUD_SUFFIXES = (".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".ply")
@@ -361,16 +361,6 @@ def rotation_to_z(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1 + c)
 
 
-def _sample(corners: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    a = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    p = a / a.sum() if a.sum() > 0 else None
-    f = rng.choice(len(corners), size=n, p=p)
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-    return (corners[f] * w[:, :, None]).sum(1)
-
-
 def find_up(corners: np.ndarray, seed: int = 0, hint: np.ndarray | None = None) -> tuple[np.ndarray, float] | None:
     """The floor's up normal and the floor's height along it, by RANSAC planes (Open3D ``segment_plane``), or
     None. A floor candidate bounds the scan (>= 95 % of its surface on one side), among those the one across
@@ -379,7 +369,7 @@ def find_up(corners: np.ndarray, seed: int = 0, hint: np.ndarray | None = None) 
     ``hint`` (an RGB-D sequence's mean camera up, people hold cameras upright): the bounding plane within 25
     degrees of it, else the hint itself."""
     rng = np.random.default_rng(seed)
-    pts = _sample(corners, 30000, rng)
+    pts = sample_surface(corners, 30000, rng)
     diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     thr = max(0.005 * diag, 1e-6)
     o3d.utility.random.seed(seed)

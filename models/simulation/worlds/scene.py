@@ -30,7 +30,8 @@ import numpy as np
 import open3d as o3d
 
 from navcrafter.models.simulation.worlds import NO_DATA_RGB, SCAN_KIND, WORLD_VERSION, WorldError
-from navcrafter.models.simulation.worlds.world import World
+from navcrafter.models.simulation.worlds.segments import segment
+from navcrafter.models.simulation.worlds.world import World, texture_lookup
 
 ESCAPE_FRACTION = 0.6
 ESCAPE_MAX_UP = 0.2  # escaping rays are counted among directions at most this far up (z of the unit direction)
@@ -47,21 +48,6 @@ def sphere_directions(n: int) -> np.ndarray:
     phi = np.pi * (1.0 + 5**0.5) * i
     r = np.sqrt(1.0 - z * z)
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def texture_lookup(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear colour ``[N, 3]`` in [0, 1] of a uint8 texture ``[h, w, 3]`` at OpenGL UVs (v up, repeating)."""
-    h, w = texture.shape[:2]
-    tex = texture  # uint8: only the gathered texels are converted (scan textures are often 4k x 4k)
-    x = np.mod(uv[:, 0], 1.0) * w - 0.5
-    y = (1.0 - np.mod(uv[:, 1], 1.0)) * h - 0.5
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x0, x1 = np.mod(x0, w), np.mod(x0 + 1, w)
-    y0, y1 = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
-    top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
-    bot = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
-    return (top * (1 - fy) + bot * fy) / 255.0
 
 
 class ScanRaycaster:
@@ -192,11 +178,9 @@ class ScanScene:
         return colour
 
     def patches(self):
-        """The world's surface patches (``patches.segment``), computed once."""
+        """The world's surface patches (``segments.segment``), computed once."""
         with self._lock:
             if self._patches is None:
-                from navcrafter.models.simulation.worlds.patches import segment
-
                 self._patches = segment(self.world)
             return self._patches
 

@@ -95,8 +95,6 @@ class World:
         mesh.triangles = o3d.utility.Vector3iVector(np.arange(3 * self.n_triangles).reshape(-1, 3))
         rgb = self.corner_rgb
         if self.colour == "texture":
-            from navcrafter.models.simulation.worlds.scene import texture_lookup
-
             ids = np.repeat(self.texture_id, 3)
             uv = self.uvs.reshape(-1, 2)
             rgb = np.full((len(uv), 3), 0.6) if self.corner_rgb is None else self.corner_rgb.reshape(-1, 3)
@@ -109,3 +107,29 @@ class World:
         else:
             mesh.paint_uniform_color((0.6, 0.6, 0.6))
         return mesh
+
+
+def texture_lookup(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear colour ``[N, 3]`` in [0, 1] of a uint8 texture ``[h, w, 3]`` at OpenGL UVs (v up, repeating)."""
+    h, w = texture.shape[:2]
+    tex = texture  # uint8: only the gathered texels are converted (scan textures are often 4k x 4k)
+    x = np.mod(uv[:, 0], 1.0) * w - 0.5
+    y = (1.0 - np.mod(uv[:, 1], 1.0)) * h - 0.5
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0, x1 = np.mod(x0, w), np.mod(x0 + 1, w)
+    y0, y1 = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
+    top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
+    bot = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
+    return (top * (1 - fy) + bot * fy) / 255.0
+
+
+def sample_surface(corners: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points drawn uniformly by area on the triangle soup ``corners [F, 3, 3]``."""
+    a = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    p = a / a.sum() if a.sum() > 0 else None
+    f = rng.choice(len(corners), size=n, p=p)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return (corners[f] * w[:, :, None]).sum(1)
