@@ -86,7 +86,7 @@ class PlanConfig(_Section):
     scene units.
     """
 
-    strategy: Literal["collision_aware", "viewcrafter", "orbit"] = "collision_aware"
+    strategy: Literal["collision_aware", "viewcrafter", "viewcrafter_nbv", "explorer", "orbit"] = "collision_aware"
     num_candidates: int = Field(3, ge=1, description="K candidate poses per iteration (paper: 3).")
     radius_range: tuple[float, float] = Field(
         (0.6, 1.0), description="Candidate distance from the scene centre o, times d0 (the search space S is "
@@ -133,9 +133,18 @@ class PlanConfig(_Section):
         False, description="Repair a user path that G flags with the collision optimisation (same end poses); "
         "otherwise it is kept with a warning.")
 
+    nbv_step_deg: tuple[float, float] = Field(
+        (10.0, 30.0), description="viewcrafter_nbv: ViewCrafter's grid spacings (d_theta, d_phi) in degrees: "
+        "candidates at (0, phi), (-theta, phi), (theta/2, phi) from the current pose (ViewCrafter's documented "
+        "defaults d_theta 10, d_phi 30).")
+    nbv_radius_step: float = Field(
+        -0.2, gt=-1, lt=1, description="viewcrafter_nbv: ViewCrafter's d_r: the distance to o is multiplied by "
+        "1 + d_r over a clip (ViewCrafter's default -0.2).")
+
     # added after stores existed: keys the plan step only when set (schemas.keys)
     keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
-                                                "trajectory_convention": "opencv", "trajectory_repair": False}
+                                                "trajectory_convention": "opencv", "trajectory_repair": False,
+                                                "nbv_step_deg": [10.0, 30.0], "nbv_radius_step": -0.2}
 
     @field_validator("trajectory")
     @classmethod

@@ -696,3 +696,13 @@ class ViewCrafterPlanner:
 
 
 PLANNERS = {CollisionAwarePlanner.name: CollisionAwarePlanner, ViewCrafterPlanner.name: ViewCrafterPlanner}
+
+
+def _register_more() -> None:
+    """Planners in their own modules (they import this one): ViewCrafter's NBV from the current pose."""
+    from navcrafter.models.planning.nbv import ViewCrafterNBVPlanner
+
+    PLANNERS[ViewCrafterNBVPlanner.name] = ViewCrafterNBVPlanner
+
+
+_register_more()
