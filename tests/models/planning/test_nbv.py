@@ -8,7 +8,8 @@ from test_planning import room_state
 
 from navcrafter.models.camera.cameras import look_at
 from navcrafter.models.planning.nbv import ViewCrafterNBVPlanner, nbv_offsets, rotate_about
-from navcrafter.models.planning.planners import PLANNERS, WORLD_UP, search_frame
+from navcrafter.models.planning.planners import WORLD_UP, search_frame
+from navcrafter.models.planning.registry import PLANNERS
 from navcrafter.schemas.config import PlanConfig
 
 
