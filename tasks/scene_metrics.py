@@ -88,6 +88,7 @@ def true_camera_path(scene, config: RunConfig) -> np.ndarray:
 
 
 SEEN_SIDE = 128  # longer image side (px) at which the true frames are rendered for ``seen``
+SEEN_SAMPLE = 100_000  # ``seen`` is measured on at most this many reference points (evenly strided)
 
 
 def exploration(truth, points_gt: np.ndarray, dist: np.ndarray, reference: np.ndarray, d0_m: float,
@@ -103,10 +104,11 @@ def exploration(truth, points_gt: np.ndarray, dist: np.ndarray, reference: np.nd
     s = min(1.0, SEEN_SIDE / max(K.width, K.height))
     Ks = K.resize(max(1, round(K.width * s)), max(1, round(K.height * s))) if s < 1.0 else K
     depths = [render(truth.scene, c2w, Ks, colour=False).depth for c2w in np.asarray(frames_gt)]
-    seen = seen_mask(reference, frames_gt, Ks.K, depths)
+    sample = np.arange(0, len(reference), max(1, -(-len(reference) // SEEN_SAMPLE)))
+    seen = seen_mask(reference[sample], frames_gt, Ks.K, depths)
     prefixes = object_region_prefixes(truth.scene.kind)
     region = region_mask(truth.scene, reference, prefixes) if prefixes else None
-    return exploration_metrics(points_gt, reference, dist, d0_m, seen=seen, region=region)
+    return exploration_metrics(points_gt, reference, dist, d0_m, seen=seen, region=region, seen_index=sample)
 
 
 def compute_metrics(scene, config: RunConfig) -> dict[str, float]:

@@ -83,13 +83,15 @@ def _fscore(precision: float, coverage: float) -> float:
 
 
 def exploration_metrics(points: np.ndarray, reference: np.ndarray, surface_distance: np.ndarray, d0_m: float,
-                        seen: np.ndarray | None = None, region: np.ndarray | None = None) -> dict[str, float]:
+                        seen: np.ndarray | None = None, region: np.ndarray | None = None,
+                        seen_index: np.ndarray | None = None) -> dict[str, float]:
     """The exploration metrics of the module docstring, flat (``coverage_at_0.05``, ``coverage_rel_0.01``, ...).
 
     ``points``: the reconstruction (ground-truth frame, metres); ``reference``: the reference surface points;
     ``surface_distance``: each point's distance to the true surfaces; ``d0_m``: the scene scale (metres);
-    ``seen``: per reference point, whether a true frame saw it (``seen_mask``); ``region``: per reference point,
-    whether it belongs to the object region (table-tops), or None."""
+    ``seen``: per reference point, whether a true frame saw it (``seen_mask``), or per point of the subset
+    ``seen_index`` of the reference (an evenly strided sample, for speed); ``region``: per reference point, whether
+    it belongs to the object region (table-tops), or None."""
     if d0_m <= 0:
         raise ValueError(f"d0_m must be positive (the scene scale in metres), got {d0_m}")
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -118,10 +120,12 @@ def exploration_metrics(points: np.ndarray, reference: np.ndarray, surface_dista
         out[f"coverage_rel_{f:g}"] = cov(t)
         out[f"fscore_rel_{f:g}"] = _fscore(prec(t), cov(t))
     out["coverage_auc"] = float(np.mean([cov(t) for t in auc_t]))
+    sample = np.arange(len(reference)) if seen_index is None else np.asarray(seen_index)
     if seen is not None:
         seen = np.asarray(seen, dtype=bool)
-        if seen.shape != (len(reference),):
-            raise ValueError(f"seen must hold one flag per reference point ({len(reference)}), got {seen.shape}")
+        if seen.shape != (len(sample),):
+            raise ValueError(f"seen must hold one flag per reference point or per seen_index ({len(sample)}), "
+                             f"got {seen.shape}")
         out["seen"] = float(seen.mean()) if len(seen) else 0.0
     if region is not None:
         region = np.asarray(region, dtype=bool)
@@ -131,7 +135,8 @@ def exploration_metrics(points: np.ndarray, reference: np.ndarray, surface_dista
         for t in THRESHOLDS_M:
             out[f"object_coverage_at_{t:.2f}"] = cov(t, region)
         if seen is not None:
-            out["object_seen"] = float(seen[region].mean()) if region.any() else 0.0
+            sub = region[sample]
+            out["object_seen"] = float(seen[sub].mean()) if sub.any() else 0.0
     return out
 
 
@@ -141,24 +146,26 @@ def seen_mask(reference: np.ndarray, c2ws: np.ndarray, K: np.ndarray, depths, to
     z-depth ``depths[i]`` ``[H, W]`` of what camera i shows, 0 = nothing) saw it: it projects into the image in
     front of the camera, and its depth is within ``tolerance_m + tolerance_rel * depth`` of the true depth at its
     pixel (not hidden behind a nearer surface; the tolerance absorbs the pixel quantisation of oblique surfaces)."""
-    ref = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
+    ref = np.asarray(reference, dtype=np.float32).reshape(-1, 3)
     out = np.zeros(len(ref), dtype=bool)
     K = np.asarray(K, dtype=np.float64)
     for c2w, depth in zip(np.asarray(c2ws, dtype=np.float64), depths):
+        todo = np.flatnonzero(~out)  # only points no camera has seen yet
+        if not len(todo):
+            break
         depth = np.asarray(depth)
         H, W = depth.shape
-        R, t = c2w[:3, :3], c2w[:3, 3]
-        pc = (ref - t) @ R
+        R, t = c2w[:3, :3].astype(np.float32), c2w[:3, 3].astype(np.float32)
+        pc = (ref[todo] - t) @ R
         z = pc[:, 2]
         front = z > 1e-6
-        u = np.full(len(ref), -1, dtype=np.int64)
-        v = np.full(len(ref), -1, dtype=np.int64)
-        u[front] = np.floor(K[0, 0] * pc[front, 0] / z[front] + K[0, 2]).astype(np.int64)
-        v[front] = np.floor(K[1, 1] * pc[front, 1] / z[front] + K[1, 2]).astype(np.int64)
-        ok = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        d = np.zeros(len(ref))
-        d[ok] = depth[v[ok], u[ok]]
-        out |= ok & (d > 0) & (np.abs(z - d) <= tolerance_m + tolerance_rel * d)
+        todo, pc, z = todo[front], pc[front], z[front]
+        u = np.floor(K[0, 0] * pc[:, 0] / z + K[0, 2]).astype(np.int64)
+        v = np.floor(K[1, 1] * pc[:, 1] / z + K[1, 2]).astype(np.int64)
+        ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        todo, z, u, v = todo[ok], z[ok], u[ok], v[ok]
+        d = depth[v, u]
+        out[todo[(d > 0) & (np.abs(z - d) <= tolerance_m + tolerance_rel * d)]] = True
     return out
 
 
