@@ -92,7 +92,8 @@ REL = ("0.005", "0.01", "0.02")  # coverage_rel keys (fractions of d0)
 METRICS = ("seen", "coverage", "noise_ratio", "precision", "fscore", "coverage_auc", "object_coverage",
            "object_seen", "collisions", "collision_rate", "close_frames", "close_frames_last_third",
            "true_quality_mean", "camera_median_err_m", "n_points", "plan_seconds", "planner_s", "pipeline_seconds",
-           "d0_m", *[f"coverage_at_{t}" for t in ABS], *[f"fscore_at_{t}" for t in ABS],
+           "d0_m", *[f"object_coverage_at_{t}" for t in ABS], *[f"coverage_at_{t}" for t in ABS],
+           *[f"fscore_at_{t}" for t in ABS],
            *[f"coverage_rel_{t}" for t in REL], *[f"fscore_rel_{t}" for t in REL])
 PRINTED = ("seen", "coverage", "coverage_at_0.05", "coverage_rel_0.01", "fscore", "collisions", "close_frames",
            "planner_s")
@@ -357,7 +358,7 @@ def markdown(result: dict) -> str:
             m = result["per_kind"][kind]["methods"][name]
             obj = (f"{_f(m.get('object_coverage'))} / {_f(m.get('object_coverage_at_0.05'))} / "
                    f"{_f(m.get('object_seen'))}" if "object_coverage" in m else "")
-            lines.append(row(f"{kind} | {LABELS[name]}", m)[:-1] + f" {obj} |")
+            lines.append(row(f"{kind} | {LABELS[name]}", m)[:-1] + f"| {obj} |")
     lines += ["", "Paired over scenes (ours − baseline, mean ± standard error; wins = scenes where ours is higher):",
               "", "| Scenes | vs | n | seen Δ | cov 2 cm Δ | F 2 cm Δ | cov 5 cm Δ | cov 1 % d0 Δ | "
               "wins (seen / 5 cm) |",

@@ -66,6 +66,7 @@ class VoxelMap:
     size: int
     state: np.ndarray  # [size**3] uint8 (UNKNOWN, FREE, OCCUPIED), flat index (i * size + j) * size + k
     occluded: np.ndarray  # [size**3] bool: behind a surface some view observed
+    to_free: np.ndarray | None = None  # [size**3] distance (cells) to the nearest free cell
 
     @classmethod
     def build(cls, state: PlanningState, points: np.ndarray, cells: int, side_d0: float = 3.0) -> VoxelMap:
@@ -95,7 +96,15 @@ class VoxelMap:
         grid[free] = FREE
         occ = cls._cells(origin, voxel, cells, points)
         grid[occ] = OCCUPIED
-        return cls(origin, voxel, cells, grid, behind & (grid != FREE))
+        from scipy.ndimage import distance_transform_edt
+
+        to_free = distance_transform_edt(grid.reshape(cells, cells, cells) != FREE).reshape(-1)
+        return cls(origin, voxel, cells, grid, behind & (grid != FREE), to_free)
+
+    def reach(self, x: np.ndarray) -> np.ndarray:
+        """Distance (world units) from positions to the nearest free cell (0 inside free space; inf outside)."""
+        idx = self.index(x)
+        return np.where(idx >= 0, self.to_free[np.maximum(idx, 0)] * self.voxel, np.inf)
 
     @staticmethod
     def _cells(origin: np.ndarray, voxel: float, cells: int, points: np.ndarray) -> np.ndarray:
@@ -121,9 +130,11 @@ class VoxelMap:
 class ExplorerDetector(CollisionDetector):
     """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
 
-    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.25, lag: int = 2, **kwargs) -> None:
+    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 2.0,
+                 **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
+        self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
 
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:
@@ -137,28 +148,41 @@ class ExplorerDetector(CollisionDetector):
         _, st = self.vmap.lookup(a + s[:, None] * (b - a))
         return not (st == OCCUPIED).any()
 
-    def path_flags(self, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def path_flags(self, trajectory: np.ndarray, first_only: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per pose: too near an observed surface; not admissible (outside seen free space and not entered the safe
+        way: see the module docstring); the clearance. ``first_only``: stop at the first flagged pose."""
         x = trajectory[:, :3, 3]
         clearance = self.clearance(x)
         near = clearance < self.path_clearance(x)
+        if first_only and near.any():
+            return near, np.zeros(len(x), dtype=bool), clearance
         free, occluded = self._visibility(x)
         idx, _ = self.vmap.lookup(x)
         occluded = occluded | np.where(idx >= 0, self.vmap.occluded[np.maximum(idx, 0)], False)
-        unseen = ~free
-        T = len(x)
-        fixed = int(np.ceil(self.prefix * T))
+        start = x[0]
+        fixed = int(np.ceil(self.prefix * len(x)))
+        # the prefix: seen free, or next to where the camera stands (the clip's first frames barely move)
+        unseen = ~(free | (np.linalg.norm(x - start, axis=1) < 2 * self.r_safe))
         ok_ground = self._above_ground(x)
+        reach = self.vmap.reach(x)
         for t in np.flatnonzero(unseen):
-            if t < fixed or occluded[t] or not ok_ground[t]:
-                continue
-            for s in range(0, t - self.lag + 1):  # an earlier frame of this clip looks at it, nothing in the way
-                c2w = trajectory[s]
-                p = (x[t] - c2w[:3, 3]) @ c2w[:3, :3]
-                if p[2] > 1e-6 and abs(p[0] / p[2]) < 0.9 and abs(p[1] / p[2]) < 0.9 and \
-                        self._line_of_sight(c2w[:3, 3], x[t]):
-                    unseen[t] = False
-                    break
+            if t >= fixed and not occluded[t] and ok_ground[t] and reach[t] <= self.max_reach:
+                for s in range(t - self.lag, -1, -1):  # an earlier frame of this clip looks at it, nothing in the way
+                    c2w = trajectory[s]
+                    p = (x[t] - c2w[:3, 3]) @ c2w[:3, :3]
+                    if p[2] > 1e-6 and abs(p[0] / p[2]) < 0.9 and abs(p[1] / p[2]) < 0.9 and \
+                            self._line_of_sight(c2w[:3, 3], x[t]):
+                        unseen[t] = False
+                        break
+            if first_only and unseen[t]:
+                unseen[t + 1:] = False
+                break
         return near, unseen, clearance
+
+    def trajectory_collides(self, trajectory: np.ndarray) -> bool:
+        near, unseen, _ = self.path_flags(trajectory, first_only=True)
+        return bool((near | unseen).any())
 
 
 def _cast(vmap: VoxelMap, poses: np.ndarray, dirs_cam: np.ndarray, max_range: float, d0: float,
@@ -308,6 +332,7 @@ class ExplorerPlanner:
         _, occluded = det._visibility(pos)
         idx, _ = vmap.lookup(pos)
         ok &= ~occluded & ~np.where(idx >= 0, vmap.occluded[np.maximum(idx, 0)], False)
+        ok &= vmap.reach(pos) <= det.max_reach
         pos = pos[ok]
         forward = state.current[:3, 2] - (state.current[:3, 2] @ WORLD_UP) * WORLD_UP
         forward = forward / max(np.linalg.norm(forward), 1e-9)
@@ -349,8 +374,19 @@ class ExplorerPlanner:
                     fallback = "" if rank == 0 else "next-candidate"
                     collides[i] = False
                     break
-            if checked >= 60:
+            if checked >= 20:
                 break
+        if final is None:  # none passes whole: the best ones cut short (a smaller step the same way), same length
+            for i in order[:10]:
+                for frac in (0.6, 0.35, 0.15):
+                    end = shaped_trajectory(state.current, trajs[i][-1], state.centre, 11, names[i])[
+                        int(round(frac * 10))]
+                    short = shaped_trajectory(state.current, end, state.centre, T, names[i])
+                    if not det.trajectory_collides(short):
+                        chosen, final, initial, fallback = int(i), short, short, f"shortened-{frac:g}"
+                        break
+                if final is not None:
+                    break
         if final is None:
             final = np.repeat(state.current[None], T, axis=0)
             initial = trajs[int(order[0])] if len(trajs) else final
