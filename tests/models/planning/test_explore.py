@@ -61,17 +61,22 @@ def test_unknown_space_is_entered_only_after_the_clip_looked_at_it_and_never_beh
     state = wall_state()
     vmap = VoxelMap.build(state, state.cloud_points, 48)
     det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25)
-    # turn right on the spot first (the clip looks at x > 0), then move there: allowed once seen, after the prefix
-    turn = look_at(np.zeros(3), np.array([3.0, 0.0, 0.3]))
+    # turn right on the spot first (the clip looks 50 deg right, beyond the input view's 40), then move there:
+    # allowed once seen, after the prefix, within two cells of the space the input view saw free
+    turn = look_at(np.zeros(3), np.array([3.0, 0.0, 2.5]))
     path = np.concatenate([np.repeat(np.eye(4)[None], 3, 0), np.repeat(turn[None], 5, 0)])
     moved = []
-    for d in np.linspace(0.1, 2.0, 12):  # along the turned camera's axis
+    for d in np.linspace(0.1, 1.5, 12):  # along the turned camera's axis
         p = turn.copy()
         p[:3, 3] = d * turn[:3, 2]
         moved.append(p)
     path = np.concatenate([path, np.stack(moved)])
     near, unseen, _ = det.path_flags(path)
     assert not near.any() and not unseen.any()
+    assert (vmap.reach(path[-3:, :3, 3]) > 0).all()  # those were unknown cells, not seen free
+    far = path.copy()
+    far[-1, :3, 3] = 6.0 * turn[:3, 2]  # looked at, but far from all free space: refused
+    assert det.path_flags(far)[1][-1] and vmap.reach(far[-1:, :3, 3])[0] > det.max_reach
     # the same positions without having looked there first: refused (outside the space seen free)
     blind = np.concatenate([np.repeat(np.eye(4)[None], 8, 0), np.stack(moved)])
     blind[:, :3, :3] = np.eye(3)  # always looking down +z: the clip never looks at x = 2
