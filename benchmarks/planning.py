@@ -408,6 +408,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated scene kinds ({', '.join(KINDS)})")
     ap.add_argument("--skip-timing", action="store_true", help="skip the 1M-point planning-iteration timing")
     ap.add_argument("--rerender", action="store_true", help="only write results.md again from results.json")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="combine the runs of several results.json (e.g. one process per kind) into --out")
+    ap.add_argument("--timing-only", action="store_true", help="only the planning-iteration timing")
     ap.add_argument("--methods", default=",".join(METHODS),
                     help=f"comma-separated methods ({', '.join(ALL_METHODS)}); 'ours' is compared with the others")
     ap.add_argument("--unknown-space", choices=("free", "occupied"), default=None,
@@ -417,6 +420,30 @@ def main(argv: list[str] | None = None) -> int:
         md = markdown(json.loads((args.out / "results.json").read_text()))
         (args.out / "results.md").write_text(md)
         print(md)
+        return 0
+    if args.merge:
+        parts = [json.loads(p.read_text()) for p in args.merge]
+        rows = [r for p in parts for r in p["runs"]]
+        kinds = tuple(k for k in KINDS if any(r["kind"] == k for r in rows))
+        names = tuple(parts[0]["methods"])
+        seeds = (min(p["seeds"][0] for p in parts), max(p["seeds"][1] for p in parts))
+        times = next((p["timing"] for p in parts if p.get("timing")), {})
+        result = {**summarise(rows, names), "seeds": list(seeds), "kinds": list(kinds), "runs": rows,
+                  "per_kind": {k: summarise([r for r in rows if r["kind"] == k], names) for k in kinds},
+                  "timing": times, "label": LABEL, "quick": parts[0]["quick"], "iterations": ITERATIONS,
+                  "development_seeds": list(DEV_SEEDS), "merged_from": [str(p) for p in args.merge],
+                  "wall_seconds": sum(p.get("wall_seconds", 0.0) for p in parts)}
+        result["goal"] = goal(result) if "baseline" in names else {}
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "results.json").write_text(json.dumps(result, indent=1))
+        (args.out / "results.md").write_text(markdown(result))
+        print(markdown(result))
+        return 0
+    if args.timing_only:
+        args.out.mkdir(parents=True, exist_ok=True)
+        times = timing(repeats=1)
+        (args.out / "timing.json").write_text(json.dumps(times, indent=1))
+        print(json.dumps(times, indent=1))
         return 0
     seeds = args.seeds or ((0, 0) if args.quick else (0, 2))
     kinds = tuple(k for k in args.kinds.split(",") if k)
