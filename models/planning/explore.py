@@ -168,11 +168,13 @@ class ExplorerDetector(CollisionDetector):
         reach = self.vmap.reach(x)
         for t in np.flatnonzero(unseen):
             if t >= fixed and not occluded[t] and ok_ground[t] and reach[t] <= self.max_reach:
-                for s in range(t - self.lag, -1, -1):  # an earlier frame of this clip looks at it, nothing in the way
-                    c2w = trajectory[s]
-                    p = (x[t] - c2w[:3, 3]) @ c2w[:3, :3]
-                    if p[2] > 1e-6 and abs(p[0] / p[2]) < 0.9 and abs(p[1] / p[2]) < 0.9 and \
-                            self._line_of_sight(c2w[:3, 3], x[t]):
+                # an earlier frame of this clip (the latest first) looks at it, nothing in the way
+                earlier = trajectory[:max(t - self.lag + 1, 0)]
+                p = np.einsum("sji,sj->si", earlier[:, :3, :3], x[t] - earlier[:, :3, 3])
+                z = np.maximum(p[:, 2], 1e-12)
+                look = (p[:, 2] > 1e-6) & (np.abs(p[:, 0] / z) < 0.9) & (np.abs(p[:, 1] / z) < 0.9)
+                for s in np.flatnonzero(look)[::-1]:
+                    if self._line_of_sight(earlier[s, :3, 3], x[t]):
                         unseen[t] = False
                         break
             if first_only and unseen[t]:
