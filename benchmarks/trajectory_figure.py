@@ -50,14 +50,17 @@ def explore(kind: str, seed: int, tmp: Path) -> dict:
 
 def top_view(runs: dict, size: int = 640) -> Image.Image:
     truth = next(iter(runs.values()))[0]
-    mesh = truth.scene.merged_mesh()
-    pts = np.asarray(mesh.sample_points_uniformly(200_000, seed=0).points)
+    import open3d as o3d
+
+    o3d.utility.random.seed(0)
+    pts = np.asarray(truth.scene.merged_mesh().sample_points_uniformly(200_000).points)
     cams = np.concatenate([p[:, :3, 3] for _, p, _ in runs.values()] + [truth.photo_c2w[None, :3, 3]])
     # frame the cameras with a margin (the street's ground is 80 m wide; show where the cameras went)
     lo, hi = cams[:, :2].min(0), cams[:, :2].max(0)
     span = max(float((hi - lo).max()), 1.0) * 1.6
     mid = (lo + hi) / 2
-    keep = (pts[:, 2] > 0.05) & (np.abs(pts[:, :2] - mid).max(1) < span / 2)  # above the floor / ground
+    # between the floor (or ground) and 2 m: walls, furniture, facades; no ceiling over the plan
+    keep = (pts[:, 2] > 0.05) & (pts[:, 2] < 2.0) & (np.abs(pts[:, :2] - mid).max(1) < span / 2)
     img = Image.new("RGB", (size, size), (255, 255, 255))
     draw = ImageDraw.Draw(img)
 
