@@ -377,7 +377,7 @@ def markdown(result: dict) -> str:
     times = result["timing"]
     if times:
         lines += ["", "One planning iteration, K=9 candidates, 256x256 masks (all nine rendered), a forced "
-                  "trajectory optimisation of 81 poses; best of 3, 2 CPU cores:", "",
+                  "trajectory optimisation of 81 poses; best of the repeats (3; --timing-only: 1), 2 CPU cores:", "",
                   "| 1M-point cloud | points after thinning | detector | 9 masks | optimisation | iteration | "
                   "baseline iteration | ours / baseline |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
         for name, t in times.items():
@@ -388,8 +388,8 @@ def markdown(result: dict) -> str:
                          f"{t['baseline_iteration_s']:.3f} s | {t['iteration_s'] / t['baseline_iteration_s']:.2f} |")
         ex = {k: t for k, t in times.items() if "explorer_s" in t}
         if ex:
-            lines += ["", "The explorer's iteration at paper sizes (81 frames, 256x256, 1M-point cloud; best of 3, in "
-                      "the same run as the baseline's):", "", "| cloud | explorer | ViewCrafter NBV | ratio | "
+            lines += ["", "The explorer's iteration at paper sizes (81 frames, 256x256, 1M-point cloud; best of the "
+                      "repeats, in the same run as the baseline's):", "", "| cloud | explorer | ViewCrafter NBV | ratio | "
                       "trajectories scored |", "|---|---:|---:|---:|---:|"]
             for k, t in ex.items():
                 lines.append(f"| {k} | {t['explorer_s']:.2f} s | {t['nbv_s']:.2f} s | "
