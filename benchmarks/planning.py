@@ -389,8 +389,9 @@ def markdown(result: dict) -> str:
         ex = {k: t for k, t in times.items() if "explorer_s" in t}
         if ex:
             lines += ["", "The explorer's iteration at paper sizes (81 frames, 256x256, 1M-point cloud; best of the "
-                      "repeats, in the same run as the baseline's):", "", "| cloud | explorer | ViewCrafter NBV | ratio | "
-                      "trajectories scored |", "|---|---:|---:|---:|---:|"]
+                      "repeats, in the same run as the baseline's):", "",
+                      "| cloud | explorer | ViewCrafter NBV | ratio | trajectories scored |",
+                      "|---|---:|---:|---:|---:|"]
             for k, t in ex.items():
                 lines.append(f"| {k} | {t['explorer_s']:.2f} s | {t['nbv_s']:.2f} s | "
                              f"{t['explorer_s'] / t['nbv_s']:.1f} | {t['trajectories']:.0f} |")
