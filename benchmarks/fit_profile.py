@@ -50,7 +50,7 @@ from navcrafter.schemas.store import Store  # noqa: E402
 from navcrafter.tasks import fit as fit_task  # noqa: E402
 from navcrafter.tasks import steps  # noqa: E402
 from navcrafter.tasks.ingest import ingest  # noqa: E402
-from navcrafter.tasks.steps import run_scene  # noqa: E402
+from navcrafter.tasks.runner import run_scene  # noqa: E402
 
 SECONDS: dict[str, float] = defaultdict(float)
 CALLS: dict[str, int] = defaultdict(int)

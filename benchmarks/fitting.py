@@ -24,7 +24,7 @@ no variant and the report says so.
     python benchmarks/fitting.py --out bench-out/fitting --seeds 10-12          # 3 kinds x 3 seeds, 64x64, 300 it.
     python benchmarks/fitting.py --out bench-out/fitting --quick --seeds 10-12  # the tiny preset's fit
 
-``--seeds A-B``: the scene seeds of every kind (0-2 is the development range, where anything may be tuned;
+``--seeds A-B``: the scene seeds of every kind (0-9 is the development range, where anything may be tuned;
 results are judged on other ranges). Writes ``results.json`` and ``results.md`` into ``--out``. Simulation mode,
 honest preset (``simulation.preset``): the frames are the simulated video model's (drifting cameras, hallucinated
 unseen content, corrupted close-ups), the fit trains on the geometry model's estimated cameras, and the
@@ -220,7 +220,7 @@ def markdown(summary: list[dict], gains: list[dict], rows: list[dict], quick: bo
              "true view, plus noise).*", "",
              f"Scene seeds {seed_range[0]}-{seed_range[-1]} of every kind" + (
                  " (the development range)." if is_development((seed_range[0], seed_range[-1])) else
-                 " (held out: nothing was tuned on them; the development range is 0-2).") if seed_range else "", "",
+                 " (held out: nothing was tuned on them; the development range is 0-9).") if seed_range else "", "",
              "| scenes | variant | n | held-out PSNR (dB) | SSIM | LPIPS | off-trajectory PSNR (dB) | time (s) |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for s in summary:
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--quick", action="store_true", help="1 seed, the tiny preset (about a minute)")
     ap.add_argument("--seeds", type=parse_seeds, default=None, help="scene seeds A-B of every kind (default 10-12, "
-                    "quick 10-10; 0-2 is the development range); a single N means 0-(N-1)")
+                    "quick 10-10; 0-9 is the development range); a single N means 0-(N-1)")
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--eval-weights", default=None, help="folder with the official LPIPS weights")
     args = ap.parse_args(argv)

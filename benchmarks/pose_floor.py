@@ -14,9 +14,10 @@ Methods, in one run on the same clips: ``stock`` (``attempts="stock"``, no rotat
 ``recover_poses`` had before the retry ladder, COLMAP's defaults) and ``robust`` (the default ladder).
 Per clip: registered frames, per-frame mean R_err (degrees and radians) and T_err (unit extent).
 
-Seeds: ``--seeds A-B`` (inclusive; ``N`` = 0..N-1). Seeds 0-2 are the DEVELOPMENT range (the ladder was
-tuned there); report held-out ranges. Each held-out range is used once: seeds 10-12 held out the first version
-of the ladder (``results/pose-floor-v1``) and showed it taking a pure rotation for a street orbit; the rule became
+Seeds: ``--seeds A-B`` (inclusive; ``N`` = 0..N-1). Seeds 0-9 are the DEVELOPMENT range (the ladder was
+tuned on 0-2 before that range grew); report held-out ranges. Each held-out range is used once: seeds 10-12
+held out the first version of the ladder (``results/pose-floor-v1``) and showed it taking a pure rotation for a
+street orbit; the rule became
 "an incremental rung that registers every frame proves parallax", held out by seeds 20-22
 (``results/pose-floor-v2``), which showed a wrong incremental reconstruction of a pan (0.81 px) passing it; the
 rule became "... registers every frame at <= GOOD_REPROJECTION_PX", held out by the default, 30-32

@@ -15,7 +15,6 @@ import numpy as np
 
 from navcrafter.models.planning.orbit import orbit_azimuth_deg, orbit_radius, orbit_trajectory
 from navcrafter.models.planning.planners import (
-    PLANNERS,
     PlanningState,
     PlanResult,
     SeenView,
@@ -24,6 +23,7 @@ from navcrafter.models.planning.planners import (
     scene_centre,
 )
 from navcrafter.models.planning.plots import topdown_png
+from navcrafter.models.planning.registry import PLANNERS
 from navcrafter.models.planning.user import trajectory_spec, user_path
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import GEOMETRY, LIFT
@@ -60,13 +60,16 @@ def plan(ctx: StepContext) -> dict:
                 "azimuth_deg": orbit_azimuth_deg(k, cfg, orbit_radius(centre, cfg))}
     state = planning_state(scene, k, ctx.config)
     res = PLANNERS[cfg.strategy](cfg).plan(state, np.random.default_rng(ctx.seed))
+    arrays = {"candidate_masks": res.masks} if res.masks is not None else {}
     ctx.write_all(trajectory=res.trajectory, K=state.K, centre=state.centre, candidates=res.candidates,
-                  candidate_scores=res.scores, candidate_collides=res.collides, candidate_masks=res.masks,
-                  initial_trajectory=res.initial_trajectory)
+                  candidate_scores=res.scores, candidate_collides=res.collides,
+                  initial_trajectory=res.initial_trajectory, **arrays)
     cloud = ctx.cloud(k - 1)
     ctx.write_file("topdown.png", topdown_png(cloud.points, cloud.colors, state, res, cfg.strategy, k))
     attrs = {"strategy": cfg.strategy, "chosen": res.chosen, "optimised": res.optimised, "fallback": res.fallback,
              "rounds": res.rounds, "r_safe": cfg.safe_radius, "d0": state.d0, "timings": res.timings}
+    if getattr(res, "shape", ""):
+        attrs["shape"] = res.shape
     if res.collision_free is not None:
         attrs["collision_free"] = res.collision_free
     return attrs

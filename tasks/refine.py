@@ -35,7 +35,7 @@ from navcrafter.models.gaussians.train import TrainView, render_model
 from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
 from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.layout import FIT
-from navcrafter.tasks.common import logger
+from navcrafter.tasks.common import load_cloud, logger
 from navcrafter.tasks.memory import PeakRSS
 from navcrafter.tasks.progress import TrainingProgress
 from navcrafter.tasks.readers import load_fit_views, load_gaussians
@@ -83,6 +83,8 @@ def _refine(ctx: StepContext) -> dict:
     frame_pos = {int(f): j for j, f in enumerate(train_idx)}
     intr = Intrinsics.from_matrix(K, w, h)
     refined = np.empty_like(renders)
+    if hasattr(backend.refiner, "observe"):  # the simulated refiner knows what the cloud observed
+        backend.refiner.observe(load_cloud(scene, ctx.config.iterations).points)
     for i in range(len(c2w)):
         ref_img = np.round(train_views[frame_pos[int(ref_frames[i])]].image.numpy() * 255).astype(np.uint8)
         refined[i] = backend.refiner.refine(renders[i], ref_img, seed=seed + i, hint_c2w=c2w[i],

@@ -21,6 +21,10 @@ unit is the metre (rooms are 5-7 m across, table-tops 6 m rooms with 0.1-0.2 m o
   frames of the whole path (a video that ends staring at a wall);
 * ``true_quality_mean``: mean over all frames of the simulation's ``true_quality`` (fraction of each
   frame's pixels that show the true scene), when stored;
+* the exploration metrics of ``models.metrics.cloud.exploration_metrics`` (``exploration``): ``seen`` (the
+  reference surface the true frames of the input view and every clip saw, with true depth), coverage and F-score
+  at 2, 5, 10 cm and at 0.5, 1, 2 % of d0, ``coverage_auc``, ``precision``, and for table-tops the object
+  region's ``object_coverage``;
 * distances of points to the true surfaces (median, mean, p90) and ``camera_median_err_m``: the median
   distance of the lifted camera centres to the true ones (``true_c2w``; the requested ones for a clip
   stored without it).
@@ -35,6 +39,9 @@ from navcrafter.models.metrics.cloud import (
     close_frame_metrics,
     coverage_fraction,
     coverage_metrics,
+    exploration_metrics,
+    region_mask,
+    seen_mask,
     surface_distance_stats,
     trajectory_collisions,
     unit,
@@ -81,6 +88,30 @@ def true_camera_path(scene, config: RunConfig) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, 4, 4))
 
 
+SEEN_SIDE = 128  # longer image side (px) at which the true frames are rendered for ``seen``
+SEEN_SAMPLE = 100_000  # ``seen`` is measured on at most this many reference points (evenly strided)
+
+
+def exploration(truth, points_gt: np.ndarray, dist: np.ndarray, reference: np.ndarray, d0_m: float,
+                frames_gt: np.ndarray, K) -> dict[str, float]:
+    """``exploration_metrics`` of one explored scene, from its ground truth: ``truth`` (``SimulationTruth``-like:
+    ``.scene`` renders with ``models.simulation.render.render``), the reconstruction ``points_gt`` and their
+    distances ``dist`` to the true surfaces, the ``reference`` surface points, the scene scale ``d0_m`` (metres),
+    ``frames_gt`` ``[T, 4, 4]``: every true camera of the run (input camera included) in the ground-truth frame,
+    ``K``: their ``Intrinsics``. Reusable by any loop over scenes with a ground truth (the benchmark's)."""
+    from navcrafter.models.simulation.reference import object_region_prefixes
+    from navcrafter.models.simulation.render import render
+
+    s = min(1.0, SEEN_SIDE / max(K.width, K.height))
+    Ks = K.resize(max(1, round(K.width * s)), max(1, round(K.height * s))) if s < 1.0 else K
+    depths = [render(truth.scene, c2w, Ks, colour=False).depth for c2w in np.asarray(frames_gt)]
+    sample = np.arange(0, len(reference), max(1, -(-len(reference) // SEEN_SAMPLE)))
+    seen = seen_mask(reference[sample], frames_gt, Ks.K, depths)
+    prefixes = object_region_prefixes(truth.scene.kind)
+    region = region_mask(truth.scene, reference, prefixes) if prefixes else None
+    return exploration_metrics(points_gt, reference, dist, d0_m, seen=seen, region=region, seen_index=sample)
+
+
 def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
     """All metrics of an exported scene (see the module docstring)."""
     scene.require_complete(EXPORT)
@@ -111,8 +142,12 @@ def compute_metrics(scene, config: RunConfig) -> dict[str, float]:
             if previous is not None:
                 metrics[f"new_surface_iter_{k}"] = cov - previous
             previous = cov
+        true_path = true_camera_path(scene, config)
+        K_syn = truth.intrinsics_for(config.synthesis.height, config.synthesis.width)
+        frames_gt = np.concatenate([truth.photo_c2w[None], truth.gt_pose(true_path)]) if len(true_path) \
+            else truth.photo_c2w[None]
+        metrics.update(exploration(truth, points_gt, dist, reference, d0 / truth.world_scale, frames_gt, K_syn))
         if config.iterations:
-            true_path = true_camera_path(scene, config)
             metrics.update(trajectory_collisions(truth, true_path, r_safe_m))
             K = truth.intrinsics_for(config.synthesis.height, config.synthesis.width)
             close = close_frame_mask(truth.scene, truth.gt_pose(true_path), K, 2 * r_safe_m)

@@ -25,7 +25,7 @@ class PlanConfig(_Section):
     scene units.
     """
 
-    strategy: Literal["collision_aware", "viewcrafter", "orbit"] = "collision_aware"
+    strategy: Literal["collision_aware", "viewcrafter", "viewcrafter_nbv", "explorer", "orbit"] = "collision_aware"
     num_candidates: int = Field(3, ge=1, description="K candidate poses per iteration (paper: 3).")
     radius_range: tuple[float, float] = Field(
         (0.6, 1.0), description="Candidate distance from the scene centre o, times d0 (the search space S is "
@@ -72,9 +72,40 @@ class PlanConfig(_Section):
         False, description="Repair a user path that G flags with the collision optimisation (same end poses); "
         "otherwise it is kept with a warning.")
 
+    nbv_step_deg: tuple[float, float] = Field(
+        (10.0, 30.0), description="viewcrafter_nbv: ViewCrafter's grid spacings (d_theta, d_phi) in degrees: "
+        "candidates at (0, phi), (-theta, phi), (theta/2, phi) from the current pose (ViewCrafter's documented "
+        "defaults d_theta 10, d_phi 30).")
+    nbv_radius_step: float = Field(
+        -0.2, gt=-1, lt=1, description="viewcrafter_nbv: ViewCrafter's d_r: the distance to o is multiplied by "
+        "1 + d_r over a clip (ViewCrafter's default -0.2).")
+    explore_candidates: int = Field(
+        60, ge=3, description="explorer: candidate trajectories scored per iteration (end poses x shapes), for one "
+        "clip of synthesis as every planner.")
+    explore_voxels: int = Field(48, ge=8, le=160, description="explorer: voxel map cells along its side (3 d0).")
+    explore_rays: int = Field(16, ge=4, description="explorer: rays along the longer image side when scoring.")
+    explore_frames: int = Field(4, ge=1, description="explorer: frames of a trajectory scored (evenly spaced).")
+    explore_accuracy: float = Field(
+        0.01, gt=0, description="explorer: the accuracy sought, as a fraction of d0 (a cell seen at range z counts "
+        "erf(a d0 / (sqrt2 e z)): the chance its depth lands within a d0).")
+    explore_depth_error: float = Field(
+        0.03, gt=0, description="explorer: the expected relative depth error of the geometry model (AbsRel 3-5 % of "
+        "VGGT / MoGe / DUSt3R, the same sources as the honest simulation).")
+    explore_anchor: float = Field(
+        0.3, gt=0, le=1, description="explorer: share of each scored frame's rays that should end on known content; "
+        "below it the trajectory's score falls linearly.")
+    explore_yaw_deg: float = Field(35.0, ge=0, le=90, description="explorer: end poses also turned by +-this.")
+    explore_prefix: float = Field(
+        0.1, ge=0, le=1, description="explorer: share of the clip's first frames that stay in seen free space.")
+
     # added after stores existed: keys the plan step only when set (schemas.keys)
     keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
-                                                "trajectory_convention": "opencv", "trajectory_repair": False}
+                                                "trajectory_convention": "opencv", "trajectory_repair": False,
+                                                "nbv_step_deg": [10.0, 30.0], "nbv_radius_step": -0.2,
+                                                "explore_candidates": 60, "explore_voxels": 48, "explore_rays": 16,
+                                                "explore_frames": 4, "explore_accuracy": 0.01,
+                                                "explore_depth_error": 0.03, "explore_anchor": 0.3,
+                                                "explore_yaw_deg": 35.0, "explore_prefix": 0.1}
 
     @field_validator("trajectory")
     @classmethod

@@ -559,7 +559,7 @@ class PlanResult:
     candidates: np.ndarray  # [C, 4, 4]
     scores: np.ndarray  # [C]
     collides: np.ndarray  # [C] bool (all False for planners without a detector)
-    masks: np.ndarray  # [C, H, W] bool
+    masks: np.ndarray | None  # [C, H, W] bool; None: scored without masks (the explorer's voxel map)
     chosen: int  # index into candidates, -1 when the camera stays put
     optimised: bool = False
     collision_free: bool | None = None  # None: the planner does not check
@@ -696,3 +696,4 @@ class ViewCrafterPlanner:
 
 
 PLANNERS = {CollisionAwarePlanner.name: CollisionAwarePlanner, ViewCrafterPlanner.name: ViewCrafterPlanner}
+

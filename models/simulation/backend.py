@@ -43,6 +43,10 @@ maps between world and the generator's ground-truth frame (z-up, metres).
 from __future__ import annotations
 
 import functools
+import threading
+import zlib
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -179,16 +183,127 @@ def _structural(name: str) -> bool:
     return any(name.startswith(p) for p in STRUCTURAL)
 
 
-@functools.lru_cache(maxsize=6)
-def variant_scene(kind: str, seed: int, variant: int, shift_m: float) -> SimScene:
-    """A plausible but different version of the scene ``(kind, seed)``: what a video model draws where it has
-    nothing to copy. Walls, floors, ground and buildings stay where they are; the other objects, grouped where
-    they touch (a table with its legs and what stands on it), move horizontally by up to ``shift_m``; every
-    material is re-drawn (colours within 0.2, a new texture seed)."""
-    base = cached_scene(kind, seed)
-    rng = np.random.default_rng([int(seed), KINDS.index(kind), int(variant), 17])
+VariantBuilder = Callable[[SimScene, np.random.Generator, SimulationConfig], SimScene]
+
+
+def _scan_variant(scene: SimScene, rng: np.random.Generator, cfg: SimulationConfig) -> SimScene:
+    """A world from a scan: its object patches moved and every patch re-coloured (``worlds.patches``)."""
+    # deferred: a scan's open3d/trimesh readers load only when a scan is simulated
+    from navcrafter.models.simulation.worlds.patches import variant_world
+
+    return variant_world(scene, int(rng.integers(1 << 31)), cfg.variant_shift_m)
+
+
+# scene kind -> the builder of its per-clip variants; kinds not listed use ``procedural_variant``. Scanned worlds'
+# variants keep their structure in place (a scan has no walls to move: worlds.segments); other worlds register
+# theirs with ``register_variant_builder``.
+VARIANT_BUILDERS: dict[str, VariantBuilder] = {"scan": _scan_variant}
+_VARIANTS: OrderedDict = OrderedDict()
+_VARIANTS_LOCK = threading.Lock()
+
+
+def register_variant_builder(kind: str, builder: VariantBuilder) -> None:
+    """Make ``builder(scene, rng, config)`` draw the per-clip variants of scenes of ``kind``."""
+    VARIANT_BUILDERS[kind] = builder
+
+
+def variant_of(scene: SimScene, variant: int, config: SimulationConfig) -> SimScene:
+    """Variant number ``variant`` of ``scene``: what a video model draws where it has nothing to copy (the builder
+    registered for ``scene.kind``, else ``procedural_variant``); the last few are cached."""
+    fields = ("variant_shift_m", "structure_shift_m", "extent_change", "opening_probability")
+    key = (scene.kind, scene.seed, id(scene), int(variant), tuple(getattr(config, f) for f in fields))
+    with _VARIANTS_LOCK:
+        if key in _VARIANTS:
+            _VARIANTS.move_to_end(key)
+            return _VARIANTS[key]
+    salt = KINDS.index(scene.kind) if scene.kind in KINDS else zlib.crc32(scene.kind.encode())
+    rng = np.random.default_rng([int(scene.seed), salt, int(variant), 17])
+    out = VARIANT_BUILDERS.get(scene.kind, procedural_variant)(scene, rng, config)
+    with _VARIANTS_LOCK:
+        _VARIANTS[key] = out
+        while len(_VARIANTS) > 6:
+            _VARIANTS.popitem(last=False)
+    return out
+
+
+def variant_scene(kind: str, seed: int, variant: int, config: SimulationConfig) -> SimScene:
+    """``variant_of`` the procedural scene ``(kind, seed)``."""
+    return variant_of(cached_scene(kind, seed), variant, config)
+
+
+def _bounds(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(mesh.get_min_bound()), np.asarray(mesh.get_max_bound())
+
+
+def _signed(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
+    return float(rng.uniform(*lo_hi) * (1 if rng.random() < 0.5 else -1))
+
+
+def _structure_moves(objs: list[SceneObject], rng: np.random.Generator, cfg: SimulationConfig) -> dict[int, np.ndarray]:
+    """Translations of the structural objects of a variant (ground-truth frame, z up): a room's walls move so each
+    horizontal extent changes by ``extent_change`` (split at random between its two walls) and its ceiling by the
+    same fraction of the height; pictures move with their wall; a street's facades (buildings) move along their
+    normal by ``structure_shift_m``. Floors, ground, sidewalks and rugs stay: they carry the camera."""
+    moves: dict[int, np.ndarray] = {}
+    names = [o.name for o in objs]
+    floor = next((i for i, n in enumerate(names) if n == "floor"), None)
+    if floor is not None and cfg.extent_change[1] > 0:
+        lo, hi = _bounds(objs[floor].mesh)
+        height = max((_bounds(o.mesh)[0][2] for o in objs if o.name == "ceiling"), default=2.8)
+        for axis, (neg, pos) in ((0, ("wall_west", "wall_east")), (1, ("wall_south", "wall_north"))):
+            change = _signed(rng, cfg.extent_change) * float(hi[axis] - lo[axis])
+            a = float(rng.random())
+            for name, d in ((pos, a * change), (neg, -(1 - a) * change)):
+                for i, n in enumerate(names):
+                    if n == name:
+                        moves[i] = np.eye(3)[axis] * d
+        dz = _signed(rng, cfg.extent_change) * height
+        for i, n in enumerate(names):
+            if n == "ceiling":
+                moves[i] = np.array([0.0, 0.0, dz])
+        walls = [i for i in moves if names[i].startswith("wall_")]
+        for i, n in enumerate(names):
+            if n == "picture" and walls:  # hangs on the wall nearest to it
+                c = np.mean(_bounds(objs[i].mesh), axis=0)
+                gap = [np.abs(np.mean(_bounds(objs[w].mesh), axis=0) - c)[np.flatnonzero(moves[w])[0]]
+                       for w in walls]
+                moves[i] = moves[walls[int(np.argmin(gap))]]
+    if cfg.structure_shift_m[1] > 0:
+        for i, n in enumerate(names):
+            if n.startswith("building"):
+                axis = 0 if n == "building_end" else 1
+                moves[i] = np.eye(3)[axis] * _signed(rng, cfg.structure_shift_m)
+    return moves
+
+
+def _with_opening(mesh: o3d.geometry.TriangleMesh, rng: np.random.Generator, width: float = 0.9,
+                  height: float = 2.1) -> list[o3d.geometry.TriangleMesh]:
+    """A wall box split into the boxes around a door-sized opening at a random place along it (z up)."""
+    lo, hi = _bounds(mesh)
+    size = hi - lo
+    along = 0 if size[0] >= size[1] else 1
+    if size[along] < width + 0.4 or size[2] < height + 0.1:
+        return [mesh]
+    a0 = float(rng.uniform(lo[along] + 0.2, hi[along] - 0.2 - width))
+    pieces = []
+    for a_lo, a_hi, z_lo, z_hi in ((lo[along], a0, lo[2], hi[2]), (a0 + width, hi[along], lo[2], hi[2]),
+                                   (a0, a0 + width, lo[2] + height, hi[2])):
+        b_lo, b_hi = lo.copy(), hi.copy()
+        b_lo[along], b_hi[along], b_lo[2], b_hi[2] = a_lo, a_hi, z_lo, z_hi
+        box = o3d.geometry.TriangleMesh.create_box(*(b_hi - b_lo))
+        box.translate(b_lo)
+        box.compute_triangle_normals()
+        pieces.append(box)
+    return pieces
+
+
+def procedural_variant(base: SimScene, rng: np.random.Generator, cfg: SimulationConfig) -> SimScene:
+    """A plausible but different version of a procedural scene: the other objects, grouped where they touch (a table
+    with its legs and what stands on it), move horizontally by up to ``variant_shift_m``; the structure moves too
+    (``_structure_moves``: walls, ceiling, facades); with ``opening_probability`` a room's wall gains a door-sized
+    opening; every material is re-drawn (colours within 0.2, a new texture seed)."""
     objs = base.objects
-    boxes = [(np.asarray(o.mesh.get_min_bound()), np.asarray(o.mesh.get_max_bound())) for o in objs]
+    boxes = [_bounds(o.mesh) for o in objs]
     parent = list(range(len(objs)))
 
     def root(i: int) -> int:
@@ -203,17 +318,28 @@ def variant_scene(kind: str, seed: int, variant: int, shift_m: float) -> SimScen
             if a < b and np.all(boxes[a][0] - 0.05 <= boxes[b][1]) and np.all(boxes[b][0] - 0.05 <= boxes[a][1]):
                 parent[root(a)] = root(b)
     shifts: dict[int, np.ndarray] = {}
+    structure = _structure_moves(objs, rng, cfg)
+    walls = [i for i, o in enumerate(objs) if o.name.startswith("wall_")]
+    opening = int(walls[int(rng.integers(len(walls)))]) if walls and rng.random() < cfg.opening_probability else -1
     objects = []
     for i, o in enumerate(objs):
-        mesh = o.mesh
-        if i in movable and shift_m > 0:
+        meshes = [o.mesh]
+        move = None
+        if i in movable and cfg.variant_shift_m > 0:
             g = root(i)
             if g not in shifts:
-                ang, rad = rng.uniform(0, 2 * np.pi), shift_m * np.sqrt(rng.random())
+                ang, rad = rng.uniform(0, 2 * np.pi), cfg.variant_shift_m * np.sqrt(rng.random())
                 shifts[g] = np.array([np.cos(ang) * rad, np.sin(ang) * rad, 0.0])
-            mesh = o3d.geometry.TriangleMesh(o.mesh)
-            mesh.translate(shifts[g])
-        objects.append(SceneObject(o.name, mesh, o.material))
+            move = shifts[g]
+        elif i in structure:
+            move = structure[i]
+        if i == opening:
+            meshes = _with_opening(o.mesh, rng)
+        for m in meshes:
+            if move is not None:
+                m = o3d.geometry.TriangleMesh(m)
+                m.translate(move)
+            objects.append(SceneObject(o.name, m, o.material))
     materials = []
     for m in base.materials:
         ja, jb = rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.2, 0.2, 3)
@@ -222,15 +348,6 @@ def variant_scene(kind: str, seed: int, variant: int, shift_m: float) -> SimScen
                                   int(rng.integers(1 << 30))))
     return SimScene(base.kind, base.seed, objects, materials, base.light, base.sky, base.camera_c2w,
                     base.camera_fov_x_deg)
-
-
-def _variant_of(scene, variant: int, shift_m: float):
-    """The per-clip variant of a generated scene, or of a world from a scan (``worlds.patches``)."""
-    if getattr(scene, "kind", None) == "scan":
-        from navcrafter.models.simulation.worlds.patches import variant_world
-
-        return variant_world(scene, variant, shift_m)
-    return variant_scene(scene.kind, scene.seed, variant, shift_m)
 
 
 class SimulationSynthesizer(_SimulationRole):
@@ -262,8 +379,7 @@ class SimulationSynthesizer(_SimulationRole):
         poses_gt = truth.gt_pose(true_c2w)
         w = truth._scale()
         tree = _cloud_tree(truth, request.cloud_points)
-        variant = (_variant_of(truth.scene, int(rng.integers(1 << 31)), cfg.variant_shift_m)
-                   if cfg.hallucinate else None)
+        variant = (variant_of(truth.scene, int(rng.integers(1 << 31)), cfg) if cfg.hallucinate else None)
         frames = np.empty((T, H, W, 3), dtype=np.uint8)
         depth = np.empty((T, H, W), dtype=np.float32)
         quality = np.empty(T, dtype=np.float32)
@@ -279,14 +395,12 @@ class SimulationSynthesizer(_SimulationRole):
             rgb, d = r.rgb.astype(np.float64), r.depth.astype(np.float64)
             true_px = np.ones((H, W), dtype=bool)
             if variant is not None:
-                true_px = ~r.hit | _anchored(tree, r.depth, r.hit, poses_gt[i], K, cfg.anchor_tolerance_m)
+                true_px = ~r.hit | anchored(tree, r.depth, r.hit, poses_gt[i], K, cfg, rng)
                 if not true_px.all():
                     v = render(variant, poses_gt[i], K, supersample=cfg.supersample)
                     rgb[~true_px] = v.rgb[~true_px]
                     d[~true_px] = v.depth[~true_px]
-            severity = 1.0 if inside[i - 1] else (
-                float(np.clip(1.0 - clear[i - 1] / cfg.corrupt_clearance_m, 0.0, 1.0)) if cfg.corrupt_clearance_m
-                else 0.0)
+            severity = 1.0 if inside[i - 1] else closeup_severity(r.depth, r.hit, clear[i - 1], cfg)
             if severity > 0:
                 rgb, d = _corrupt(rgb, d, severity, rng)
             frames[i] = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
@@ -324,16 +438,39 @@ def _cloud_tree(truth: SimulationTruth, cloud_points: np.ndarray):
     return cKDTree(truth.gt_points(pts)) if len(pts) else None
 
 
-def _anchored(tree, depth: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: Intrinsics,
-              tolerance: float) -> np.ndarray:
-    """Pixels whose true surface point lies within ``tolerance`` (m) of the cloud (ground-truth frame)."""
+def anchored(tree, depth: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: Intrinsics, cfg: SimulationConfig,
+             rng: np.random.Generator) -> np.ndarray:
+    """Pixels that show the truth: with ``cfg.anchor_falloff_m`` > 0 (soft anchoring), a pixel whose true surface
+    point lies d from the cloud (ground-truth frame) does with probability exp(-d / falloff), decided by a smooth
+    random field (so unanchored content comes in patches); with 0, those within ``anchor_tolerance_m`` (hard)."""
     out = np.zeros(hit.shape, dtype=bool)
     if tree is None or not hit.any():
         return out
+    soft = cfg.anchor_falloff_m > 0
+    bound = 10 * cfg.anchor_falloff_m if soft else cfg.anchor_tolerance_m
     pts, _ = unproject_depth(depth.astype(np.float64), c2w_gt, K.K, mask=hit)
-    d, _ = tree.query(pts, k=1, distance_upper_bound=tolerance, workers=-1)
-    out[hit] = np.isfinite(d)
+    d, _ = tree.query(pts, k=1, distance_upper_bound=bound, workers=-1)
+    if not soft:
+        out[hit] = np.isfinite(d)
+        return out
+    from scipy.special import ndtr
+
+    u = ndtr(_smooth_field(rng, *hit.shape, cells=8))[hit]  # roughly uniform, spatially smooth
+    out[hit] = np.isfinite(d) & (u < np.exp(-np.where(np.isfinite(d), d, bound) / cfg.anchor_falloff_m))
     return out
+
+
+def closeup_severity(depth: np.ndarray, hit: np.ndarray, clearance: float, cfg: SimulationConfig) -> float:
+    """How corrupted a frame comes out (0-1): with ``corrupt_near_m`` > 0, by the fraction of the frame filled by
+    a surface nearer than it (0 up to ``corrupt_fill[0]``, 1 from ``corrupt_fill[1]``, linear between); with 0, by
+    the camera's ``clearance`` against ``corrupt_clearance_m``."""
+    if cfg.corrupt_near_m > 0:
+        fill = float((hit & (depth < cfg.corrupt_near_m)).mean())
+        lo, hi = cfg.corrupt_fill
+        return float(np.clip((fill - lo) / max(hi - lo, 1e-9), 0.0, 1.0))
+    if cfg.corrupt_clearance_m:
+        return float(np.clip(1.0 - clearance / cfg.corrupt_clearance_m, 0.0, 1.0))
+    return 0.0
 
 
 def _smooth_field(rng: np.random.Generator, H: int, W: int, cells: int = 4) -> np.ndarray:
@@ -405,6 +542,7 @@ class SimulationGeometry(_SimulationRole):
         conf = np.zeros((S, H, W), dtype=np.float32)
         c2w = np.empty((S, 4, 4))
         Ks = np.empty((S, 3, 3))
+        clip_err = ClipDepthError.draw(rng, cfg) if cfg.honest else None  # shared by every frame of this call
         for i in range(S):
             shown = None if hint_depth is None else hint_depth[i]
             if shown is None:
@@ -415,6 +553,8 @@ class SimulationGeometry(_SimulationRole):
             err = 1.0 + rng.normal(0.0, cfg.depth_noise, (H, W))
             if cfg.honest and cfg.depth_lowfreq > 0:
                 err *= np.clip(1.0 + cfg.depth_lowfreq * _smooth_field(rng, H, W), 0.5, None)
+            if clip_err is not None and hit.any():
+                err *= clip_err.factor(d_m, hit, gt[i], K_true)
             depth[i] = np.where(hit, d_m * scale * err, 0.0)
             conf[i] = np.where(hit, np.where(_discontinuity(d_m, hit), cfg.edge_confidence, 1.0), 0.0)
             pose = rel[i].copy()
@@ -432,6 +572,39 @@ class SimulationGeometry(_SimulationRole):
             Ks[i, 1, 1] *= f
         return GeometryPrediction(c2w=c2w, K=Ks, depth=depth, confidence=conf,
                                   extras={"simulation_scale": scale})
+
+
+@dataclass(frozen=True)
+class ClipDepthError:
+    """The depth error one geometry call (a clip) shares across its frames (honest preset): a smooth
+    multiplicative field over the ground-truth world (a few random plane waves of 1-4 m wavelength, unit
+    variance, times ``depth_clip_bias``), so the same surface gets the same error from every frame of the clip,
+    and a shape bias ``b`` stretching depth about the clip's median: d -> d (1 + b ln(d / median))."""
+
+    waves: np.ndarray  # [n, 3] wave vectors (rad / m)
+    phases: np.ndarray  # [n]
+    bias: float
+    shape: float
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, cfg: SimulationConfig, n: int = 4) -> ClipDepthError:
+        dirs = rng.normal(size=(n, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        k = 2 * np.pi / rng.uniform(1.0, 4.0, n)
+        return cls(dirs * k[:, None], rng.uniform(0, 2 * np.pi, n), cfg.depth_clip_bias,
+                   float(rng.normal(0.0, cfg.depth_clip_shape)))
+
+    def factor(self, depth_m: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: Intrinsics) -> np.ndarray:
+        """Multiplicative error ``[H, W]`` of a frame with true z-depth ``depth_m`` at ``c2w_gt``."""
+        out = np.ones(depth_m.shape)
+        pts, idx = unproject_depth(depth_m, c2w_gt, K.K, mask=hit)
+        if not len(pts):
+            return out
+        field = np.sqrt(2.0 / len(self.phases)) * np.sin(pts @ self.waves.T + self.phases).sum(1)
+        d = depth_m.reshape(-1)[idx]
+        shape = self.shape * np.log(d / np.median(d))
+        out.reshape(-1)[idx] = np.clip(1.0 + self.bias * field + shape, 0.5, None)
+        return out
 
 
 def _discontinuity(depth: np.ndarray, hit: np.ndarray, rel: float = 0.05) -> np.ndarray:
@@ -480,6 +653,21 @@ class SimulationMonoDepth(_SimulationRole):
 
 
 class SimulationRefiner(_SimulationRole):
+    """The refiner stand-in: moves a render ``refine_strength`` of the way towards a target view and adds noise.
+    The target is the true view where the scene was observed (``observe``: the cloud the fit was made from; the same
+    anchoring as the synthesizer) and, with ``refine_observed_only`` (honest), a variant of the scene elsewhere: a
+    diffusion refiner repairs artifacts, it does not know unseen content. Before ``observe`` (or with the perfect
+    preset) every pixel counts as observed."""
+
+    def __init__(self, truth: SimulationTruth, config: SimulationConfig) -> None:
+        super().__init__(truth, config)
+        self._tree = None
+        self._observed = False
+
+    def observe(self, cloud_points: np.ndarray) -> None:
+        """The cloud (world frame) whose content counts as observed."""
+        self._tree = _cloud_tree(self.truth, cloud_points)
+        self._observed = True
 
     def refine(self, rendered: np.ndarray, reference: np.ndarray | None, *, seed: int,
                hint_c2w: np.ndarray | None = None, hint_intrinsics: Intrinsics | None = None) -> np.ndarray:
@@ -488,11 +676,20 @@ class SimulationRefiner(_SimulationRole):
         K = hint_intrinsics if hint_intrinsics is not None else self.truth.intrinsics_for(H, W)
         if (K.height, K.width) != (H, W):
             raise ValueError(f"hint_intrinsics are for {K.width}x{K.height}, the render is {W}x{H}")
-        truth = render(self.truth.scene, gt_pose, K, supersample=max(2, self.config.supersample)).rgb
+        cfg = self.config
+        r_true = render(self.truth.scene, gt_pose, K, supersample=max(2, cfg.supersample))
+        truth = r_true.rgb
+        rng = _rng(seed)
+        if cfg.honest and cfg.refine_observed_only and self._observed:
+            seen = ~r_true.hit | anchored(self._tree, r_true.depth, r_true.hit, gt_pose, K, cfg, rng)
+            if not seen.all():
+                variant = variant_of(self.truth.scene, int(rng.integers(1 << 31)), cfg)
+                v = render(variant, gt_pose, K, supersample=max(2, cfg.supersample)).rgb
+                truth = np.where(seen[..., None], truth, v)
         r, t = rendered.astype(np.float64) / 255.0, truth.astype(np.float64) / 255.0
-        out = r + self.config.refine_strength * (t - r)
-        if self.config.refine_noise > 0:
-            out = out + _rng(seed).normal(0.0, self.config.refine_noise, out.shape)
+        out = r + cfg.refine_strength * (t - r)
+        if cfg.refine_noise > 0:
+            out = out + rng.normal(0.0, cfg.refine_noise, out.shape)
         return np.round(np.clip(out, 0.0, 1.0) * 255).astype(np.uint8)
 
 

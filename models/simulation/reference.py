@@ -20,6 +20,14 @@ from navcrafter.models.reconstruction.pointcloud import thin_points
 from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.models.simulation.render import render
 
+OBJECT_REGIONS = {"tabletop": ("table_", "object_")}  # scene kind -> name prefixes of its object region
+
+
+def object_region_prefixes(kind: str) -> tuple[str, ...]:
+    """Name prefixes of the objects forming a scene kind's object region (the table and what stands on it), or ()
+    for kinds without one."""
+    return OBJECT_REGIONS.get(kind, ())
+
 
 def reachable_viewpoints(truth: SimulationTruth, centre_world: np.ndarray, d0_world: float, space: SearchSpace,
                          clearance_m: float, azimuths: int = 9, elevations: int = 3,

@@ -232,7 +232,7 @@ def test_honest_synthesizer_starts_from_the_conditioning_image_and_drifts():
     for i in (4, 8):
         truth_i = render(truth.scene, truth.gt_pose(clip.true_c2w[i]), truth.work_intrinsics)
         same = np.abs(clip.frames[i].astype(int) - truth_i.rgb.astype(int)).max(-1) <= 1
-        assert same.mean() >= clip.true_quality[i] - 1e-6 and clip.true_quality[i] > 0.8
+        assert same.mean() >= clip.true_quality[i] - 1e-6 and clip.true_quality[i] > 0.6  # soft anchoring
     # a clip that starts where its conditioning image really was continues from there, not from the request
     start = ClipStart(clip.true_c2w[-1], clip.true_depth[-1], float(clip.true_quality[-1]))
     nxt = synth.simulate(_request(truth, _walk(5, 0.2, 2.0) @ np.eye(4), seed=5), start)
@@ -271,7 +271,7 @@ def test_honest_synthesizer_corrupts_frames_near_or_inside_surfaces():
 def test_honest_geometry_estimates_from_the_frames_truth():
     truth = _truth(scale=1.0)
     cfg = SimulationConfig(scale_sigma=0.0, depth_noise=0.0, depth_lowfreq=0.0, pose_rot_deg=0.0, pose_trans=0.0,
-                           pose_trans_rel=0.0)
+                           pose_trans_rel=0.0, depth_clip_bias=0.0, depth_clip_shape=0.0)
     geo = simulation_backend(truth, cfg).geometry
     T = np.eye(4)
     T[:3, 3] = [0.3, 0.0, 0.0]
@@ -298,3 +298,123 @@ def test_demo_collection_writes_photos_and_ground_truth(demo_photos):
         scene = generate_scene(record["scene"]["kind"], record["scene"]["seed"])
         np.testing.assert_allclose(np.asarray(record["photo"]["c2w"]), scene.camera_c2w)
         assert np.allclose(invert_pose(scene.camera_c2w) @ scene.camera_c2w, np.eye(4))
+
+
+# --------------------------------------------------------------------------------------------------
+# Fidelity of the honest preset (issue 30)
+# --------------------------------------------------------------------------------------------------
+def test_variants_move_the_structure_too():
+    from navcrafter.models.simulation.backend import variant_scene
+
+    cfg = SimulationConfig()
+    base = generate_scene("room", 0)
+
+    def walls(scene):
+        return {o.name: np.asarray(o.mesh.get_min_bound()) for o in scene.objects if o.name.startswith("wall_")}
+
+    lo, hi = np.asarray(base.objects[0].mesh.get_min_bound()), np.asarray(base.objects[0].mesh.get_max_bound())
+    extent = (hi - lo)[:2]
+    for v in range(4):
+        var = variant_scene("room", 0, v, cfg)
+        b, w = walls(base), walls(var)
+        dx = (w["wall_east"][0] - w["wall_west"][0]) - (b["wall_east"][0] - b["wall_west"][0])
+        dy = (w["wall_north"][1] - w["wall_south"][1]) - (b["wall_north"][1] - b["wall_south"][1])
+        # each extent changes by 10-20 %, floors stay put
+        assert 0.09 < abs(dx) / extent[0] < 0.21 and 0.09 < abs(dy) / extent[1] < 0.21
+        assert np.array_equal(next(o for o in var.objects if o.name == "floor").mesh.get_min_bound(),
+                              base.objects[0].mesh.get_min_bound())
+    # openings: some variants have a wall split around a door (more wall pieces than the base)
+    counts = [sum(o.name.startswith("wall_") for o in variant_scene("room", 0, v, cfg).objects) for v in range(8)]
+    assert min(counts) == 4 and max(counts) == 6
+    street = generate_scene("street", 0)
+    var = variant_scene("street", 0, 1, cfg)
+    moved = [abs(np.asarray(a.mesh.get_min_bound()) - np.asarray(b.mesh.get_min_bound())).max()
+             for a, b in zip(street.objects, var.objects) if a.name.startswith("building")]
+    assert all(0.29 < m < 1.01 for m in moved)  # facades 0.3-1 m off
+    # the dispatch hook: another kind of world brings its own builder
+    from navcrafter.models.simulation import backend as sim
+
+    calls = []
+    sim.register_variant_builder("test-world", lambda scene, rng, c: calls.append(scene) or scene)
+    try:
+        world = box_wall_scene(2.0)
+        world.kind = "test-world"
+        assert sim.variant_of(world, 3, cfg) is world and calls == [world]
+    finally:
+        sim.VARIANT_BUILDERS.pop("test-world")
+
+
+def test_soft_anchoring_falls_off_with_distance_from_the_cloud():
+    from scipy.spatial import cKDTree
+
+    from navcrafter.models.simulation.backend import anchored
+
+    scene = box_wall_scene(3.0)
+    K = Intrinsics.from_fov(70, 64, 48)
+    r = render(scene, np.eye(4), K, colour=False)
+    pts, _ = unproject_depth(r.depth.astype(np.float64), np.eye(4), K.K, mask=r.hit)
+    cfg = SimulationConfig()
+    rng = np.random.default_rng(0)
+    shares = []
+    for off in (0.0, 0.05, 0.15, 0.4):
+        tree = cKDTree(pts + np.array([0, 0, off]))
+        shares.append(np.mean([anchored(tree, r.depth, r.hit, np.eye(4), K, cfg, rng).mean() for _ in range(20)]))
+    assert shares[0] > 0.97 and shares[-1] < 0.01
+    assert shares[0] > shares[1] > shares[2] > shares[3]
+    assert 0.35 < shares[1] < 0.85  # exp(-0.05 / 0.072) = 0.5 on average
+    hard = cfg.model_copy(update={"anchor_falloff_m": 0.0})
+    assert anchored(cKDTree(pts + [0, 0, 0.04]), r.depth, r.hit, np.eye(4), K, hard, rng).all()
+    assert not anchored(cKDTree(pts + [0, 0, 0.06]), r.depth, r.hit, np.eye(4), K, hard, rng).any()
+
+
+def test_closeup_corruption_follows_how_much_of_the_frame_a_near_surface_fills():
+    from navcrafter.models.simulation.backend import closeup_severity
+
+    cfg = SimulationConfig()
+    hit = np.ones((10, 10), bool)
+    depth = np.full((10, 10), 3.0)
+    assert closeup_severity(depth, hit, 0.1, cfg) == 0.0  # near a surface, but it fills nothing: clean
+    depth[:5] = 0.3  # half the frame within 0.5 m
+    assert closeup_severity(depth, hit, 1.0, cfg) == pytest.approx(0.5)
+    depth[:] = 0.3
+    assert closeup_severity(depth, hit, 1.0, cfg) == 1.0
+    legacy = cfg.model_copy(update={"corrupt_near_m": 0.0})
+    assert closeup_severity(depth, hit, 0.125, legacy) == pytest.approx(0.5)
+
+
+def test_geometry_depth_error_is_shared_by_the_frames_of_a_clip():
+    truth = _truth(scale=1.0)
+    cfg = SimulationConfig(scale_sigma=0.0, depth_noise=0.0, depth_lowfreq=0.0, pose_rot_deg=0.0, pose_trans=0.0,
+                           pose_trans_rel=0.0, depth_clip_shape=0.0)
+    geo = simulation_backend(truth, cfg).geometry
+    T = np.eye(4)
+    T[:3, 3] = [0.05, 0.0, 0.0]  # nearly the same view: the same surfaces
+    frames = np.zeros((2, 48, 64, 3), np.uint8)
+    a = geo.predict(frames, seed=1, hint_c2w=np.stack([np.eye(4), np.eye(4)]))
+    K = truth.work_intrinsics
+    true = render(truth.scene, truth.gt_pose(np.eye(4)[None])[0], K, colour=False)
+    rel = a.depth / np.maximum(true.depth, 1e-9) - 1
+    assert 0.005 < np.abs(rel[0][true.hit]).mean() < 0.15
+    np.testing.assert_allclose(rel[0][true.hit], rel[1][true.hit], atol=1e-6)  # same surface, same error
+    b = geo.predict(frames, seed=2, hint_c2w=np.stack([np.eye(4), np.eye(4)]))  # another clip: another error
+    assert np.abs(b.depth[0] - a.depth[0]).mean() > 1e-3
+
+
+def test_refiner_repairs_towards_the_truth_only_where_the_scene_was_observed():
+    truth = _truth(scale=1.0)
+    cfg = SimulationConfig(refine_strength=1.0, refine_noise=0.0)
+    refiner = simulation_backend(truth, cfg).refiner
+    K = truth.work_intrinsics
+    pose = np.eye(4)
+    gt = render(truth.scene, truth.gt_pose(pose[None])[0], K, supersample=2).rgb.astype(int)
+    blank = np.zeros_like(gt, dtype=np.uint8)
+    refiner.observe(_true_cloud(truth, [pose]))
+    seen = refiner.refine(blank, None, seed=0, hint_c2w=pose, hint_intrinsics=K)
+    assert np.abs(seen.astype(int) - gt).mean() < 2
+    refiner.observe(np.zeros((0, 3)))  # nothing observed: a variant, not the truth
+    unseen = refiner.refine(blank, None, seed=0, hint_c2w=pose, hint_intrinsics=K)
+    assert np.abs(unseen.astype(int) - gt).mean() > 3
+    perfect = simulation_backend(truth, SimulationConfig(preset="perfect", refine_strength=1.0, refine_noise=0.0))
+    perfect.refiner.observe(np.zeros((0, 3)))
+    out = perfect.refiner.refine(blank, None, seed=0, hint_c2w=pose, hint_intrinsics=K)
+    assert np.abs(out.astype(int) - gt).mean() < 2  # the perfect preset stays exact

@@ -1,0 +1,406 @@
+"""A planner that explores safely (``plan.strategy: explorer``, issue 30; the benchmark's "ours").
+
+Algorithm 1's structure stays (candidates, collision detector G, score F, interpolation, collision optimisation),
+with three levers:
+
+1. **F is information gain over a voxel map** (``VoxelMap``): a grid about the scene centre ``o`` (side 3 d0,
+   ``explore_voxels`` cells along it) whose cells are *occupied* (a cloud point lies in them), *free* (some earlier
+   view saw them in front of its depth: every lifted depth map carves free space) or *unknown*. A candidate
+   *trajectory* is scored on ``explore_frames`` of its frames at low resolution (``explore_rays`` rays a side):
+   each ray marches through the grid and counts the unknown cells it passes before the first occupied one, each
+   weighted by the depth accuracy expected at its range z: the probability that a depth error of
+   ``explore_depth_error`` x z stays within ``explore_accuracy`` x d0 (erf(a d0 / (sqrt 2 e z))); a cell seen by
+   several frames counts once (the union over the clip). The **anchor term**: each frame must keep known content
+   (rays ending on an occupied cell) in a share ``m`` of its view: the score is multiplied by the smallest
+   min(1, m / ``explore_anchor``) over the scored frames, so the video model always has something to copy.
+2. **Many more candidate trajectories** for the same synthesis budget (one clip of the same length per
+   iteration): end positions on a grid over the search space S (azimuth x elevation x radius), each looking at
+   ``o`` or turned by +-``explore_yaw_deg``, joined to the current pose by three shapes (``arc``: the spherical
+   interpolation about ``o``; ``dolly``: a straight line; ``orbit``: azimuth, elevation and radius about ``o``
+   interpolated linearly); the ends are pre-scored on their last frame alone, the best
+   ``explore_candidates`` trajectories on ``explore_frames`` frames.
+3. **Optimistic but safe unknown space** (``ExplorerDetector``): besides the seen free space of G, a camera may
+   stand in unknown space if it is at least r_safe above the ground plane, never behind a surface an earlier view
+   observed, and an earlier frame of the same clip (at least ``lag`` frames before) looks at it through cells that
+   are free or unknown (nothing observed in the way): the clip then shows that space before the camera enters it.
+   The first ``explore_prefix`` of the clip's frames stay in seen free space, a prefix to fall back on. The clearance
+   (r_safe plus the follow error along the path) from every observed surface is G's.
+
+The best trajectory that G passes is taken; when none passes, the best few are handed to the collision
+optimisation (with their end poses), then the next ones; with no safe path the camera stays put.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import erf
+
+from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at
+from navcrafter.models.planning.config import PlanConfig
+from navcrafter.models.planning.planners import (
+    WORLD_UP,
+    CollisionDetector,
+    PlanningState,
+    PlanResult,
+    estimate_ground,
+    look_at_centre,
+    optimise_trajectory,
+    planning_cloud,
+    search_space,
+    space_positions,
+)
+
+UNKNOWN, FREE, OCCUPIED = 0, 1, 2
+SHAPES = ("arc", "dolly", "orbit")
+
+
+@dataclass
+class VoxelMap:
+    """Free / occupied / unknown cells of a cube about ``origin`` (its lowest corner), ``size`` cells of ``voxel``."""
+
+    origin: np.ndarray
+    voxel: float
+    size: int
+    state: np.ndarray  # [size**3] uint8 (UNKNOWN, FREE, OCCUPIED), flat index (i * size + j) * size + k
+    occluded: np.ndarray  # [size**3] bool: behind a surface some view observed
+    to_free: np.ndarray | None = None  # [size**3] distance (cells) to the nearest free cell
+
+    @classmethod
+    def build(cls, state: PlanningState, points: np.ndarray, cells: int, side_d0: float = 3.0) -> VoxelMap:
+        voxel = side_d0 * state.d0 / cells
+        origin = np.asarray(state.centre, dtype=np.float64) - side_d0 * state.d0 / 2
+        idx = np.stack(np.meshgrid(*[np.arange(cells)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        centres = origin + (idx + 0.5) * voxel
+        free = np.zeros(len(centres), dtype=bool)
+        behind = np.zeros(len(centres), dtype=bool)
+        for v in state.views:  # every depth map carves free space in front of what it saw
+            H, W = v.depth.shape
+            R, t = v.c2w[:3, :3], v.c2w[:3, 3]
+            pc = (centres - t) @ R
+            z = pc[:, 2]
+            ok = z > 1e-6
+            u = np.full(len(z), -1)
+            w = np.full(len(z), -1)
+            u[ok] = np.floor(v.K[0, 0] * pc[ok, 0] / z[ok] + v.K[0, 2]).astype(int)
+            w[ok] = np.floor(v.K[1, 1] * pc[ok, 1] / z[ok] + v.K[1, 2]).astype(int)
+            ok &= (u >= 0) & (u < W) & (w >= 0) & (w < H)
+            d = np.zeros(len(z))
+            d[ok] = v.depth[w[ok], u[ok]]
+            seen = ok & (d > 0)
+            free |= seen & (z < d - voxel)
+            behind |= seen & (z > d + voxel)
+        grid = np.full(len(centres), UNKNOWN, dtype=np.uint8)
+        grid[free] = FREE
+        occ = cls._cells(origin, voxel, cells, points)
+        grid[occ] = OCCUPIED
+        from scipy.ndimage import distance_transform_edt
+
+        to_free = distance_transform_edt(grid.reshape(cells, cells, cells) != FREE).reshape(-1)
+        return cls(origin, voxel, cells, grid, behind & (grid != FREE), to_free)
+
+    def reach(self, x: np.ndarray) -> np.ndarray:
+        """Distance (world units) from positions to the nearest free cell (0 inside free space; inf outside)."""
+        idx = self.index(x)
+        return np.where(idx >= 0, self.to_free[np.maximum(idx, 0)] * self.voxel, np.inf)
+
+    @staticmethod
+    def _cells(origin: np.ndarray, voxel: float, cells: int, points: np.ndarray) -> np.ndarray:
+        ijk = np.floor((np.asarray(points, dtype=np.float64).reshape(-1, 3) - origin) / voxel).astype(int)
+        ok = ((ijk >= 0) & (ijk < cells)).all(1)
+        ijk = ijk[ok]
+        return np.unique((ijk[:, 0] * cells + ijk[:, 1]) * cells + ijk[:, 2])
+
+    def index(self, x: np.ndarray) -> np.ndarray:
+        """Flat cell index of positions ``[..., 3]`` (-1 outside the grid)."""
+        ijk = np.floor((x - self.origin) / self.voxel).astype(np.int64)
+        ok = ((ijk >= 0) & (ijk < self.size)).all(-1)
+        flat = (ijk[..., 0] * self.size + ijk[..., 1]) * self.size + ijk[..., 2]
+        return np.where(ok, flat, -1)
+
+    def lookup(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(cell index, state) of positions; outside the grid: (-1, FREE) (nothing known blocks a ray there)."""
+        idx = self.index(x)
+        st = np.where(idx >= 0, self.state[np.maximum(idx, 0)], FREE)
+        return idx, st
+
+
+class ExplorerDetector(CollisionDetector):
+    """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
+
+    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 2.0,
+                 **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
+        self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
+
+    def _above_ground(self, x: np.ndarray) -> np.ndarray:
+        if self.ground is None:
+            return np.ones(len(x), dtype=bool)
+        return x @ self.ground[0] + self.ground[1] >= self.r_safe
+
+    def _line_of_sight(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """No occupied cell between ``a`` and ``b`` (nor within r_safe of ``b``'s cell on the way)."""
+        n = max(2, int(np.ceil(np.linalg.norm(b - a) / (self.vmap.voxel / 2))))
+        s = np.linspace(0.0, 1.0, n)[1:]
+        _, st = self.vmap.lookup(a + s[:, None] * (b - a))
+        return not (st == OCCUPIED).any()
+
+    def path_flags(self, trajectory: np.ndarray, first_only: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per pose: too near an observed surface; not admissible (outside seen free space and not entered the safe
+        way: see the module docstring); the clearance. ``first_only``: stop at the first flagged pose."""
+        x = trajectory[:, :3, 3]
+        clearance = self.clearance(x)
+        near = clearance < self.path_clearance(x)
+        if first_only and near.any():
+            return near, np.zeros(len(x), dtype=bool), clearance
+        free, occluded = self._visibility(x)
+        idx, _ = self.vmap.lookup(x)
+        occluded = occluded | np.where(idx >= 0, self.vmap.occluded[np.maximum(idx, 0)], False)
+        start = x[0]
+        fixed = int(np.ceil(self.prefix * len(x)))
+        # the prefix: seen free, or next to where the camera stands (the clip's first frames barely move)
+        unseen = ~(free | (np.linalg.norm(x - start, axis=1) < 2 * self.r_safe))
+        ok_ground = self._above_ground(x)
+        reach = self.vmap.reach(x)
+        for t in np.flatnonzero(unseen):
+            if t >= fixed and not occluded[t] and ok_ground[t] and reach[t] <= self.max_reach:
+                # an earlier frame of this clip (the latest first) looks at it, nothing in the way
+                earlier = trajectory[:max(t - self.lag + 1, 0)]
+                p = np.einsum("sji,sj->si", earlier[:, :3, :3], x[t] - earlier[:, :3, 3])
+                z = np.maximum(p[:, 2], 1e-12)
+                look = (p[:, 2] > 1e-6) & (np.abs(p[:, 0] / z) < 0.9) & (np.abs(p[:, 1] / z) < 0.9)
+                for s in np.flatnonzero(look)[::-1]:
+                    if self._line_of_sight(earlier[s, :3, 3], x[t]):
+                        unseen[t] = False
+                        break
+            if first_only and unseen[t]:
+                unseen[t + 1:] = False
+                break
+        return near, unseen, clearance
+
+    def trajectory_collides(self, trajectory: np.ndarray) -> bool:
+        near, unseen, _ = self.path_flags(trajectory, first_only=True)
+        return bool((near | unseen).any())
+
+
+def _cast(vmap: VoxelMap, poses: np.ndarray, dirs_cam: np.ndarray, max_range: float, d0: float,
+          accuracy: float, depth_error: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rays of ``poses`` ``[F, 4, 4]`` (camera-frame directions ``dirs_cam`` ``[R, 3]``, z = 1) marched through the
+    map one cell at a time. Returns the flat cells of the unknown samples before each ray's first occupied cell,
+    their accuracy weights, per frame the share of rays that end on an occupied cell (known content), and the frame
+    of each sample."""
+    step = vmap.voxel
+    s = (np.arange(int(np.ceil(max_range / step))) + 0.5) * step  # distance along the unit ray
+    norm = np.linalg.norm(dirs_cam, axis=1)
+    unit = dirs_cam / norm[:, None]
+    z = s[None, :] / norm[:, None]  # z-depth of each sample [R, S]
+    w = erf(accuracy * d0 / (np.sqrt(2.0) * depth_error * np.maximum(z, 1e-6)))
+    d_world = np.einsum("rj,fij->fri", unit, poses[:, :3, :3])  # [F, R, 3]
+    pts = poses[:, None, None, :3, 3] + s[None, None, :, None] * d_world[:, :, None, :]  # [F, R, S, 3]
+    idx, st = vmap.lookup(pts)
+    occ = st == OCCUPIED
+    hit = occ.any(2)
+    first = np.where(hit, occ.argmax(2), len(s))
+    unk = (st == UNKNOWN) & (np.arange(len(s))[None, None, :] < first[..., None])
+    frame = np.broadcast_to(np.arange(len(poses))[:, None, None], unk.shape)[unk]
+    return idx[unk], np.broadcast_to(w[None], unk.shape)[unk], hit.mean(1), frame
+
+
+class _Scorer:
+    """Information gain (union over frames) and anchoring of candidate trajectories."""
+
+    def __init__(self, vmap: VoxelMap, state: PlanningState, cfg: PlanConfig) -> None:
+        self.vmap, self.cfg, self.d0 = vmap, cfg, state.d0
+        n = cfg.explore_rays
+        scale = n / max(state.height, state.width)
+        h, w = max(2, round(state.height * scale)), max(2, round(state.width * scale))
+        K = np.asarray(state.K, dtype=np.float64).copy()
+        K[0] *= w / state.width
+        K[1] *= h / state.height
+        self.dirs = camera_directions(K, h, w).reshape(-1, 3)
+        self.max_range = np.sqrt(3) * vmap.size * vmap.voxel / 2
+        self.buf = np.zeros(vmap.size ** 3)
+
+    def last_frames(self, ends: np.ndarray, batch: int = 32) -> np.ndarray:
+        """Score of each end pose ``[E, 4, 4]`` on its own (one frame each; cells counted once per frame)."""
+        cfg, out = self.cfg, []
+        n = self.vmap.size ** 3
+        for b in range(0, len(ends), batch):
+            poses = ends[b:b + batch]
+            cells, w, anchor, frame = _cast(self.vmap, poses, self.dirs, self.max_range, self.d0,
+                                            cfg.explore_accuracy, cfg.explore_depth_error)
+            key = frame.astype(np.int64) * n + cells
+            order = np.lexsort((w, key))
+            key, w, frame = key[order], w[order], frame[order]
+            last = np.r_[key[1:] != key[:-1], True]  # the largest weight of each (frame, cell)
+            gain = np.bincount(frame[last], weights=w[last], minlength=len(poses))
+            out.append(gain * np.minimum(1.0, anchor / cfg.explore_anchor))
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def score(self, poses: np.ndarray) -> tuple[float, float]:
+        cfg = self.cfg
+        cells, w, anchor, _ = _cast(self.vmap, poses, self.dirs, self.max_range, self.d0, cfg.explore_accuracy,
+                                    cfg.explore_depth_error)
+        order = np.argsort(w, kind="stable")  # the largest weight of a cell is written last: the union's max
+        cells, w = cells[order], w[order]
+        self.buf[cells] = w
+        gain = float(self.buf.sum())
+        self.buf[cells] = 0.0
+        factor = float(np.min(np.minimum(1.0, anchor / cfg.explore_anchor))) if len(anchor) else 0.0
+        return gain * factor, float(anchor.min()) if len(anchor) else 0.0
+
+
+def _end_pose(position: np.ndarray, centre: np.ndarray, yaw_deg: float, forward: np.ndarray) -> np.ndarray:
+    """At ``position`` looking at ``centre``, then turned by ``yaw_deg`` about world up."""
+    base = look_at_centre(position, centre, forward)
+    if yaw_deg == 0.0:
+        return base
+    from navcrafter.models.camera.cameras import axis_angle_to_matrix
+
+    out = base.copy()
+    out[:3, :3] = axis_angle_to_matrix(WORLD_UP, np.deg2rad(yaw_deg)) @ base[:3, :3]
+    return out
+
+
+def shaped_trajectory(current: np.ndarray, end: np.ndarray, centre: np.ndarray, num: int, shape: str) -> np.ndarray:
+    """``num`` poses from ``current`` to ``end``: ``arc`` (spherical interpolation about ``centre``), ``dolly``
+    (straight line), ``orbit`` (azimuth, elevation, radius about ``centre`` linear); rotations by SLERP; the end
+    poses are exact."""
+    if shape == "arc":
+        return interpolate_poses(current, end, num, centre=centre)
+    if shape == "dolly":
+        return interpolate_poses(current, end, num)
+    if shape != "orbit":
+        raise ValueError(f"unknown trajectory shape {shape!r}; choose from {SHAPES}")
+    out = interpolate_poses(current, end, num, centre=centre)  # rotations
+    c = np.asarray(centre, dtype=np.float64)
+    up = WORLD_UP
+
+    def sph(p):
+        v = p - c
+        r = np.linalg.norm(v)
+        el = np.arcsin(np.clip(v @ up / max(r, 1e-12), -1, 1))
+        h = v - (v @ up) * up
+        return r, el, h
+
+    r0, e0, h0 = sph(current[:3, 3])
+    r1, e1, h1 = sph(end[:3, 3])
+    a = np.linalg.norm(h0) > 1e-9 and np.linalg.norm(h1) > 1e-9
+    if not a:
+        return out
+    h0n, h1n = h0 / np.linalg.norm(h0), h1 / np.linalg.norm(h1)
+    ang = np.arctan2(np.cross(h0n, h1n) @ up, h0n @ h1n)
+    from navcrafter.models.camera.cameras import axis_angle_to_matrix
+
+    for i, f in enumerate(np.linspace(0.0, 1.0, num)):
+        hd = axis_angle_to_matrix(up, f * ang) @ h0n
+        r, e = (1 - f) * r0 + f * r1, (1 - f) * e0 + f * e1
+        out[i, :3, 3] = c + r * (np.cos(e) * hd + np.sin(e) * up)
+    out[0], out[-1] = current, end
+    return out
+
+
+class ExplorerPlanner:
+    """The safe explorer (module docstring)."""
+
+    name = "explorer"
+
+    def __init__(self, config: PlanConfig) -> None:
+        self.config = config
+
+    def plan(self, state: PlanningState, rng: np.random.Generator) -> PlanResult:
+        cfg = self.config
+        t0 = time.perf_counter()
+        points = planning_cloud(state, cfg.safe_radius)
+        ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
+        vmap = VoxelMap.build(state, points, cfg.explore_voxels)
+        det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
+                               follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix)
+        t_map = time.perf_counter()
+        scorer = _Scorer(vmap, state, cfg)
+        # end positions: a grid over S
+        space = search_space(cfg)
+        az = np.deg2rad(np.linspace(*space.azimuth_deg, 13))
+        el = np.deg2rad(np.linspace(*space.elevation_deg, 3))
+        r = state.d0 * np.linspace(space.radius[0], space.radius[1], 3)
+        A, E, R = np.meshgrid(az, el, r, indexing="ij")
+        pos = space_positions(state.centre, A, E, R).reshape(-1, 3)
+        ok = det.clearance(pos) >= cfg.safe_radius
+        ok &= det._above_ground(pos)
+        _, occluded = det._visibility(pos)
+        idx, _ = vmap.lookup(pos)
+        ok &= ~occluded & ~np.where(idx >= 0, vmap.occluded[np.maximum(idx, 0)], False)
+        ok &= vmap.reach(pos) <= det.max_reach
+        pos = pos[ok]
+        forward = state.current[:3, 2] - (state.current[:3, 2] @ WORLD_UP) * WORLD_UP
+        forward = forward / max(np.linalg.norm(forward), 1e-9)
+        yaws = (0.0, cfg.explore_yaw_deg, -cfg.explore_yaw_deg) if cfg.explore_yaw_deg > 0 else (0.0,)
+        ends = [_end_pose(p, state.centre, y, forward) for p in pos for y in yaws]
+        # pre-score every end on its last frame alone; the best go on as trajectories of every shape
+        T = state.num_frames
+        pre = scorer.last_frames(np.stack(ends)) if ends else np.zeros(0)
+        n_ends = max(1, cfg.explore_candidates // len(SHAPES))
+        top = np.argsort(-pre, kind="stable")[:n_ends]
+        frames = np.unique(np.linspace(0, T - 1, cfg.explore_frames + 1).round().astype(int))[1:]
+        trajs, scores, anchors, names = [], [], [], []
+        for i in top:
+            for shape in SHAPES:
+                traj = shaped_trajectory(state.current, ends[i], state.centre, T, shape)
+                s, a = scorer.score(traj[frames])
+                trajs.append(traj)
+                scores.append(s)
+                anchors.append(a)
+                names.append(shape)
+        t_score = time.perf_counter()
+        scores_a = np.asarray(scores)
+        order = np.argsort(-scores_a, kind="stable")
+        collides = np.zeros(len(trajs), dtype=bool)
+        chosen, final, initial, optimised, fallback = -1, None, None, False, "static"
+        checked = 0
+        for rank, i in enumerate(order):
+            if scores_a[i] <= 0:
+                break
+            checked += 1
+            if not det.trajectory_collides(trajs[i]):
+                chosen, final, initial, fallback = int(i), trajs[i], trajs[i], "" if rank == 0 else "next-candidate"
+                break
+            collides[i] = True
+            if checked <= 3:  # the best few may be repaired by the collision optimisation (same end poses)
+                opt = optimise_trajectory(trajs[i], det, state.centre, cfg.smoothness)
+                if opt.collision_free:
+                    chosen, final, initial, optimised = int(i), opt.trajectory, trajs[i], True
+                    fallback = "" if rank == 0 else "next-candidate"
+                    collides[i] = False
+                    break
+            if checked >= 20:
+                break
+        if final is None:  # none passes whole: the best ones cut short (a smaller step the same way), same length
+            for i in order[:10]:
+                for frac in (0.6, 0.35, 0.15):
+                    end = shaped_trajectory(state.current, trajs[i][-1], state.centre, 11, names[i])[
+                        int(round(frac * 10))]
+                    short = shaped_trajectory(state.current, end, state.centre, T, names[i])
+                    if not det.trajectory_collides(short):
+                        chosen, final, initial, fallback = int(i), short, short, f"shortened-{frac:g}"
+                        break
+                if final is not None:
+                    break
+        if final is None:
+            final = np.repeat(state.current[None], T, axis=0)
+            initial = trajs[int(order[0])] if len(trajs) else final
+        t_end = time.perf_counter()
+        cands = np.stack([t[-1] for t in trajs]) if trajs else state.current[None]
+        timings = {"map_s": t_map - t0, "candidates_s": t_score - t_map, "trajectory_s": t_end - t_score,
+                   "total_s": t_end - t0, "trajectories": float(len(trajs)), "ends": float(len(ends))}
+        res = PlanResult(final, initial, cands, scores_a if len(trajs) else np.zeros(1), collides
+                         if len(trajs) else np.zeros(1, bool), None, chosen, optimised=optimised,
+                         collision_free=True, fallback=fallback, timings=timings)
+        res.shape = names[chosen] if chosen >= 0 else ""  # type: ignore[attr-defined]
+        return res
+
+
+__all__ = ["ExplorerDetector", "ExplorerPlanner", "VoxelMap", "shaped_trajectory", "look_at"]

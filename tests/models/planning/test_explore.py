@@ -1,0 +1,104 @@
+"""The safe explorer (models/planning/explore.py): voxel map, trajectory shapes, optimistic-but-safe unknown space,
+the planner end to end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_planning import box, observe, room_state, scene_of
+
+from navcrafter.models.camera.cameras import Intrinsics, look_at
+from navcrafter.models.planning.explore import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    ExplorerDetector,
+    ExplorerPlanner,
+    VoxelMap,
+    shaped_trajectory,
+)
+from navcrafter.models.planning.planners import PlanningState
+from navcrafter.models.planning.registry import PLANNERS
+from navcrafter.schemas.config import PlanConfig
+
+K = Intrinsics.from_fov(80, 64, 64)
+
+
+def wall_state(num_frames: int = 21) -> PlanningState:
+    """A camera at the origin looking down +z at a wall at z = 4 (the test world's far wall is at z = 12)."""
+    scene = scene_of(box(-3, -3, 4.0, 6, 6, 0.2))
+    cloud, views = observe(scene, [np.eye(4)], K)
+    return PlanningState(current=np.eye(4), centre=np.array([0.0, 0.0, 3.0]), d0=3.0, K=K.K, height=64, width=64,
+                         cloud_points=cloud, views=views, num_frames=num_frames, point_size=0.05)
+
+
+def test_voxel_map_carves_free_space_and_marks_surfaces_and_what_lies_behind():
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    _, st = vmap.lookup(np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 4.05], [0.0, 0.0, -1.0], [3.5, 0.0, 0.5]]))
+    assert st.tolist() == [FREE, OCCUPIED, UNKNOWN, UNKNOWN]  # in view / on the wall / behind the camera / aside
+    idx, _ = vmap.lookup(np.array([[0.0, 0.0, 4.8]]))
+    assert vmap.occluded[idx[0]]  # behind the observed wall
+
+
+def test_trajectory_shapes_keep_their_ends_and_differ_on_the_way():
+    centre = np.array([0.0, 0.0, 3.0])
+    start = look_at(np.zeros(3), centre)
+    end = look_at(np.array([2.0, -0.5, 1.5]), centre)
+    paths = {s: shaped_trajectory(start, end, centre, 11, s) for s in ("arc", "dolly", "orbit")}
+    for p in paths.values():
+        assert np.array_equal(p[0], start) and np.array_equal(p[-1], end)
+    mid = {s: p[5, :3, 3] for s, p in paths.items()}
+    np.testing.assert_allclose(mid["dolly"], (start[:3, 3] + end[:3, 3]) / 2, atol=1e-9)  # straight
+    r = [np.linalg.norm(p[:3, 3] - centre) for p in paths["orbit"]]
+    np.testing.assert_allclose(r, np.linspace(r[0], r[-1], 11), atol=1e-9)  # radius linear about o
+    assert np.linalg.norm(mid["arc"] - mid["dolly"]) > 0.05
+    with pytest.raises(ValueError, match="shape"):
+        shaped_trajectory(start, end, centre, 11, "zigzag")
+
+
+def test_unknown_space_is_entered_only_after_the_clip_looked_at_it_and_never_behind_a_surface():
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25)
+    # turn right on the spot first (the clip looks 50 deg right, beyond the input view's 40), then move there:
+    # allowed once seen, after the prefix, within two cells of the space the input view saw free
+    turn = look_at(np.zeros(3), np.array([3.0, 0.0, 2.5]))
+    path = np.concatenate([np.repeat(np.eye(4)[None], 3, 0), np.repeat(turn[None], 5, 0)])
+    moved = []
+    for d in np.linspace(0.1, 1.5, 12):  # along the turned camera's axis
+        p = turn.copy()
+        p[:3, 3] = d * turn[:3, 2]
+        moved.append(p)
+    path = np.concatenate([path, np.stack(moved)])
+    near, unseen, _ = det.path_flags(path)
+    assert not near.any() and not unseen.any()
+    assert (vmap.reach(path[-3:, :3, 3]) > 0).all()  # those were unknown cells, not seen free
+    far = path.copy()
+    far[-1, :3, 3] = 6.0 * turn[:3, 2]  # looked at, but far from all free space: refused
+    assert det.path_flags(far)[1][-1] and vmap.reach(far[-1:, :3, 3])[0] > det.max_reach
+    # the same positions without having looked there first: refused (outside the space seen free)
+    blind = np.concatenate([np.repeat(np.eye(4)[None], 8, 0), np.stack(moved)])
+    blind[:, :3, :3] = np.eye(3)  # always looking down +z: the clip never looks at x = 2
+    _, unseen_blind, _ = det.path_flags(blind)
+    assert unseen_blind[-3:].all()
+    # behind the observed wall: never, however it was looked at
+    behind = np.repeat(np.eye(4)[None], 12, 0)
+    behind[6:, :3, 3] = [0.0, 0.0, 4.8]
+    near_b, unseen_b, _ = det.path_flags(behind)
+    assert (near_b | unseen_b)[6:].all()
+
+
+def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying():
+    scene, state = room_state()
+    assert PLANNERS["explorer"] is ExplorerPlanner
+    cfg = PlanConfig(explore_candidates=30)
+    res = ExplorerPlanner(cfg).plan(state, np.random.default_rng(0))
+    assert res.trajectory.shape == (21, 4, 4) and np.array_equal(res.trajectory[0], state.current)
+    assert res.masks is None and len(res.candidates) == len(res.scores) == len(res.collides)
+    assert res.timings["trajectories"] == 30
+    if res.chosen >= 0:  # a safe trajectory was found: it clears every true surface
+        assert (scene.distance(res.trajectory[:, :3, 3]) > 0.2).all()
+        assert res.scores[res.chosen] > 0
+    else:
+        assert res.fallback == "static" and np.allclose(res.trajectory, state.current)
