@@ -4,9 +4,13 @@ measured as the paper measures camera control (direction, camera-following error
 **Why this miniature** (``camera_training.py`` proves the training learns something, statistically, but its
 clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64², long mixed trajectories):
 
-* **Exact autoencoder.** Pixel space through ``PixelShuffleEncoders`` (4×4 pixels × 4 frames per latent
-  position, frame 0 alone: Wan's latent layout, exactly invertible), at 32² and 17 frames. The ceiling is the
-  truth itself (PSNR cap 100 dB), so every visible defect is the generator's.
+* **A high-ceiling autoencoder at 32².** Frames of 32² and 17 frames, Wan's latent layout (4×4 pixels × 4
+  frames per latent position, frame 0 alone): ``PixelShuffleEncoders`` (exactly invertible) projected onto the
+  top ``--latent-channels`` (24) principal components of the training clips (``PCAEncoders``); its PSNR on the
+  held-out truth is the ceiling. ``--autoencoder exact`` keeps all 192 pixel-shuffle channels (ceiling: the
+  truth itself), but then each token of the 2×2 patch carries 768 values through a 128-wide DiT: measured
+  (development run, eval seed 5000), the tiny model cannot pass the noise through that bottleneck and its
+  samples stay noise (PSNR 8.7 dB) after 300 + 900 steps. 24 channels × 2×2 = 96 values per token fit.
 * **Motion dominates the picture.** Each scene (the data engine's procedural rooms / streets / tabletops,
   ``models/simulation/scenes.py``, rendered by its ray caster) is filmed from its input-photo camera along
   four families of paths, **each in both directions with the same amplitude**: pan (yaw about the vertical,
@@ -33,8 +37,8 @@ trained control given the mirrored cameras:
   is estimated from its pixels by aligning it against true renders of the scene on a fine grid of candidate
   cameras (all four families, both directions, 2·``GRID``+1 amplitudes each, up to 1.25× the largest
   amplitude), R_err = geodesic angle (deg) and T_err = distance in units of L between the estimate and the
-  requested camera, mean over frames 1..T-1 and clips. The same estimator on the (exactly) autoencoded true
-  frames is the ``floor``: the grid's own quantisation, since the truth is reproduced exactly;
+  requested camera, mean over frames 1..T-1 and clips. The same estimator on the autoencoded true frames is
+  the ``floor`` (with the exact autoencoder: the grid's own quantisation);
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
@@ -42,7 +46,7 @@ trained control given the mirrored cameras:
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # <= 60 min, 2 cores
     # a GPU session, Wan2.1-1.3B width (not run on the CPU):
     python benchmarks/camera_control_mini.py --out DIR --device cuda --heads 12 --head-dim 128 --layers 30 \
-        --ffn 8960 --resolution 64 --frames 17
+        --ffn 8960 --adapter-channels 64 --resolution 64 --frames 17 --autoencoder exact --threads 8
 
 Writes ``results.json``, ``results.md`` and ``turns.png`` (sampled frames beside the requested and mirrored
 truth) into ``--out``. SIMULATION: the scenes, cameras and frames are rendered from procedural ground truth.
@@ -73,7 +77,7 @@ IMAGE_DIM, TEXT_DIM, IMAGE_TOKENS = 8, 16, 16
 PSNR_CAP = 100.0  # dB, for a frame reproduced exactly (MSE 0)
 
 SIZES = {  # training scenes (8 clips each), held-out scenes (8 clips each), steps of the two stages
-    "quick": dict(train_scenes=16, eval_scenes=2, base_steps=300, control_steps=900),
+    "quick": dict(train_scenes=16, eval_scenes=2, base_steps=400, control_steps=1000),
     "full": dict(train_scenes=64, eval_scenes=8, base_steps=3000, control_steps=4000),
 }
 
@@ -375,7 +379,7 @@ def turns_png(path: Path, held: list[dict], rows: dict[str, list[np.ndarray]], f
         d.text((4, y + H // 2 - 6), name, fill=(0, 0, 0))
         for j, f in enumerate(frames):
             img.paste(Image.fromarray(video[f]).resize((W, H), Image.NEAREST), (label + j * W, y))
-    img.save(path, optimize=True)
+    img.quantize(256).save(path, optimize=True)  # an adaptive palette keeps the file small
 
 
 # --------------------------------------------------------------------------------------------------
@@ -389,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seed", type=int, default=10, help="training scenes start here (tuned on 0-9)")
-    ap.add_argument("--eval-seed", type=int, default=5000, help="held-out scenes start here (never in training)")
+    ap.add_argument("--eval-seed", type=int, default=6000, help="held-out scenes start here (never in training)")
     ap.add_argument("--resolution", type=int, default=32)
     ap.add_argument("--frames", type=int, default=17, help="1 + a multiple of 4")
     ap.add_argument("--heads", type=int, default=4)
@@ -403,6 +407,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--eval-scenes", type=int)
     ap.add_argument("--lr", type=float, default=1e-3, help="both stages (from-scratch tiny model)")
     ap.add_argument("--sampling-steps", type=int, default=SynthesisConfig().steps)
+    ap.add_argument("--autoencoder", choices=("exact", "pca"), default="pca",
+                    help="exact: pixel-shuffle latents (3*4*4*4 = 192 channels: more values per token than a "
+                         "128-wide DiT can carry); pca: their top --latent-channels principal components")
+    ap.add_argument("--latent-channels", type=int, default=24, help="PCA channels (4 per token value x 2x2 patch)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest on shared cores)")
     args = ap.parse_args(argv)
@@ -428,6 +436,15 @@ def main(argv: list[str] | None = None) -> int:
                          seed=args.seed)
     held = build_scenes(kinds, range(args.eval_seed, args.eval_seed + size["eval_scenes"]), T, R, enc, grid=True,
                         seed=args.eval_seed)
+    if args.autoencoder == "pca":  # fitted on the training clips only, then every clip is encoded with it
+        from navcrafter.models.synthesis.encoders import PCAEncoders
+
+        exact = enc
+        enc = PCAEncoders.fit((c["clip"]["latents"] for e in train for c in e["clips"]), exact,
+                              args.latent_channels)
+        for e in train + held:
+            for c in e["clips"]:
+                c["clip"] = make_clip(enc, c["truth"], c["poses"], e["scene"].K.K, c["id"])
     train_clips = [c["clip"] for e in train for c in e["clips"]]
     held_flat = [c for e in held for c in e["clips"]]
     held_clips = [c["clip"] for c in held_flat]
@@ -443,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
 
     decoded = [video_to_frames(enc.decode_video(c["clip"]["latents"])) for c in held_flat]
     ae = float(np.mean([video_psnr(v, c["truth"]) for v, c in zip(decoded, held_flat)]))
-    floor = measure(decoded, held)
+    floor = measure(decoded, held)  # the estimator's error (and the scores) of the autoencoded truth
 
     base_config, control_config = model_configs(args, enc.latent_channels)
     model = build_camera_wan(base_config, control_config, seed=args.seed).to(args.device)
@@ -489,14 +506,17 @@ def main(argv: list[str] | None = None) -> int:
     results = {
         "trained": entry(m_t, gap_t), "untrained": entry(m_u, gap_u), "trained_wrong_cameras": entry(m_w, None),
         "autoencoder_psnr": ae,
-        "floor": {"r_err": floor["r_err"], "t_err": floor["t_err"], "by_family": floor["by_family"]},
+        "floor": {k: floor[k] for k in ("r_err", "t_err", "direction_accuracy", "psnr", "ssim", "by_family")},
         "goals": {"direction_accuracy_ge_0.9": m_t["direction_accuracy"] >= 0.9,
                   "untrained_at_chance": abs(m_u["direction_accuracy"] - 0.5) <= 0.2,
                   "r_err_within_2x_floor": m_t["r_err"] <= 2 * floor["r_err"],
                   "r_err_far_below_untrained": m_t["r_err"] <= 0.5 * m_u["r_err"]},
         "setup": {
             "mode": "SIMULATION: procedural scenes rendered along pan/tilt/orbit/dolly paths, both directions; "
-                    "exact pixel-shuffle autoencoder; a small camera-controlled Wan DiT trained from scratch",
+                    + ("exact pixel-shuffle autoencoder" if args.autoencoder == "exact" else
+                       f"PCA autoencoder ({enc.latent_channels} channels of the 4x4x4 pixel-shuffle patches)")
+                    + "; a small camera-controlled Wan DiT trained from scratch",
+            "autoencoder": args.autoencoder, "latent_channels": enc.latent_channels,
             "frames": T, "resolution": R, "train_clips": len(train_clips), "heldout_clips": len(held_clips),
             "train_scene_seeds": [args.seed, args.seed + size["train_scenes"] - 1],
             "heldout_scene_seeds": [args.eval_seed, args.eval_seed + size["eval_scenes"] - 1],
@@ -545,8 +565,9 @@ def markdown(r: dict) -> str:
         "|---|---|---|---|---|---|---|",
         *[f"| {n} | {x['direction_accuracy']:.3f} | {x['r_err']:.2f} | {x['t_err']:.3f} | {x['psnr']:.2f} | "
           f"{x['ssim']:.3f} | {gap(x)} |" for n, x in rows],
-        f"| floor: the estimator on the autoencoded truth | 1 | {r['floor']['r_err']:.2f} | "
-        f"{r['floor']['t_err']:.3f} | {r['autoencoder_psnr']:.1f} (ceiling) | 1 | |", "",
+        f"| floor / ceiling: the autoencoded truth | {r['floor'].get('direction_accuracy', float('nan')):.3f} | "
+        f"{r['floor']['r_err']:.2f} | {r['floor']['t_err']:.3f} | {r['autoencoder_psnr']:.2f} | "
+        f"{r['floor'].get('ssim', float('nan')):.3f} | |", "",
         "By family (direction accuracy / R_err deg / T_err L):", "",
         "| | " + " | ".join(FAMILIES) + " |", "|---|" + "---|" * len(FAMILIES),
         *[f"| {n} | " + " | ".join(f"{x['by_family'][f]['direction_accuracy']:.2f} / {x['by_family'][f]['r_err']:.1f}"
