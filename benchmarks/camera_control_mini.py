@@ -1,0 +1,588 @@
+"""Camera control, visibly (Module I on the CPU): a miniature whose sampled videos turn the way they are told,
+measured as the paper measures camera control (direction, camera-following error, PSNR/SSIM), on held-out scenes.
+
+**Why this miniature** (``camera_training.py`` proves the training learns something, statistically, but its
+clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64², long mixed trajectories):
+
+* **A high-ceiling autoencoder at 32².** Frames of 32² and 17 frames, Wan's latent layout (4×4 pixels × 4
+  frames per latent position, frame 0 alone): ``PixelShuffleEncoders`` (exactly invertible) projected onto the
+  top ``--latent-channels`` (24) principal components of the training clips (``PCAEncoders``); its PSNR on the
+  held-out truth is the ceiling. ``--autoencoder exact`` keeps all 192 pixel-shuffle channels (ceiling: the
+  truth itself), but then each token of the 2×2 patch carries 768 values through a 128-wide DiT: measured
+  (development run, eval seed 5000), the tiny model cannot pass the noise through that bottleneck and its
+  samples stay noise (PSNR 8.7 dB) after 300 + 900 steps. 24 channels × 2×2 = 96 values per token fit.
+* **Motion dominates the picture.** Each scene (the data engine's procedural rooms / streets / tabletops,
+  ``models/simulation/scenes.py``, rendered by its ray caster) is filmed from its input-photo camera along
+  four families of paths, **each in both directions with the same amplitude**: pan (yaw about the vertical,
+  ±20–35°), tilt (pitch about the camera's x axis, ±10–18°), orbit (rigid rotation about a vertical axis
+  0.7 L ahead, ±20–40°) and dolly (along the viewing axis, ±0.25–0.4 L; L = free distance ahead, both
+  directions kept collision-free). Constant speed, so frame k sits at ``k/(T-1)`` of the amplitude. With each
+  path and its mirror image equally often in the data, the first frame says nothing about the direction: a
+  model that ignores the camera is at chance (0.5), and only the cameras can tell it which way to go.
+* **The product's model and training flow, at tiny width.** ``build_camera_wan`` (diffusers'
+  ``WanTransformer3DModel`` + NavCrafter's control: the Plücker 3D-conv adapter, dual branch, and the camera
+  LoRA on Q/K/V), ``CameraTrainer`` with its flow-matching loss and defaults, in the product's two stages
+  (base with the control at zero and cameras dropped, then the control with the base frozen), sampled with
+  ``sample_clip`` (the product's DPM-solver, ``SynthesisConfig`` steps, LoRA 0.7, no CFG: no text). The clips
+  are built in memory with the same encoder calls as ``tasks/training/clips.py`` (latents, frame-0 latents,
+  image tokens, text embeddings, cameras relative to frame 0, K); the disk formats are not exercised here.
+
+**Measured on held-out scenes** (``--eval-seed``: scene seeds never used in training; every held-out scene gets
+all 8 paths, so the set is exactly balanced) for the trained control, the untrained (zero) control, and the
+trained control given the mirrored cameras:
+
+* ``direction_accuracy``: the fraction of clips whose sample is closer (mean PSNR over frames 1..T-1) to the
+  true render along the requested path than along its mirror image (ties count one half);
+* ``r_err`` / ``t_err`` (Table III's errors, per frame, relative to frame 0): the camera of every sampled frame
+  is estimated from its pixels by aligning it against true renders of the scene on a fine grid of candidate
+  cameras (all four families, both directions, 2·``GRID``+1 amplitudes each, up to 1.25× the largest
+  amplitude), R_err = geodesic angle (deg) and T_err = distance in units of L between the estimate and the
+  requested camera, mean over frames 1..T-1 and clips. The same estimator on the autoencoded true frames is
+  the ``floor`` (with the exact autoencoder: the grid's own quantisation);
+* PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
+  with another clip's cameras minus with the clip's own).
+
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 13 min at load ~18
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not run yet (sized for
+                                                                                           # <= 60 min, idle cores)
+    # a GPU session, Wan2.1-1.3B width (not run on the CPU):
+    python benchmarks/camera_control_mini.py --out DIR --device cuda --heads 12 --head-dim 128 --layers 30 \
+        --ffn 8960 --adapter-channels 64 --resolution 64 --frames 17 --autoencoder exact --threads 8
+
+Writes ``results.json``, ``results.md`` and ``turns.png`` (sampled frames beside the requested and mirrored
+truth) into ``--out``. SIMULATION: the scenes, cameras and frames are rendered from procedural ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+FAMILIES = ("pan", "tilt", "orbit", "dolly")
+# amplitude ranges (degrees for pan / tilt / orbit, units of L for dolly), drawn uniformly, sign +-1
+AMPLITUDES = {"pan": (20.0, 35.0), "tilt": (10.0, 18.0), "orbit": (20.0, 40.0), "dolly": (0.25, 0.4)}
+ORBIT_CENTRE = 0.7  # the orbit's axis, in units of L ahead of the first camera
+CLEARANCE = 0.15  # metres between the camera and any surface along a path (and its mirror image)
+GRID = 20  # candidate amplitudes per family and direction of the pose estimator
+GRID_RANGE = 1.25  # the estimator's candidates reach this multiple of the family's largest amplitude
+SPATIAL, TEMPORAL = 4, 4
+IMAGE_DIM, TEXT_DIM, IMAGE_TOKENS = 8, 16, 16
+PSNR_CAP = 100.0  # dB, for a frame reproduced exactly (MSE 0)
+
+SIZES = {  # training scenes (8 clips each), held-out scenes (8 clips each), steps of the two stages
+    "quick": dict(train_scenes=16, eval_scenes=2, base_steps=400, control_steps=1000),
+    "full": dict(train_scenes=64, eval_scenes=8, base_steps=3000, control_steps=4000),
+}
+
+
+# --------------------------------------------------------------------------------------------------
+# Paths: four families, each with a signed amplitude; the mirror image negates it
+# --------------------------------------------------------------------------------------------------
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _about(pivot: np.ndarray, R: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = R @ c2w[:3, :3]
+    out[:3, 3] = R @ (c2w[:3, 3] - pivot) + pivot
+    return out
+
+
+def family_pose(family: str, amount: float, c2w0: np.ndarray, L: float) -> np.ndarray:
+    """The OpenCV camera-to-world pose after moving ``amount`` along ``family`` from ``c2w0`` (degrees for
+    pan / tilt / orbit, units of ``L`` for dolly; negative = the mirror direction). World z is up."""
+    c2w0 = np.asarray(c2w0, dtype=np.float64)
+    if family == "pan":
+        return _about(c2w0[:3, 3], _rz(np.deg2rad(amount)), c2w0)
+    if family == "tilt":
+        out = c2w0.copy()
+        out[:3, :3] = c2w0[:3, :3] @ _rx(np.deg2rad(amount))
+        return out
+    if family == "orbit":
+        return _about(c2w0[:3, 3] + c2w0[:3, 2] * ORBIT_CENTRE * L, _rz(np.deg2rad(amount)), c2w0)
+    if family == "dolly":
+        out = c2w0.copy()
+        out[:3, 3] = c2w0[:3, 3] + c2w0[:3, 2] * amount * L
+        return out
+    raise ValueError(f"unknown path family {family!r}; choose from {FAMILIES}")
+
+
+def path_poses(family: str, amplitude: float, frames: int, c2w0: np.ndarray, L: float) -> np.ndarray:
+    """``[frames, 4, 4]`` poses at constant speed: frame k at ``k / (frames - 1)`` of ``amplitude``."""
+    return np.stack([family_pose(family, amplitude * k / (frames - 1), c2w0, L) for k in range(frames)])
+
+
+@dataclass
+class Scene:
+    sim: object  # models.simulation.scenes.SimScene
+    c2w0: np.ndarray
+    L: float
+    K: object  # models.camera.cameras.Intrinsics
+
+
+def make_scene(kind: str, seed: int, resolution: int) -> Scene:
+    from navcrafter.models.camera.cameras import Intrinsics
+    from navcrafter.models.simulation.datasets import _free_distance
+    from navcrafter.models.simulation.scenes import generate_scene
+
+    sim = generate_scene(kind, seed)
+    c2w0 = np.asarray(sim.camera_c2w, dtype=np.float64)
+    hit = _free_distance(sim, c2w0[:3, 3], c2w0[:3, 2])
+    L = float(np.clip(hit if np.isfinite(hit) else 12.0, 0.5, 12.0))
+    return Scene(sim, c2w0, L, Intrinsics.from_fov(float(sim.camera_fov_x_deg), resolution, resolution))
+
+
+def scene_amplitudes(scene: Scene, rng: np.random.Generator, frames: int) -> dict[str, float]:
+    """One positive amplitude per family such that the path and its mirror image keep ``CLEARANCE``."""
+    out = {}
+    for fam in FAMILIES:
+        lo, hi = AMPLITUDES[fam]
+        a = float(rng.uniform(lo, hi))
+        for _ in range(8):
+            centres = np.concatenate([path_poses(fam, s * a, 4 * frames, scene.c2w0, scene.L)[:, :3, 3]
+                                      for s in (1.0, -1.0)])
+            if np.all(scene.sim.distance(centres) >= CLEARANCE):
+                break
+            a *= 0.75
+        out[fam] = a
+    return out
+
+
+def render_rgb(scene: Scene, c2w: np.ndarray) -> np.ndarray:
+    from navcrafter.models.simulation.render import render
+
+    return render(scene.sim, c2w, scene.K, supersample=2).rgb
+
+
+def render_path(scene: Scene, poses: np.ndarray) -> np.ndarray:
+    return np.stack([render_rgb(scene, p) for p in poses])
+
+
+# --------------------------------------------------------------------------------------------------
+# The measurements (pure functions of frames and poses; tests/benchmarks/test_camera_control_mini.py)
+# --------------------------------------------------------------------------------------------------
+def frame_psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR (dB, capped at ``PSNR_CAP``) of two uint8 frames."""
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0**2
+    return PSNR_CAP if mse <= 0 else min(PSNR_CAP, 10.0 * np.log10(1.0 / mse))
+
+
+def video_psnr(video: np.ndarray, truth: np.ndarray) -> float:
+    """Mean PSNR over frames 1.. (frame 0 is the given image)."""
+    if video.shape != truth.shape:
+        raise ValueError(f"video {video.shape} and truth {truth.shape} differ in shape")
+    return float(np.mean([frame_psnr(a, b) for a, b in zip(video[1:], truth[1:])]))
+
+
+def direction_correct(video: np.ndarray, requested: np.ndarray, mirrored: np.ndarray) -> float:
+    """1 if ``video`` is closer (mean PSNR over frames 1..) to the requested truth than to the mirrored one,
+    0 if farther, 0.5 on a tie."""
+    a, b = video_psnr(video, requested), video_psnr(video, mirrored)
+    return 1.0 if a > b else 0.0 if a < b else 0.5
+
+
+def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """Geodesic angle (deg) between two rotations (atan2 form, accurate near 0)."""
+    R = Ra @ Rb.T
+    cos = (np.trace(R) - 1.0) / 2.0
+    sin = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.degrees(np.arctan2(sin, cos)))
+
+
+def pose_errors_per_frame(est: np.ndarray, req: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (1..): R_err (deg) and T_err (distance / ``scale``) of the estimated vs requested cameras, both
+    relative to their frame 0 (Table III's errors; the estimates are metric, so no scale is fitted)."""
+    est, req = np.asarray(est, np.float64), np.asarray(req, np.float64)
+    if est.shape != req.shape or est.ndim != 3:
+        raise ValueError(f"need two [N, 4, 4] pose arrays of equal shape, got {est.shape} and {req.shape}")
+    rel_e = np.linalg.inv(est[0]) @ est
+    rel_r = np.linalg.inv(req[0]) @ req
+    r = np.array([rotation_angle_deg(a[:3, :3], b[:3, :3]) for a, b in zip(rel_e[1:], rel_r[1:])])
+    t = np.linalg.norm(rel_e[1:, :3, 3] - rel_r[1:, :3, 3], axis=1) / scale
+    return r, t
+
+
+def estimate_cameras(video: np.ndarray, candidates: np.ndarray, candidate_poses: np.ndarray) -> np.ndarray:
+    """The camera of each frame of ``video`` ``[T, H, W, 3]``: the pose of the candidate render ``[N, H, W, 3]``
+    nearest to it (least squared error), ``[T, 4, 4]``."""
+    v = video.reshape(len(video), -1).astype(np.float32)
+    c = candidates.reshape(len(candidates), -1).astype(np.float32)
+    d = (v**2).sum(1)[:, None] - 2.0 * v @ c.T + (c**2).sum(1)[None]
+    return np.asarray(candidate_poses)[np.argmin(d, axis=1)]
+
+
+def candidate_grid(scene: Scene, resolution: int) -> tuple[np.ndarray, np.ndarray, list[tuple[str, float]]]:
+    """True renders of ``scene`` on the estimator's grid: every family, both directions, 2·GRID+1 amounts."""
+    poses, labels = [], []
+    for fam in FAMILIES:
+        top = GRID_RANGE * AMPLITUDES[fam][1]
+        for s in np.linspace(-top, top, 2 * GRID + 1):
+            if fam != FAMILIES[0] and s == 0.0:
+                continue  # the first camera once
+            poses.append(family_pose(fam, float(s), scene.c2w0, scene.L))
+            labels.append((fam, float(s)))
+    poses = np.stack(poses)
+    return render_path(scene, poses), poses, labels
+
+
+# --------------------------------------------------------------------------------------------------
+# Clips
+# --------------------------------------------------------------------------------------------------
+def make_clip(encoders, frames: np.ndarray, c2w: np.ndarray, K: np.ndarray, clip_id: str) -> dict:
+    """A clip as ``tasks/training/clips.py`` stores it (the same encoder calls), in memory."""
+    from navcrafter.models.synthesis.pipeline import _to_video
+
+    video = _to_video(frames)
+    condition = np.zeros_like(video)
+    condition[:, 0] = video[:, 0]
+    rel = np.linalg.inv(c2w[0]) @ c2w
+    return {"latents": encoders.encode_video(video).astype(np.float32),
+            "image_latents": encoders.encode_video(condition).astype(np.float32),
+            "image_embeds": np.asarray(encoders.image_features(frames[0]), np.float32),
+            "text_embeds": np.asarray(encoders.text_embeddings(""), np.float32),
+            "c2w": rel, "K": np.asarray(K, np.float64), "attrs": {"clip_id": clip_id}}
+
+
+def build_scenes(kinds, seeds, frames: int, resolution: int, encoders, *, grid: bool, seed: int) -> list[dict]:
+    """Per scene: the 8 clips (4 families × both directions) with their true frames, and the estimator grid."""
+    out = []
+    for j, s in enumerate(seeds):
+        kind = kinds[j % len(kinds)]
+        scene = make_scene(kind, int(s), resolution)
+        amps = scene_amplitudes(scene, np.random.default_rng([seed, int(s)]), frames)
+        entry = {"scene": scene, "kind": kind, "seed": int(s), "clips": []}
+        for fam in FAMILIES:
+            for sign in (1.0, -1.0):
+                a = sign * amps[fam]
+                poses = path_poses(fam, a, frames, scene.c2w0, scene.L)
+                truth = render_path(scene, poses)
+                cid = f"{kind}-{s}-{fam}{'+' if sign > 0 else '-'}"
+                entry["clips"].append({"family": fam, "amplitude": a, "poses": poses, "truth": truth,
+                                       "clip": make_clip(encoders, truth, poses, scene.K.K, cid), "id": cid})
+        if grid:
+            entry["grid"] = candidate_grid(scene, resolution)
+        out.append(entry)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Model
+# --------------------------------------------------------------------------------------------------
+def model_configs(args, latent_channels: int):
+    from navcrafter.models.synthesis.camcontrol import CameraControlConfig
+
+    base = {"patch_size": (1, 2, 2), "num_attention_heads": args.heads, "attention_head_dim": args.head_dim,
+            "in_channels": 2 * latent_channels + TEMPORAL, "out_channels": latent_channels, "text_dim": TEXT_DIM,
+            "freq_dim": 64 if args.heads * args.head_dim < 1024 else 256, "ffn_dim": args.ffn,
+            "num_layers": args.layers, "cross_attn_norm": True, "qk_norm": "rms_norm_across_heads", "eps": 1e-6,
+            "image_dim": IMAGE_DIM, "added_kv_proj_dim": args.heads * args.head_dim, "rope_max_seq_len": 32}
+    control = CameraControlConfig(adapter_channels=args.adapter_channels, adapter_res_blocks=1, lora_in_channels=16,
+                                  lora_rank=8, projection_rank=32, cond_channels=0, num_reference_frames=2,
+                                  latent_channels=latent_channels, vae_stride=(TEMPORAL, SPATIAL, SPATIAL))
+    return base, control
+
+
+def training_config(*, stage: str, steps: int, lr: float, seed: int, frames: int, resolution: int):
+    from navcrafter.schemas.training import CameraTrainingConfig, OptimConfig, TrainingDataConfig
+
+    data = TrainingDataConfig(sources=(), num_frames=frames, resolution=resolution, frame_stride=1,
+                              clips_per_source=None, validation_clips=0, render_condition=False,
+                              extra_reference=False)
+    return CameraTrainingConfig(data=data, optim=OptimConfig(learning_rate=lr, batch_size=1, warmup_steps=50),
+                                steps=steps, seed=seed, text_dropout=0.0, trainable=stage,
+                                camera_dropout=1.0 if stage == "base" else 0.0, gradient_checkpointing=False,
+                                random_base=None)
+
+
+def sample_videos(model, clips: list[dict], encoders, *, plucker_from: list[dict] | None, steps: int, lora: float,
+                  shift: float, seed: int, device: str) -> list[np.ndarray]:
+    from navcrafter.models.synthesis.pipeline import video_to_frames
+    from navcrafter.models.synthesis.training import clip_conditions, sample_clip
+
+    out = []
+    for i, clip in enumerate(clips):
+        c = clip_conditions(model, clip, device)
+        if plucker_from is not None:
+            c["plucker"] = clip_conditions(model, plucker_from[i], device)["plucker"]
+        z = sample_clip(model, c, seed=seed + i, steps=steps, guidance_scale=1.0, lora_scale=lora, flow_shift=shift)
+        out.append(video_to_frames(encoders.decode_video(z[0].float().cpu().numpy())))
+    return out
+
+
+def measure(videos: list[np.ndarray], held: list[dict]) -> dict:
+    """Direction accuracy, R_err / T_err by the pixel-alignment estimator, PSNR / SSIM, per clip and overall."""
+    from navcrafter.models.metrics.image import ssim
+
+    flat = [(e, c) for e in held for c in e["clips"]]
+    mirror = {c["id"]: m for e in held for c in e["clips"] for m in e["clips"]
+              if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
+    per = []
+    for v, (e, c) in zip(videos, flat):
+        cands, cposes, _ = e["grid"]
+        est = estimate_cameras(v, cands, cposes)
+        r, t = pose_errors_per_frame(est, c["poses"], e["scene"].L)
+        m = mirror[c["id"]]
+        per.append({"id": c["id"], "family": c["family"],
+                    "direction": direction_correct(v, c["truth"], m["truth"]),
+                    "psnr_requested": video_psnr(v, c["truth"]), "psnr_mirrored": video_psnr(v, m["truth"]),
+                    "ssim": float(np.mean([ssim(a.astype(np.float32) / 255.0, b.astype(np.float32) / 255.0)
+                                           for a, b in zip(v[1:], c["truth"][1:])])),
+                    "r_err": float(r.mean()), "t_err": float(t.mean())})
+    summ = {k: float(np.mean([p[k] for p in per])) for k in ("r_err", "t_err", "ssim")}
+    summ["psnr"] = float(np.mean([p["psnr_requested"] for p in per]))
+    summ["direction_accuracy"] = float(np.mean([p["direction"] for p in per]))
+    summ["by_family"] = {f: {"direction_accuracy": float(np.mean([p["direction"] for p in per if p["family"] == f])),
+                             "r_err": float(np.mean([p["r_err"] for p in per if p["family"] == f])),
+                             "t_err": float(np.mean([p["t_err"] for p in per if p["family"] == f]))}
+                         for f in FAMILIES}
+    summ["per_clip"] = per
+    return summ
+
+
+def turns_png(path: Path, held: list[dict], rows: dict[str, list[np.ndarray]], frames: list[int], scale: int = 2):
+    """One block per family (first held-out scene): requested truth, the samples, the mirrored truth."""
+    from PIL import Image, ImageDraw
+
+    e = held[0]
+    clips = [c for c in e["clips"] if c["amplitude"] > 0]
+    idx = {c["id"]: i for i, c in enumerate(e["clips"])}
+    mirror = {c["id"]: next(m for m in e["clips"] if m["family"] == c["family"] and m["amplitude"] < 0)
+              for c in clips}
+    h, w = clips[0]["truth"].shape[1:3]
+    H, W = h * scale, w * scale
+    label, gap = 190, 6
+    lines = []
+    for c in clips:
+        lines.append((f"{c['family']} {c['amplitude']:+.2f}: requested truth", c["truth"]))
+        for name, vids in rows.items():
+            lines.append((f"  {name}", vids[idx[c["id"]]]))
+        lines.append(("  mirrored truth", mirror[c["id"]]["truth"]))
+    per_block = 2 + len(rows)
+    img = Image.new("RGB", (label + W * len(frames), H * len(lines) + gap * len(clips)), (255, 255, 255))
+    d = ImageDraw.Draw(img)
+    for r, (name, video) in enumerate(lines):
+        y = r * H + gap * (r // per_block)
+        d.text((4, y + H // 2 - 6), name, fill=(0, 0, 0))
+        for j, f in enumerate(frames):
+            img.paste(Image.fromarray(video[f]).resize((W, H), Image.NEAREST), (label + j * W, y))
+    img.quantize(256).save(path, optimize=True)  # an adaptive palette keeps the file small
+
+
+# --------------------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    from navcrafter.models.synthesis.camcontrol import build_camera_wan
+    from navcrafter.models.synthesis.encoders import PixelShuffleEncoders
+    from navcrafter.models.synthesis.training import CameraTrainer, camera_gap, trainable_parameters
+    from navcrafter.schemas.config import SynthesisConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--seed", type=int, default=10, help="training scenes start here (tuned on 0-9)")
+    ap.add_argument("--eval-seed", type=int, default=6000, help="held-out scenes start here (never in training)")
+    ap.add_argument("--resolution", type=int, default=32)
+    ap.add_argument("--frames", type=int, default=17, help="1 + a multiple of 4")
+    ap.add_argument("--heads", type=int, default=4)
+    ap.add_argument("--head-dim", type=int, default=32)
+    ap.add_argument("--layers", type=int, default=4)
+    ap.add_argument("--ffn", type=int, default=256)
+    ap.add_argument("--adapter-channels", type=int, default=32)
+    ap.add_argument("--base-steps", type=int)
+    ap.add_argument("--control-steps", type=int)
+    ap.add_argument("--train-scenes", type=int)
+    ap.add_argument("--eval-scenes", type=int)
+    ap.add_argument("--lr", type=float, default=1e-3, help="both stages (from-scratch tiny model)")
+    ap.add_argument("--sampling-steps", type=int, default=SynthesisConfig().steps)
+    ap.add_argument("--autoencoder", choices=("exact", "pca"), default="pca",
+                    help="exact: pixel-shuffle latents (3*4*4*4 = 192 channels: more values per token than a "
+                         "128-wide DiT can carry); pca: their top --latent-channels principal components")
+    ap.add_argument("--latent-channels", type=int, default=24, help="PCA channels (4 per token value x 2x2 patch)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest on shared cores)")
+    args = ap.parse_args(argv)
+    if (args.frames - 1) % TEMPORAL or args.resolution % (2 * SPATIAL):
+        ap.error(f"--frames must be 1 + a multiple of {TEMPORAL} and --resolution a multiple of {2 * SPATIAL}")
+    size = dict(SIZES["quick" if args.quick else "full"])
+    for k in ("base_steps", "control_steps", "train_scenes", "eval_scenes"):
+        if getattr(args, k) is not None:
+            size[k] = getattr(args, k)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.threads)
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    kinds = ("room", "street", "tabletop")
+    T, R = args.frames, args.resolution
+    enc = PixelShuffleEncoders(SPATIAL, temporal=TEMPORAL, image_dim=IMAGE_DIM, text_dim=TEXT_DIM,
+                               image_tokens=IMAGE_TOKENS)
+
+    t0 = time.perf_counter()
+    train = build_scenes(kinds, range(args.seed, args.seed + size["train_scenes"]), T, R, enc, grid=False,
+                         seed=args.seed)
+    held = build_scenes(kinds, range(args.eval_seed, args.eval_seed + size["eval_scenes"]), T, R, enc, grid=True,
+                        seed=args.eval_seed)
+    if args.autoencoder == "pca":  # fitted on the training clips only, then every clip is encoded with it
+        from navcrafter.models.synthesis.encoders import PCAEncoders
+
+        exact = enc
+        enc = PCAEncoders.fit((c["clip"]["latents"] for e in train for c in e["clips"]), exact,
+                              args.latent_channels)
+        for e in train + held:
+            for c in e["clips"]:
+                c["clip"] = make_clip(enc, c["truth"], c["poses"], e["scene"].K.K, c["id"])
+    train_clips = [c["clip"] for e in train for c in e["clips"]]
+    held_flat = [c for e in held for c in e["clips"]]
+    held_clips = [c["clip"] for c in held_flat]
+    mirror_of = {c["id"]: m["clip"] for e in held for c in e["clips"] for m in e["clips"]
+                 if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
+    mirrored_clips = [mirror_of[c["id"]] for c in held_flat]
+    timings["data_s"] = time.perf_counter() - t0
+    print(f"data: {len(train_clips)} training clips, {len(held_clips)} held-out clips "
+          f"({timings['data_s']:.0f} s)", flush=True)
+
+    # the autoencoder is exact: its PSNR on the held-out clips is the cap
+    from navcrafter.models.synthesis.pipeline import video_to_frames
+
+    decoded = [video_to_frames(enc.decode_video(c["clip"]["latents"])) for c in held_flat]
+    ae = float(np.mean([video_psnr(v, c["truth"]) for v, c in zip(decoded, held_flat)]))
+    floor = measure(decoded, held)  # the estimator's error (and the scores) of the autoencoded truth
+
+    base_config, control_config = model_configs(args, enc.latent_channels)
+    model = build_camera_wan(base_config, control_config, seed=args.seed).to(args.device)
+    cfg = dict(frames=T, resolution=R, lr=args.lr)
+    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, **cfg)
+    t0 = time.perf_counter()
+
+    def progress(name, every=100):
+        def f(log):
+            if log.step % every == 0:
+                print(f"{name} step {log.step}: loss {log.loss:.4f} ({time.perf_counter() - t_start:.0f} s)",
+                      flush=True)
+        return f
+
+    base_state = CameraTrainer(model, train_clips, base_cfg, device=args.device).train(None, on_step=progress("base"))
+    timings["base_s"] = time.perf_counter() - t0
+    untrained = copy.deepcopy(model).eval()
+    control_cfg = training_config(stage="control", steps=size["control_steps"], seed=args.seed + 1, **cfg)
+    t0 = time.perf_counter()
+    control_state = CameraTrainer(model, train_clips, control_cfg, device=args.device).train(
+        None, on_step=progress("control"))
+    timings["control_s"] = time.perf_counter() - t0
+    model.eval()
+
+    t0 = time.perf_counter()
+    lora, shift = SynthesisConfig().lora_scale, 3.0
+    kw = dict(steps=args.sampling_steps, lora=lora, shift=shift, seed=args.eval_seed, device=args.device)
+    v_trained = sample_videos(model, held_clips, enc, plucker_from=None, **kw)
+    v_untrained = sample_videos(untrained, held_clips, enc, plucker_from=None, **kw)
+    v_wrong = sample_videos(model, held_clips, enc, plucker_from=mirrored_clips, **kw)
+    timings["sampling_s"] = time.perf_counter() - t0
+    gap_t = camera_gap(model, held_clips, control_cfg, seed=args.eval_seed, device=args.device)
+    gap_u = camera_gap(untrained, held_clips, control_cfg, seed=args.eval_seed, device=args.device)
+
+    def entry(m: dict, gap: dict | None) -> dict:
+        return {"direction_accuracy": m["direction_accuracy"], "r_err": m["r_err"], "t_err": m["t_err"],
+                "psnr": m["psnr"], "ssim": m["ssim"],
+                "camera_gap": None if gap is None else gap["camera_gap"],
+                "camera_gap_se": None if gap is None else gap["camera_gap_se"],
+                "by_family": m["by_family"], "per_clip": m["per_clip"]}
+
+    m_t, m_u, m_w = measure(v_trained, held), measure(v_untrained, held), measure(v_wrong, held)
+    results = {
+        "trained": entry(m_t, gap_t), "untrained": entry(m_u, gap_u), "trained_wrong_cameras": entry(m_w, None),
+        "autoencoder_psnr": ae,
+        "floor": {k: floor[k] for k in ("r_err", "t_err", "direction_accuracy", "psnr", "ssim", "by_family")},
+        "goals": {"direction_accuracy_ge_0.9": m_t["direction_accuracy"] >= 0.9,
+                  "untrained_at_chance": abs(m_u["direction_accuracy"] - 0.5) <= 0.2,
+                  "r_err_within_2x_floor": m_t["r_err"] <= 2 * floor["r_err"],
+                  "r_err_far_below_untrained": m_t["r_err"] <= 0.5 * m_u["r_err"]},
+        "setup": {
+            "mode": "SIMULATION: procedural scenes rendered along pan/tilt/orbit/dolly paths, both directions; "
+                    + ("exact pixel-shuffle autoencoder" if args.autoencoder == "exact" else
+                       f"PCA autoencoder ({enc.latent_channels} channels of the 4x4x4 pixel-shuffle patches)")
+                    + "; a small camera-controlled Wan DiT trained from scratch",
+            "autoencoder": args.autoencoder, "latent_channels": enc.latent_channels,
+            "frames": T, "resolution": R, "train_clips": len(train_clips), "heldout_clips": len(held_clips),
+            "train_scene_seeds": [args.seed, args.seed + size["train_scenes"] - 1],
+            "heldout_scene_seeds": [args.eval_seed, args.eval_seed + size["eval_scenes"] - 1],
+            "amplitudes": AMPLITUDES, "estimator_grid": {"per_direction": GRID, "range": GRID_RANGE},
+            "width": {"heads": args.heads, "head_dim": args.head_dim, "layers": args.layers, "ffn": args.ffn},
+            "base_steps": size["base_steps"], "control_steps": size["control_steps"], "lr": args.lr,
+            "sampling_steps": args.sampling_steps, "lora_scale_inference": lora, "flow_shift": shift,
+            "guidance_scale": 1.0, "quick": bool(args.quick), "device": args.device,
+            "threads": args.threads, "load_average_at_end": list(__import__("os").getloadavg()),
+            "base_trainable_parameters": trainable_parameters(model, base_cfg),
+            "control_trainable_parameters": trainable_parameters(model, control_cfg),
+            "base_final_loss": float(np.mean([h["loss"] for h in base_state.history[-50:]])),
+            "control_final_loss": float(np.mean([h["loss"] for h in control_state.history[-50:]])),
+            "timings_s": timings, "total_minutes": (time.perf_counter() - t_start) / 60.0,
+        },
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    step = max(1, (T - 1) // 4)
+    turns_png(out / "turns.png", held, {"trained control": [v for v in v_trained],
+                                        "untrained control": v_untrained,
+                                        "trained, mirrored cams": v_wrong}, list(range(0, T, step)))
+    (out / "results.md").write_text(markdown(results))
+    print(markdown(results))
+    return 0
+
+
+def markdown(r: dict) -> str:
+    s = r["setup"]
+    rows = [("trained control", r["trained"]), ("untrained (zero) control", r["untrained"]),
+            ("trained control, mirrored cameras", r["trained_wrong_cameras"])]
+    g = r["goals"]
+
+    def gap(x):
+        return "" if x["camera_gap"] is None else f"{x['camera_gap']:+.4f} ± {x['camera_gap_se']:.4f}"
+
+    lines = [
+        "# Camera control, visibly (Module I miniature) — SIMULATION, CPU", "",
+        f"{s['mode']}. {s['frames']} frames at {s['resolution']}², {s['train_clips']} training clips (scene seeds "
+        f"{s['train_scene_seeds'][0]}–{s['train_scene_seeds'][1]}), {s['heldout_clips']} held-out clips (scene "
+        f"seeds {s['heldout_scene_seeds'][0]}–{s['heldout_scene_seeds'][1]}, never trained on; each scene with all "
+        f"4 families × 2 directions). Width {s['width']}; base {s['base_steps']} steps, control "
+        f"{s['control_steps']} steps (base frozen), lr {s['lr']:g}, batch 1; sampling DPM-solver "
+        f"{s['sampling_steps']} steps, LoRA {s['lora_scale_inference']}, no CFG. Total {s['total_minutes']:.1f} min.",
+        "",
+        "| | direction accuracy | R_err (deg/frame) | T_err (L/frame) | PSNR | SSIM | camera gap |",
+        "|---|---|---|---|---|---|---|",
+        *[f"| {n} | {x['direction_accuracy']:.3f} | {x['r_err']:.2f} | {x['t_err']:.3f} | {x['psnr']:.2f} | "
+          f"{x['ssim']:.3f} | {gap(x)} |" for n, x in rows],
+        f"| floor / ceiling: the autoencoded truth | {r['floor'].get('direction_accuracy', float('nan')):.3f} | "
+        f"{r['floor']['r_err']:.2f} | {r['floor']['t_err']:.3f} | {r['autoencoder_psnr']:.2f} | "
+        f"{r['floor'].get('ssim', float('nan')):.3f} | |", "",
+        "By family (direction accuracy / R_err deg / T_err L):", "",
+        "| | " + " | ".join(FAMILIES) + " |", "|---|" + "---|" * len(FAMILIES),
+        *[f"| {n} | " + " | ".join(f"{x['by_family'][f]['direction_accuracy']:.2f} / {x['by_family'][f]['r_err']:.1f}"
+                                  f" / {x['by_family'][f]['t_err']:.3f}" for f in FAMILIES) + " |" for n, x in rows],
+        "| floor | " + " | ".join(f"— / {r['floor']['by_family'][f]['r_err']:.1f} / "
+                                  f"{r['floor']['by_family'][f]['t_err']:.3f}" for f in FAMILIES) + " |", "",
+        "Goals (fixed before the run): "
+        + "; ".join(f"{k}: **{'met' if v else 'NOT met'}**" for k, v in g.items()) + ".", "",
+        "![turns](turns.png)", "",
+        "Per family, first held-out scene: the requested truth, the samples, the mirrored truth (frames "
+        "0, 4, 8, 12, 16).", "",
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

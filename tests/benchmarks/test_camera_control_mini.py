@@ -1,0 +1,100 @@
+"""The measurements of benchmarks/camera_control_mini.py (direction accuracy, the pixel-alignment camera estimator
+and Table III's per-frame errors) on true renders of one small scene: each can fail."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def mini():
+    spec = importlib.util.spec_from_file_location("camera_control_mini", ROOT / "benchmarks" / "camera_control_mini.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["camera_control_mini"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def held(mini, monkeypatch_module):
+    from navcrafter.models.synthesis.encoders import PixelShuffleEncoders
+
+    monkeypatch_module.setattr(mini, "GRID", 6)  # a coarse estimator grid keeps the test fast
+    enc = PixelShuffleEncoders(4, temporal=4, image_dim=8, text_dim=16, image_tokens=16)
+    return mini.build_scenes(("street",), [3], 5, 16, enc, grid=True, seed=0)
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    mp = pytest.MonkeyPatch()
+    yield mp
+    mp.undo()
+
+
+def _mirror(entry, clip):
+    return next(m for m in entry["clips"] if m["family"] == clip["family"] and m["amplitude"] == -clip["amplitude"])
+
+
+def test_paths_mirror_and_start_at_the_first_camera(mini, held):
+    e = held[0]
+    assert len(e["clips"]) == 2 * len(mini.FAMILIES)
+    for c in e["clips"]:
+        np.testing.assert_allclose(c["poses"][0], e["scene"].c2w0, atol=1e-12)
+        m = _mirror(e, c)
+        assert not np.allclose(c["poses"][-1], m["poses"][-1])
+        assert np.array_equal(c["truth"][0], m["truth"][0])  # the same first frame: direction is not in it
+    pan = next(c for c in e["clips"] if c["family"] == "pan" and c["amplitude"] > 0)
+    r, t = mini.pose_errors_per_frame(pan["poses"], _mirror(e, pan)["poses"])
+    np.testing.assert_allclose(r[-1], 2 * pan["amplitude"], rtol=1e-9)  # mirror: twice the angle apart
+    np.testing.assert_allclose(t, 0.0, atol=1e-9)  # a pan does not move the centre
+
+
+def test_direction_accuracy_truth_is_one_mirror_is_zero(mini, held):
+    e = held[0]
+    truth = [c["truth"] for c in e["clips"]]
+    mirrored = [_mirror(e, c)["truth"] for c in e["clips"]]
+    assert mini.measure(truth, held)["direction_accuracy"] == 1.0
+    assert mini.measure(mirrored, held)["direction_accuracy"] == 0.0
+    v = e["clips"][0]["truth"]
+    assert mini.direction_correct(v, v, v) == 0.5  # a tie counts one half
+
+
+def test_estimator_recovers_true_cameras_and_punishes_mirrored_ones(mini, held):
+    e = held[0]
+    truth = mini.measure([c["truth"] for c in e["clips"]], held)
+    mirrored = mini.measure([_mirror(e, c)["truth"] for c in e["clips"]], held)
+    # the truth is found to within the grid's step (1.25 x 35 deg / 6 for pans); the mirror is far off
+    assert truth["r_err"] < 4.0
+    assert mirrored["r_err"] > 3 * truth["r_err"]
+    assert mirrored["t_err"] > truth["t_err"]
+    assert truth["psnr"] == mini.PSNR_CAP and truth["ssim"] == pytest.approx(1.0)
+
+
+def test_estimate_cameras_picks_the_nearest_candidate(mini):
+    rng = np.random.default_rng(0)
+    cands = rng.integers(0, 256, (5, 4, 4, 3), dtype=np.uint8)
+    poses = np.stack([np.eye(4) * (i + 1) for i in range(5)])
+    video = cands[[3, 0, 4]].astype(np.int16) + rng.integers(-3, 4, (3, 4, 4, 3))
+    est = mini.estimate_cameras(np.clip(video, 0, 255).astype(np.uint8), cands, poses)
+    np.testing.assert_array_equal(est, poses[[3, 0, 4]])
+
+
+def test_pose_errors_per_frame_and_bad_input(mini):
+    req = np.stack([mini.family_pose("pan", a, np.eye(4), 1.0) for a in (0.0, 10.0, 20.0)])
+    est = np.stack([mini.family_pose("pan", a, np.eye(4), 1.0) for a in (0.0, 12.0, 15.0)])
+    r, t = mini.pose_errors_per_frame(est, req)
+    np.testing.assert_allclose(r, [2.0, 5.0], atol=1e-9)
+    dolly = np.stack([mini.family_pose("dolly", a, np.eye(4), 2.0) for a in (0.0, 0.5)])
+    _, t = mini.pose_errors_per_frame(dolly, dolly[[0, 0]], scale=2.0)
+    np.testing.assert_allclose(t, [0.5])
+    with pytest.raises(ValueError, match="equal shape"):
+        mini.pose_errors_per_frame(est, req[:2])
+    with pytest.raises(ValueError, match="unknown path family"):
+        mini.family_pose("zoom", 1.0, np.eye(4), 1.0)
