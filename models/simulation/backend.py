@@ -380,6 +380,7 @@ class SimulationSynthesizer(_SimulationRole):
         w = truth._scale()
         tree = _cloud_tree(truth, request.cloud_points)
         variant = (variant_of(truth.scene, int(rng.integers(1 << 31)), cfg) if cfg.hallucinate else None)
+        field = AnchorField.draw(rng) if variant is not None else None  # one per clip: hallucinations stay put
         frames = np.empty((T, H, W, 3), dtype=np.uint8)
         depth = np.empty((T, H, W), dtype=np.float32)
         quality = np.empty(T, dtype=np.float32)
@@ -395,7 +396,7 @@ class SimulationSynthesizer(_SimulationRole):
             rgb, d = r.rgb.astype(np.float64), r.depth.astype(np.float64)
             true_px = np.ones((H, W), dtype=bool)
             if variant is not None:
-                true_px = ~r.hit | anchored(tree, r.depth, r.hit, poses_gt[i], K, cfg, rng)
+                true_px = ~r.hit | anchored(tree, r.depth, r.hit, poses_gt[i], K, cfg, rng, field)
                 if not true_px.all():
                     v = render(variant, poses_gt[i], K, supersample=cfg.supersample)
                     rgb[~true_px] = v.rgb[~true_px]
@@ -438,11 +439,37 @@ def _cloud_tree(truth: SimulationTruth, cloud_points: np.ndarray):
     return cKDTree(truth.gt_points(pts)) if len(pts) else None
 
 
+@dataclass(frozen=True)
+class AnchorField:
+    """The smooth random field over the ground-truth world that decides, under soft anchoring, which surface points
+    a clip shows as they are (``anchored``): a few random plane waves of 0.5-2 m wavelength, unit variance, mapped
+    through the normal CDF to roughly uniform values. One field per clip, so a surface point is shown (or
+    hallucinated) the same way in every frame of the clip: a video model is temporally consistent within a clip,
+    its hallucinations stay put."""
+
+    waves: np.ndarray  # [n, 3] wave vectors (rad / m)
+    phases: np.ndarray  # [n]
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, n: int = 6) -> AnchorField:
+        dirs = rng.normal(size=(n, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        k = 2 * np.pi / rng.uniform(0.5, 2.0, n)
+        return cls(dirs * k[:, None], rng.uniform(0, 2 * np.pi, n))
+
+    def uniform(self, pts: np.ndarray) -> np.ndarray:
+        """Roughly uniform values in (0, 1) at the points ``pts [N, 3]`` (ground-truth frame, metres)."""
+        from scipy.special import ndtr
+
+        return ndtr(np.sqrt(2.0 / len(self.phases)) * np.sin(pts @ self.waves.T + self.phases).sum(1))
+
+
 def anchored(tree, depth: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: Intrinsics, cfg: SimulationConfig,
-             rng: np.random.Generator) -> np.ndarray:
+             rng: np.random.Generator, field: AnchorField | None = None) -> np.ndarray:
     """Pixels that show the truth: with ``cfg.anchor_falloff_m`` > 0 (soft anchoring), a pixel whose true surface
-    point lies d from the cloud (ground-truth frame) does with probability exp(-d / falloff), decided by a smooth
-    random field (so unanchored content comes in patches); with 0, those within ``anchor_tolerance_m`` (hard)."""
+    point lies d from the cloud (ground-truth frame) does with probability exp(-d / falloff), decided by ``field``
+    at that point (the clip's, so the decision holds in every frame; None: a fresh one from ``rng``), so unanchored
+    content comes in patches; with 0, those within ``anchor_tolerance_m`` (hard)."""
     out = np.zeros(hit.shape, dtype=bool)
     if tree is None or not hit.any():
         return out
@@ -453,9 +480,7 @@ def anchored(tree, depth: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: In
     if not soft:
         out[hit] = np.isfinite(d)
         return out
-    from scipy.special import ndtr
-
-    u = ndtr(_smooth_field(rng, *hit.shape, cells=8))[hit]  # roughly uniform, spatially smooth
+    u = (field if field is not None else AnchorField.draw(rng)).uniform(pts)
     out[hit] = np.isfinite(d) & (u < np.exp(-np.where(np.isfinite(d), d, bound) / cfg.anchor_falloff_m))
     return out
 

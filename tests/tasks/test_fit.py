@@ -194,7 +194,9 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     from navcrafter.tasks.readers import load_gaussians
     from navcrafter.tasks.runner import run_scene
 
-    cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True})
+    # the honest preset without hallucination: the subject is whether the fit learns from its frames; each clip's
+    # hallucinated content differs from the next clip's (tests/models/simulation), which caps held-out PSNR
+    cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "simulation.hallucinate": False})
     store = str(tmp_path / "store")
     res = ingest(store, str(demo_photos / "tabletop-0.png"), cfg, "t")
     refs = run_scene(store, res.scene_id, cfg, "t")
@@ -210,7 +212,10 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
     assert arrays["holdout"].sum() == a["n_holdout"] == 3 and a["n_train"] == F - 3
     assert arrays["holdout_renders"].shape == (3, 32, 32, 3) and a["resolution"] == [32, 32]
     assert arrays["history"].shape == (cfg.fit.iterations, 6) and np.isnan(arrays["history"][:, 2]).all()
-    assert len(arrays["depth_calibration"]) > 0 and (arrays["depth_calibration"][:, 3] > 0.8).all()
+    r2 = arrays["depth_calibration"][:, 3]  # per calibrated frame, R^2 of the affine fit in inverse depth
+    # the honest geometry's clip-shared error (SimulationConfig.depth_clip_*: a smooth field and a shape bias) is not
+    # affine in inverse depth, and a 32 px table-top has little depth range: most frames fit well, none badly
+    assert len(r2) > 0 and np.median(r2) > 0.8 and r2.min() > 0.5
     # held out: well above what the initial model (the cloud as Gaussians) reaches
     assert a["psnr"] > 20 and a["psnr"] > a["init_psnr"] + 3 and 0 < a["ssim"] <= 1
     assert a["lpips"] is None and "weights are missing" in a["lpips_note"]
