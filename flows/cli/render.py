@@ -56,7 +56,8 @@ def ply_source(path: Path) -> Source:
 def scene_source(store_uri: str, scene_id: str | None) -> Source:
     """The fitted Gaussians of a scene (refined when the refine step ran, as its exports use), its input camera
     (the first camera of its stored path), that camera's intrinsics at the scene's resolution and the scene
-    centre. ``scene_id`` may be a unique prefix; None picks the store's only scene."""
+    centre. ``scene_id``: an id, a unique prefix or the photo's file name (``readers.resolve_scene``); None picks the
+    store's only scene."""
     # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.schemas.layout import FIT, PLAN, REFINE
     from navcrafter.schemas.store import Store
@@ -65,25 +66,13 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
         camera_path,
         load_gaussians,
         load_refined_gaussians,
+        resolve_scene,
         scene_label,
         scene_run_config,
     )
 
     store = Store(store_uri, create=False)
-    ids = store.scene_ids()
-    if not ids:
-        raise ValueError(f"{store_uri} has no scenes; run `navcrafter explore PHOTOS --store {store_uri}` first")
-    if scene_id is None:
-        if len(ids) > 1:
-            raise ValueError(f"{store_uri} holds {len(ids)} scenes; choose one with --scene "
-                             f"({', '.join(i[:12] for i in ids[:5])}{', ...' if len(ids) > 5 else ''})")
-        matches = ids
-    else:
-        matches = [i for i in ids if i.startswith(scene_id)]
-        if len(matches) != 1:
-            why = "matches no scene" if not matches else f"matches {len(matches)} scenes; give more characters"
-            raise ValueError(f"--scene {scene_id} {why} of {store_uri} (`navcrafter status {store_uri}` lists them)")
-    sid = matches[0]
+    sid = resolve_scene(store, scene_id, default="only", option="--scene")
     scene = store.scene(sid)
     if not scene.status(FIT).complete:
         raise ValueError(f"scene {sid} has no fitted Gaussians; run explore with fit.enabled=true")
@@ -154,7 +143,8 @@ def render(
     store: Annotated[Optional[str], typer.Option(
         "--store", help="Render the fitted Gaussians of a scene of this store instead of a PLY.")] = None,
     scene: Annotated[Optional[str], typer.Option(
-        "--scene", help="Scene id (or a unique prefix) in --store; optional when the store has one scene.")] = None,
+        "--scene", help="Scene id, a unique id prefix or the photo's file name in --store; optional when the store "
+                            "has one scene.")] = None,
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="A preset (orbit, arc, dolly, pan, tilt, zoom, truck, pedestal, spiral, lookaround) "
                              "or a camera file (RealEstate10K .txt, transforms.json, nerfstudio camera_path.json, "

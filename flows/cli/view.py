@@ -25,12 +25,13 @@ def view(
     input photo, planned and estimated cameras, the plan's candidates (rejected by the collision detector G or
     not) and the video frames; a dropdown switches between the store's scenes. Serves until Ctrl-C."""
     # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.flows.tools.viewer import NO_FIT, SceneNotFound, build_viewer, resolve_scene
+    from navcrafter.flows.tools.viewer import NO_FIT, build_viewer
     from navcrafter.schemas.store import Store, StoreError
+    from navcrafter.tasks.readers import SceneNotFound, resolve_scene
 
     try:
         st = Store(store, create=False)
-        sid = resolve_scene(st, scene)
+        sid = resolve_scene(st, scene, default="first")
     except StoreError as exc:
         fail(str(exc), "(`navcrafter status STORE` lists the scenes of a store)")
     except SceneNotFound as exc:

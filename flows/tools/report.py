@@ -7,15 +7,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import PurePath
 from typing import Any
 
-import pyarrow as pa
-
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, FIT, PLAN, REFINE
-from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.schemas.store import SceneStore
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.readers import read_manifest  # noqa: F401  (re-exported: the CLI and flows read it here)
 from navcrafter.tasks.runner import scene_steps
 
 
@@ -105,10 +104,6 @@ def manifest_rows_for(result: SceneResult, run_id: str) -> list[dict[str, Any]]:
              "timings": result.timings, "metrics": result.metrics,
              "n_points": int(result.metrics["n_points"]) if "n_points" in result.metrics else None,
              "outputs": result.outputs} for s in result.sources]
-
-
-def read_manifest(store: Store) -> pa.Table:
-    return store.tables.latest("manifest", key=("source",), order="updated_at")
 
 
 # --------------------------------------------------------------------------------------------------

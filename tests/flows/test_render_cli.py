@@ -282,7 +282,7 @@ def test_scene_source_reads_the_fit_the_input_camera_and_the_centre(tmp_path):
         scene_source(str(store), "cd")
     with pytest.raises(ValueError, match="holds 2 scenes; choose one with --scene"):
         scene_source(str(store), None)
-    with pytest.raises(ValueError, match="--scene ef matches no scene"):
+    with pytest.raises(ValueError, match="--scene 'ef' names no scene of"):
         scene_source(str(store), "ef")
 
 
