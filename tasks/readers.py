@@ -306,6 +306,14 @@ def load_refined_gaussians(scene: SceneStore) -> GaussianModel:
     return load_gaussians(scene, REFINE)
 
 
+def load_final_gaussians(scene: SceneStore) -> tuple[GaussianModel, StepSpec]:
+    """A scene's final Gaussians as its store holds them, and the step that stored them: the refine step's when it
+    completed, else the fit's (which must be complete). What the tools show and render (``navcrafter view``,
+    ``render``)."""
+    step = REFINE if scene.status(REFINE).complete else FIT
+    return load_gaussians(scene, step), step
+
+
 def load_fit_views(scene: SceneStore) -> tuple[list[TrainView], list[TrainView]]:
     """The fit's training and held-out views, rebuilt from its group (frames from the synthesize steps,
     resized as the fit did; calibrated depth targets of the training views)."""

@@ -80,8 +80,7 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     from navcrafter.tasks.backends import label_band
     from navcrafter.tasks.readers import (
         camera_path,
-        load_gaussians,
-        load_refined_gaussians,
+        load_final_gaussians,
         resolve_scene,
         scene_label,
         scene_run_config,
@@ -92,8 +91,8 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     scene = store.scene(sid)
     if not scene.status(FIT).complete:
         raise ValueError(f"scene {sid} has no fitted Gaussians; run explore with fit.enabled=true")
-    refined = scene.status(REFINE).complete
-    model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
+    model, step = load_final_gaussians(scene)
+    refined = step == REFINE
     path = camera_path(scene, scene_run_config(scene), iterations=1)
     return Source(model, f"scene {sid[:12]}{' (refined)' if refined else ''}", path.c2w[0], path.intrinsics(0),
                   np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), label_band(scene_label(scene)))

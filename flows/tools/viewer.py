@@ -31,7 +31,7 @@ from navcrafter.models.gaussians.sh import SH_C0
 from navcrafter.schemas.layout import FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.tasks.common import load_cloud
-from navcrafter.tasks.readers import resolve_scene, scene_choices, scene_label, scene_sources
+from navcrafter.tasks.readers import load_final_gaussians, resolve_scene, scene_choices, scene_label, scene_sources
 
 # RGB of each kind of camera
 COLOURS = {
@@ -146,11 +146,9 @@ def read_scene(store: Store, scene_id: str) -> SceneData:
     data = SceneData(scene, scene_id, sources[0] if sources else "", scene_label(scene), ingest.attrs.get("backend"),
                      image, work, K0, width, height, iterations, clouds)
     if scene.status(FIT).complete:
-        from navcrafter.tasks.readers import load_gaussians, load_refined_gaussians
-
-        refined = scene.status(REFINE).complete
-        data.gaussians = load_refined_gaussians(scene) if refined else load_gaussians(scene)
-        a = scene.status(REFINE if refined else FIT).attrs
+        data.gaussians, step = load_final_gaussians(scene)
+        refined = step == REFINE
+        a = scene.status(step).attrs
         psnr = a.get("psnr")
         data.gaussians_note = (f"{len(data.gaussians)} Gaussians{' (refined)' if refined else ''}"
                                + (f", held-out PSNR {psnr:.2f} dB" if isinstance(psnr, (int, float)) else ""))
