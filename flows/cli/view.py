@@ -60,7 +60,8 @@ def view(
     # The viewer writes nothing, so nothing is lost by ending the process here, and it must end here: viser runs
     # client callbacks on a ThreadPoolExecutor whose worker threads are not daemons and are joined at interpreter
     # exit, so one callback that never returns (a client's message handled while its connection closes) kept
-    # `navcrafter view` alive after Ctrl-C for ever (tests/flows/test_viewer.py reproduces it with a blocked worker).
+    # `navcrafter view` alive after Ctrl-C for ever (tests/flows/tools/test_viewer.py reproduces it with a blocked
+    # worker).
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
