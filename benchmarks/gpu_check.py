@@ -25,7 +25,7 @@ its own time cap (a failure, a crash, a failed import or a timeout of one is rec
   (``torch.cuda.max_memory_allocated``).
 * ``fun-camera``: the Fun-Camera DiT (``navcrafter.models.synthesis.funcamera``, 1.3B config, same latent grid)
   the same way; ``not built`` only if that module is absent from the tree, a failed import otherwise.
-* ``vggt``: VGGT-1B (``models/geometry/vggt.py``, full config) on 25 frames at 518², bf16 autocast.
+* ``vggt``: VGGT-1B (``models/geometry/vggt/``, full config) on 25 frames at 518², bf16 autocast.
 * ``moge``: MoGe-2 ViT-L (normal) at 518² (1,369 tokens), bf16 autocast.
 * ``difix``: the Difix refiner (SD-Turbo size, reference mixing) at 512², fp16.
 * ``training``: one camera-control training step + one sampling step at 1.3B width

@@ -2,7 +2,7 @@
 
 Three runs over the same simulation collection, each into a fresh store (nothing is skipped):
 
-* **plain** (baseline): every scene run in this process by ``tasks.pipeline.run_scene`` (ingest, the
+* **plain** (baseline): every scene run in this process by ``tasks.runner.run_scene`` (ingest, the
   steps, evaluation) with no Prefect at all;
 * **prefect, 1 worker**: ``explore_collection`` with a one-thread task runner (one scene at a time);
 * **prefect, 2 workers**: the same with two scenes at once (``max_parallel_scenes = 2``).

@@ -10,8 +10,8 @@
 * **Initialisation** from the final cloud (``iter_N/lift``; ``fit.max_init_points`` caps it by a seeded
   subset): one isotropic Gaussian per point (3DGS).
 * **Depth supervision.** For each training frame the backend's MonoDepth role gives relative inverse depth and
-  a sky mask; ``models.depthcalib`` aligns it (confident / valid, non-sky pixels; trimmed least squares) to a
-  multi-view depth: the lift step's geometry depth on the frames it ran the geometry model on, and with
+  a sky mask; ``models.reconstruction.depthcalib`` aligns it (confident / valid, non-sky pixels; trimmed least
+  squares) to a multi-view depth: the lift step's geometry depth on the frames it ran the geometry model on, and with
   ``fit.depth_views = "all"`` (default) the scene cloud rendered into the other frames (z-buffered points of
   size ``fit.depth_point_size``). The calibrated depth supervises the rendered expected depth
   (``lambda_depth``); the targets are stored (``depth_targets``) for the refine step.

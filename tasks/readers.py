@@ -1,13 +1,18 @@
-"""Readers of what several steps, reports and benchmarks read back from a scene's store: the camera path of its
-clips (one definition of frames, poses, intrinsics and size), the scene centre, the current pose, and the
-stored Gaussians and the fit's views."""
+"""Readers of what several steps, reports, tools and benchmarks read back from a store: which scene a user means
+(``resolve_scene``: one resolver of scene ids, id prefixes and photo names for every tool), the manifest, and of a
+scene the camera path of its clips (one definition of frames, poses, intrinsics and size), the scene centre, the
+current pose, and the stored Gaussians and the fit's views."""
 
 from __future__ import annotations
 
+import difflib
 import json
 from dataclasses import dataclass
+from pathlib import PurePath
+from typing import Literal
 
 import numpy as np
+import pyarrow as pa
 import torch
 
 from navcrafter.models.camera.cameras import Intrinsics, estimated_clip_cameras
@@ -29,9 +34,92 @@ from navcrafter.schemas.layout import (
     StepSpec,
     scene_group,
 )
-from navcrafter.schemas.store import SceneStore
+from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import logger
+
+
+# --------------------------------------------------------------------------------------------------
+# The store's scenes, and which one a user means
+# --------------------------------------------------------------------------------------------------
+class SceneNotFound(ValueError):
+    """A scene id, id prefix or photo name that names no single scene of a store (the message names the input,
+    the scenes it could mean and the fix)."""
+
+
+def read_manifest(store: Store) -> pa.Table:
+    """The manifest's latest row per source image (empty for scenes run outside a flow)."""
+    return store.tables.latest("manifest", key=("source",), order="updated_at")
+
+
+def scene_sources(store: Store) -> dict[str, list[str]]:
+    """Source paths of each scene id of a store: the manifest's rows, else the ingest step's ``source``."""
+    out: dict[str, list[str]] = {sid: [] for sid in store.scene_ids()}
+    for r in read_manifest(store).to_pylist():
+        if r.get("scene_id") in out and r.get("source") and r["source"] not in out[r["scene_id"]]:
+            out[r["scene_id"]].append(r["source"])
+    for sid, sources in out.items():
+        if not sources:
+            src = store.scene(sid).status(INGEST).attrs.get("source")
+            if src:
+                sources.append(src)
+    return out
+
+
+def scene_choices(store: Store, sources: dict[str, list[str]] | None = None) -> dict[str, str]:
+    """``<photo file name> (<id[:12]>)`` -> scene id for every scene of a store, sorted by that name (the viewer's
+    dropdown, and how the resolver's errors list scenes)."""
+    labels = {}
+    for sid, srcs in (scene_sources(store) if sources is None else sources).items():
+        names = ", ".join(dict.fromkeys(PurePath(s).name for s in srcs)) or "unknown source"
+        labels[f"{names} ({sid[:12]})"] = sid
+    return dict(sorted(labels.items()))
+
+
+def _listing(labels: list[str], limit: int = 6) -> str:
+    return ", ".join(labels[:limit]) + (f" and {len(labels) - limit} more" if len(labels) > limit else "")
+
+
+def resolve_scene(store: Store, scene: str | None, default: Literal["only", "first"] = "only",
+                  option: str = "SCENE") -> str:
+    """The id of the scene of ``store`` that ``scene`` names: the whole id, a unique id prefix, or the photo it was
+    explored from (its path, file name or file stem, as the manifest or the ingest step recorded it). Every tool
+    that takes a scene from a user (``navcrafter view``, ``export``, ``render``) resolves it here.
+
+    ``scene=None``: ``default="only"`` takes the store's only scene (an error when it holds several),
+    ``default="first"`` the first in ``scene_choices`` order. ``option`` is how the user gives a scene (the CLI
+    argument or option), named in the fix. Raises ``SceneNotFound`` naming the input, the scenes it matches (or,
+    when none, the closest names and the store's scenes) and how to give one."""
+    uri = store.uri
+    sources = scene_sources(store)
+    if not sources:
+        raise SceneNotFound(f"{uri} has no scenes yet; run `navcrafter explore PHOTOS --store {uri}` first")
+    choices = scene_choices(store, sources)
+    label_of = {sid: lab for lab, sid in choices.items()}
+    hint = f"`navcrafter status {uri}` lists them"
+    if scene is None:
+        if default == "first" or len(sources) == 1:
+            return next(iter(choices.values()))
+        raise SceneNotFound(f"{uri} holds {len(sources)} scenes; choose one with {option} (its id, a unique id "
+                            f"prefix or its photo's file name): {_listing(list(choices))} ({hint})")
+    if scene in sources:
+        return scene
+    matches = [sid for sid in sources if scene and sid.startswith(scene)]
+    if not matches:
+        matches = [sid for sid, srcs in sources.items()
+                   if any(scene in (s, PurePath(s).name, PurePath(s).stem) for s in srcs)]
+    if len(matches) == 1:
+        return matches[0]
+    if matches:
+        raise SceneNotFound(f"{option} {scene!r} matches {len(matches)} scenes of {uri} "
+                            f"({_listing([label_of[m] for m in sorted(matches)])}); give more characters of the id "
+                            "or the photo's file name")
+    names = {PurePath(s).name: sid for sid, srcs in sources.items() for s in srcs}
+    close = difflib.get_close_matches(scene, list(names) + list(sources), n=3, cutoff=0.75)
+    near = list(dict.fromkeys(label_of[names.get(c, c)] for c in close))
+    listed = (f"did you mean {_listing(near)}?" if near else f"its scenes: {_listing(list(choices))}")
+    raise SceneNotFound(f"{option} {scene!r} names no scene of {uri} (neither a scene id, an id prefix nor the "
+                        f"file name of an explored photo); {listed} ({hint})")
 
 
 @dataclass(frozen=True)
@@ -216,6 +304,14 @@ def load_gaussians(scene: SceneStore, step: StepSpec = FIT) -> GaussianModel:
 def load_refined_gaussians(scene: SceneStore) -> GaussianModel:
     """The refined model of a scene (its ``renders`` group must be complete)."""
     return load_gaussians(scene, REFINE)
+
+
+def load_final_gaussians(scene: SceneStore) -> tuple[GaussianModel, StepSpec]:
+    """A scene's final Gaussians as its store holds them, and the step that stored them: the refine step's when it
+    completed, else the fit's (which must be complete). What the tools show and render (``navcrafter view``,
+    ``render``)."""
+    step = REFINE if scene.status(REFINE).complete else FIT
+    return load_gaussians(scene, step), step
 
 
 def load_fit_views(scene: SceneStore) -> tuple[list[TrainView], list[TrainView]]:

@@ -1,7 +1,7 @@
 """Refine: diffusion refinement of rendered views as extra supervision, then more fitting (paper, Sec. III-D;
 the Difix3D+ recipe).
 
-1. **Novel cameras** (``models.novelviews``): ``refine.views`` training cameras, evenly spread over the fit's
+1. **Novel cameras** (``models.gaussians.novelviews``): ``refine.views`` training cameras, evenly spread over the fit's
    training frames, each displaced sideways/up by ``refine.offset`` x the fit's scene scale and turned by up
    to ``refine.angle_deg`` (seeded; a camera never lands closer to the cloud than half its source's
    clearance). Held-out cameras are never used, so the held-out evaluation stays honest.

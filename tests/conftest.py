@@ -11,7 +11,7 @@ os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 # torch's OpenMP threads spin after each parallel region; beside the compiled rasterizer's threads on 2 cores that
 # makes both many times slower (flows.cli.main sets the same for users)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# verified model checksums go to a per-session file, not the user's cache (models/onnxio.checksum_cache_path)
+# verified model checksums go to a per-session file, not the user's cache (models/runtime/onnxio.checksum_cache_path)
 os.environ.setdefault("NAVCRAFTER_CHECKSUM_CACHE",
                       os.path.join(tempfile.mkdtemp(prefix="navcrafter-tests-"), "checksums.json"))
 

@@ -15,7 +15,7 @@ from navcrafter.flows.cli.options import console, fail, usage_errors
 def export(
     store: Annotated[str, typer.Argument(help="Store directory or URL.")],
     scene: Annotated[str, typer.Argument(
-        help="Scene id (or a unique prefix); `navcrafter status STORE` lists them.")],
+        help="Scene id, a unique id prefix or the photo's file name; `navcrafter status STORE` lists them.")],
     out: Annotated[Path, typer.Option("--out", help="Folder to write the dataset to (created).")],
     fmt: Annotated[str, typer.Option(
         "--format", help="nerfstudio (transforms.json, images/, sparse_pc.ply) or colmap (sparse/0/*.txt, "

@@ -1,150 +1,15 @@
 """``navcrafter render``: a 3DGS PLY, or the fitted Gaussians of a scene in a store, rendered along a trajectory
-preset or a camera file to PNG frames and an MP4.
-
-The trajectories and camera-file parsers are in ``models/camera/trajectories.py``; the rendering is
-``models.gaussians.train.render_model``, one frame at a time.
+preset or a camera file to PNG frames and an MP4. The command's options only; the tool is ``flows/tools/render.py``.
 """
 
 from __future__ import annotations
 
-import json
-import re
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Optional
+from typing import Annotated, Optional
 
-import numpy as np
 import typer
 
 from navcrafter.flows.cli.options import console, err, fail, usage_errors
-
-if TYPE_CHECKING:
-    from navcrafter.models.camera.cameras import Intrinsics
-    from navcrafter.models.gaussians.model import GaussianModel
-
-DEFAULT_SIZE = 512  # a bare PLY's default width and height
-BANDS_IN_COMMENTS = ("SIMULATION", "RANDOM WEIGHTS", "CAMERA CONTROL UNTRAINED")
-_FRAME_PNG = re.compile(r"\d{5}\.png")
-
-
-@dataclass
-class Source:
-    """What is rendered: the model, its default start camera and intrinsics (None: framed from the Gaussians),
-    the point presets move about, and the band burnt into its frames (None: no label)."""
-
-    model: GaussianModel
-    name: str
-    c2w: np.ndarray | None
-    intrinsics: Intrinsics | None
-    target: np.ndarray | None
-    band: str | None
-
-
-def ply_source(path: Path) -> Source:
-    """A bare PLY (checked and normalised by ``load_gaussian_ply``); labelled when its header comments say so."""
-    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.models.gaussians.ply import load_gaussian_ply, read_ply_header
-
-    if not path.is_file():
-        raise ValueError(f"{path} does not exist or is not a file; give a 3D Gaussian Splatting .ply")
-    model = load_gaussian_ply(path)
-    comments = " ".join(read_ply_header(path).comments)
-    band = next((b for b in BANDS_IN_COMMENTS if b in comments), None)
-    return Source(model, str(path), None, None, None, band)
-
-
-def scene_source(store_uri: str, scene_id: str | None) -> Source:
-    """The fitted Gaussians of a scene (refined when the refine step ran, as its exports use), its input camera
-    (the first camera of its stored path), that camera's intrinsics at the scene's resolution and the scene
-    centre. ``scene_id`` may be a unique prefix; None picks the store's only scene."""
-    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.schemas.layout import FIT, PLAN, REFINE
-    from navcrafter.schemas.store import Store
-    from navcrafter.tasks.backends import label_band
-    from navcrafter.tasks.readers import (
-        camera_path,
-        load_gaussians,
-        load_refined_gaussians,
-        scene_label,
-        scene_run_config,
-    )
-
-    store = Store(store_uri, create=False)
-    ids = store.scene_ids()
-    if not ids:
-        raise ValueError(f"{store_uri} has no scenes; run `navcrafter explore PHOTOS --store {store_uri}` first")
-    if scene_id is None:
-        if len(ids) > 1:
-            raise ValueError(f"{store_uri} holds {len(ids)} scenes; choose one with --scene "
-                             f"({', '.join(i[:12] for i in ids[:5])}{', ...' if len(ids) > 5 else ''})")
-        matches = ids
-    else:
-        matches = [i for i in ids if i.startswith(scene_id)]
-        if len(matches) != 1:
-            why = "matches no scene" if not matches else f"matches {len(matches)} scenes; give more characters"
-            raise ValueError(f"--scene {scene_id} {why} of {store_uri} (`navcrafter status {store_uri}` lists them)")
-    sid = matches[0]
-    scene = store.scene(sid)
-    if not scene.status(FIT).complete:
-        raise ValueError(f"scene {sid} has no fitted Gaussians; run explore with fit.enabled=true")
-    refined = scene.status(REFINE).complete
-    model = load_refined_gaussians(scene) if refined else load_gaussians(scene)
-    path = camera_path(scene, scene_run_config(scene), iterations=1)
-    return Source(model, f"scene {sid[:12]}{' (refined)' if refined else ''}", path.c2w[0], path.intrinsics(0),
-                  np.asarray(scene.read(PLAN, 1, "centre"), dtype=np.float64), label_band(scene_label(scene)))
-
-
-def _triple(text: str, option: str) -> np.ndarray:
-    try:
-        values = np.array([float(v) for v in text.split(",")])
-    except ValueError:
-        values = np.zeros(0)
-    if values.shape != (3,) or not np.isfinite(values).all():
-        raise ValueError(f"{option} expects three comma-separated numbers, e.g. 0,0,0; got {text!r}")
-    return values
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """``r,g,b`` in [0, 1], or in 0..255 when a value exceeds 1."""
-    rgb = _triple(text, "--background")
-    if rgb.max() > 1:
-        rgb = rgb / 255.0
-    if rgb.min() < 0 or rgb.max() > 1:
-        raise ValueError(f"--background values must be in [0, 1] (or 0..255), got {text!r}")
-    return float(rgb[0]), float(rgb[1]), float(rgb[2])
-
-
-def _size(default: tuple[int, int], width: int | None, height: int | None) -> tuple[int, int]:
-    """The render size: the options, one of them with the default's aspect, else the default; even (H.264)."""
-    w0, h0 = default
-    for name, value in (("--width", width), ("--height", height)):
-        if value is not None and value % 2:
-            raise ValueError(f"{name} {value} is odd; the MP4 (H.264, yuv420p) needs an even width and height")
-    if width is None and height is None:
-        width, height = w0, h0
-    elif height is None:
-        height = max(2, round(width * h0 / w0))
-    elif width is None:
-        width = max(2, round(height * w0 / h0))
-    return int(width) - int(width) % 2, int(height) - int(height) % 2
-
-
-class PngFrames:
-    """The written PNGs as the ``[T, H, W, 3]`` sequence ``encode_mp4`` iterates, read back one at a time (the
-    frames are never all in memory)."""
-
-    def __init__(self, paths: list[Path], height: int, width: int) -> None:
-        self.paths, self.shape = paths, (len(paths), height, width, 3)
-
-    def __len__(self) -> int:
-        return len(self.paths)
-
-    def __iter__(self):
-        from PIL import Image
-
-        for p in self.paths:
-            with Image.open(p) as im:
-                yield np.asarray(im.convert("RGB"))
 
 
 def render(
@@ -154,7 +19,8 @@ def render(
     store: Annotated[Optional[str], typer.Option(
         "--store", help="Render the fitted Gaussians of a scene of this store instead of a PLY.")] = None,
     scene: Annotated[Optional[str], typer.Option(
-        "--scene", help="Scene id (or a unique prefix) in --store; optional when the store has one scene.")] = None,
+        "--scene", help="Scene id, a unique id prefix or the photo's file name in --store; optional when the store "
+                            "has one scene.")] = None,
     trajectory: Annotated[str, typer.Option(
         "--trajectory", help="A preset (orbit, arc, dolly, pan, tilt, zoom, truck, pedestal, spiral, lookaround) "
                              "or a camera file (RealEstate10K .txt, transforms.json, nerfstudio camera_path.json, "
@@ -189,8 +55,10 @@ def render(
     Presets start from a framed view: for a PLY, one that fits its Gaussians; for a scene, its input camera.
     """
     # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.models.camera import trajectories as tr
-    from navcrafter.models.camera.cameras import Intrinsics
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from navcrafter.flows.tools import render as rt
+    from navcrafter.schemas.store import StoreError
 
     if (ply is None) == (store is None):
         fail("give either a PLY file or --store STORE [--scene ID], not both" if ply else
@@ -201,90 +69,21 @@ def render(
         fail("--fov applies to a bare PLY; a scene renders with its own camera's intrinsics")
     if fov is not None and not 0 < fov < 180:
         fail(f"--fov must be in (0, 180) degrees, got {fov}")
-    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.schemas.store import StoreError
-
     with usage_errors(ValueError):
-        bg = parse_background(background)
-        world_up = _triple(up, "--up")
-        if np.linalg.norm(world_up) < 1e-9:
-            raise ValueError("--up must be a non-zero direction")
-        camfile = None if trajectory in tr.PRESETS else _camera_file(trajectory, tr, convention)
+        bg = rt.parse_background(background)
+        world_up = rt.parse_up(up)
+        camfile = rt.camera_file(trajectory, convention)
     with usage_errors(ValueError, StoreError):
-        src = ply_source(ply) if ply is not None else scene_source(store, scene)
-    file_size = camfile.size if camfile is not None and camfile.K is not None else None
-    base_size = (src.intrinsics.width, src.intrinsics.height) if src.intrinsics is not None else (
-        DEFAULT_SIZE, DEFAULT_SIZE)
+        src = rt.ply_source(ply) if ply is not None else rt.scene_source(store, scene)
     with usage_errors(ValueError):
-        w, h = _size(file_size or base_size, width, height)
-        base_K = (src.intrinsics.resize(w, h) if src.intrinsics is not None
-                  else Intrinsics.from_fov(60.0 if fov is None else fov, w, h))
-        if src.c2w is not None:
-            frame = tr.Frame(src.c2w, src.target)
-        else:
-            means = src.model.means.numpy()
-            frame = tr.frame_bounds(*tr.robust_bounds(means, src.model.opacities.numpy()), base_K, world_up)
-        if camfile is None:
-            path = tr.preset_trajectory(trajectory, frame, frames, degrees=degrees, amount=amount)
-            c2w, K = path.c2w, path.intrinsics(base_K)
-        else:
-            if degrees is not None or amount is not None:
-                raise ValueError("--degrees / --amount size a preset, not a camera file")
-            c2w = camfile.c2w
-            if relative:
-                c2w = tr.rebase_path(c2w, frame.c2w)
-            K = camfile.intrinsics_at(w, h)
-            K = np.repeat(base_K.K[None], len(c2w), axis=0) if K is None else K
-    _render(src, c2w, K, w, h, bg, out, fps, device, renderer, trajectory)
-
-
-def _camera_file(trajectory: str, tr, convention: str = "opencv"):
-    if not Path(trajectory).exists():
-        raise ValueError(f"--trajectory {trajectory!r} is neither a preset ({', '.join(tr.PRESETS)}) nor an "
-                         "existing camera file")
-    return tr.read_camera_file(trajectory, convention)
-
-
-def _render(src: Source, c2w: np.ndarray, K: np.ndarray, width: int, height: int, bg, out: Path, fps: int,
-            device: str, renderer: str, trajectory: str) -> None:
-    from PIL import Image
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.models.gaussians.renderer import resolve_backend, resolve_device
-    from navcrafter.models.gaussians.train import render_model
-    from navcrafter.models.media import encode_mp4, label_frames
-
+        cams = rt.render_cameras(src, trajectory, camfile, frames, degrees=degrees, amount=amount, width=width,
+                                 height=height, fov=fov, world_up=world_up, relative=relative)
     with usage_errors(RuntimeError, ValueError):
-        dev = resolve_device(device)
-        resolve_backend(renderer, dev)
-    model = src.model.to(dev)  # once: render_model's own move is then a no-op
-    frames_dir = out / "frames"
-    try:
-        frames_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        fail(f"cannot create {frames_dir}: {exc}")
-    for old in frames_dir.iterdir():  # the frames of an earlier render, which may have been longer
-        if _FRAME_PNG.fullmatch(old.name):
-            old.unlink()
-    paths = []
+        dev = rt.render_device(device, renderer)
     columns = (TextColumn("render"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=err) as bar:
-        task = bar.add_task("render", total=len(c2w))
-        for i in range(len(c2w)):
-            img = render_model(model, c2w[i:i + 1], K[i:i + 1], width, height, bg, device=str(dev),
-                               renderer=renderer)
-            if src.band:
-                img = label_frames(img, src.band)
-            paths.append(frames_dir / f"{i:05d}.png")
-            Image.fromarray(img[0]).save(paths[-1])
-            bar.advance(task)
-    (out / "render.mp4").write_bytes(encode_mp4(PngFrames(paths, height, width), fps))
-    doc = {"source": src.name, "trajectory": trajectory, "width": width, "height": height, "fps": fps,
-           "convention": "OpenCV camera-to-world (x right, y down, z forward)",
-           "frames": [{"c2w": c2w[i].tolist(), "K": K[i].tolist()} for i in range(len(c2w))]}
-    if src.band:
-        doc["label"] = src.band
-    (out / "cameras.json").write_text(json.dumps(doc, indent=1))
-    console.print(f"{src.name}: {len(paths)} frames at {width}x{height} -> {frames_dir}/, {out / 'render.mp4'}"
-                  + (f" (labelled {src.band})" if src.band else ""))
+    with Progress(*columns, console=err) as bar, usage_errors(rt.RenderError):
+        task = bar.add_task("render", total=len(cams.c2w))
+        paths = rt.render_frames(src, cams, bg, out, fps, dev, renderer, trajectory,
+                                 on_frame=lambda _: bar.advance(task))
+    console.print(f"{src.name}: {len(paths)} frames at {cams.width}x{cams.height} -> {out / 'frames'}/, "
+                  f"{out / 'render.mp4'}" + (f" (labelled {src.band})" if src.band else ""))

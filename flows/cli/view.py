@@ -25,12 +25,13 @@ def view(
     input photo, planned and estimated cameras, the plan's candidates (rejected by the collision detector G or
     not) and the video frames; a dropdown switches between the store's scenes. Serves until Ctrl-C."""
     # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.flows.tools.viewer import NO_FIT, SceneNotFound, build_viewer, resolve_scene
+    from navcrafter.flows.tools.viewer import NO_FIT, build_viewer
     from navcrafter.schemas.store import Store, StoreError
+    from navcrafter.tasks.readers import SceneNotFound, resolve_scene
 
     try:
         st = Store(store, create=False)
-        sid = resolve_scene(st, scene)
+        sid = resolve_scene(st, scene, default="first")
     except StoreError as exc:
         fail(str(exc), "(`navcrafter status STORE` lists the scenes of a store)")
     except SceneNotFound as exc:
@@ -59,7 +60,8 @@ def view(
     # The viewer writes nothing, so nothing is lost by ending the process here, and it must end here: viser runs
     # client callbacks on a ThreadPoolExecutor whose worker threads are not daemons and are joined at interpreter
     # exit, so one callback that never returns (a client's message handled while its connection closes) kept
-    # `navcrafter view` alive after Ctrl-C for ever (tests/flows/test_viewer.py reproduces it with a blocked worker).
+    # `navcrafter view` alive after Ctrl-C for ever (tests/flows/tools/test_viewer.py reproduces it with a blocked
+    # worker).
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

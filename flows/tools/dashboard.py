@@ -16,11 +16,11 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, ImageDraw
 
+from navcrafter.flows.tools.report import scene_summary
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
-from navcrafter.tasks.backends import label_band, run_band, run_label
+from navcrafter.schemas.layout import INGEST, PLAN, SYNTHESIZE
+from navcrafter.tasks.backends import label_band, run_band
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.runner import scene_steps
 
 THUMB = 256  # longer side of a thumbnail (input image, top-down plots), pixels
 GRID_MAX = 512  # longer side of the render grid, pixels
@@ -87,21 +87,21 @@ def _metric(name: str, value: float) -> str:
 
 def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, label: str | None = None) -> str:
     """Markdown of a scene's input, top-down trajectory plots, render grid and metrics (whatever of
-    them is complete in the store: a failed scene shows what it got to)."""
+    them is complete in the store: a failed scene shows what it got to). Its steps, metrics and label are the
+    scene's summary (``report.scene_summary``)."""
     store = open_store(store_uri)
     scene = store.scene(scene_id)
     short = scene_id[:12]
     inp = scene.status(INGEST)
     sim = config.backend == "simulation"
-    label = label or run_label(config)  # the scene summary's label when the flow passes it
+    summary = scene_summary(scene, config, label)  # the flow passes the run summary's label, read once per scene
+    label = summary.label
     source = PurePath(inp.attrs.get("source", "")).name or short
     lines = [f"# Scene `{short}`: {source}", ""]
     if label:
         lines += [f"> **{label}.**", ""]
-    steps = scene_steps(config)
-    done = sum(scene.status(s.spec, s.k).complete for s in steps)
     lines += [
-        f"{done} of {len(steps)} steps complete; backend '{config.backend}', {config.iterations} iterations "
+        f"{summary.done} of {summary.steps} steps complete; backend '{config.backend}', {config.iterations} iterations "
         f"of {config.synthesis.num_frames} frames at {config.synthesis.width}x{config.synthesis.height}.",
         "",
     ]
@@ -140,15 +140,13 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, l
         title = "## Synthesized views" + (" (SIMULATION: ground-truth renders, not a learned model)" if sim else
                                           f" ({label})" if label else "")
         lines += [title, "", f"![render grid]({png_data_uri(grid, palette=True)})", ""]
-    ev = scene.status(EVALUATE)
-    if ev.complete:
-        metrics = ev.attrs.get("metrics", {})
+    if summary.evaluated:
         lines += [
             "## Metrics" + (" (simulation: against the true scene)" if sim else ""),
             "",
             "| metric | value |",
             "|---|---:|",
         ]
-        lines += [f"| {name} | {_metric(name, float(v))} |" for name, v in sorted(metrics.items())]
+        lines += [f"| {name} | {_metric(name, v)} |" for name, v in sorted(summary.evaluation.items())]
         lines.append("")
     return "\n".join(lines)

@@ -43,7 +43,15 @@ from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, LIFT, SYNTHESIZE
 from navcrafter.schemas.store import Store, StoreError
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import load_cloud
-from navcrafter.tasks.readers import camera_path, export_record, scene_label, scene_run_config, stored_run_config
+from navcrafter.tasks.readers import (
+    SceneNotFound,
+    camera_path,
+    export_record,
+    resolve_scene,
+    scene_label,
+    scene_run_config,
+    stored_run_config,
+)
 
 if TYPE_CHECKING:
     from navcrafter.schemas.config import RunConfig
@@ -83,23 +91,18 @@ class ExportFrames:
         return [f"frame_{f:05d}.png" for f in range(len(self))]
 
 
-def resolve_scene(store_uri: str, scene_id: str) -> SceneStore:
-    """The scene ``scene_id`` (or a unique prefix of it) of a store, which must have finished exploring (its
-    export step complete)."""
+def finished_scene(store_uri: str, scene_id: str) -> SceneStore:
+    """The scene ``scene_id`` names (an id, a unique id prefix or the photo's file name: ``readers.resolve_scene``)
+    of a store, which must have finished exploring (its export step complete)."""
 
     try:
         store = Store(store_uri, create=False)
-    except StoreError as exc:
+        sid = resolve_scene(store, scene_id)
+    except (StoreError, SceneNotFound) as exc:
         raise InterchangeError(str(exc)) from None
-    ids = store.scene_ids()
-    matches = [i for i in ids if i.startswith(scene_id)] if scene_id else []
-    if len(matches) != 1:
-        why = ("is not a scene of" if not matches else f"matches {len(matches)} scenes of (give more characters)")
-        raise InterchangeError(f"scene {scene_id!r} {why} {store_uri}; `navcrafter status {store_uri}` lists its "
-                               "scenes")
-    scene = store.scene(matches[0])
+    scene = store.scene(sid)
     if not scene.status(EXPORT).complete:
-        raise InterchangeError(f"scene {matches[0][:12]} of {store_uri} has not finished exploring (its export step "
+        raise InterchangeError(f"scene {sid[:12]} of {store_uri} has not finished exploring (its export step "
                                f"has not completed); finish it first with `navcrafter explore PHOTOS --store "
                                f"{store_uri}` (same config), then export again")
     return scene
@@ -174,7 +177,7 @@ def _write_images(scene: SceneStore, frames: ExportFrames, folder: Path, label: 
 
 
 def _prepare(store_uri: str, scene_id: str, out: Path, config: RunConfig | None):
-    scene = resolve_scene(store_uri, scene_id)
+    scene = finished_scene(store_uri, scene_id)
     cfg = config if config is not None else scene_config(scene)
     frames = export_frames(scene, cfg)
     if len(frames) == 0:

@@ -7,15 +7,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import PurePath
 from typing import Any
 
-import pyarrow as pa
-
 from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, FIT, PLAN, REFINE
-from navcrafter.schemas.store import SceneStore, Store
+from navcrafter.schemas.store import SceneStore
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.readers import read_manifest  # noqa: F401  (re-exported: the CLI and flows read it here)
 from navcrafter.tasks.runner import scene_steps
 
 
@@ -42,55 +41,70 @@ class SceneResult:
         return asdict(self)
 
 
-def _completed(scene: SceneStore, config: RunConfig) -> list:
-    """The statuses of a scene's completed steps: its run's steps in order, then evaluate."""
-    statuses = [*(scene.status(step.spec, step.k) for step in scene_steps(config)), scene.status(EVALUATE)]
-    return [st for st in statuses if st.complete]
+@dataclass
+class SceneSummary:
+    """A scene's run as its store shows it, read once (``scene_summary``): the run summary's row (``scene_result``)
+    and the scene's dashboard (``flows.tools.dashboard``) render it."""
+
+    scene_id: str
+    steps: int  # steps of the run (``tasks.runner.scene_steps``)
+    done: int  # of them complete
+    last_step: str | None  # the last step of the unbroken complete prefix
+    timings: dict[str, float]  # execution seconds of every complete step, then evaluate
+    peaks: dict[str, dict[str, float | None]]  # step -> peak_rss_mb, peak_gpu_mb (steps that measured them)
+    gaussians: dict[str, float]  # gs_psnr, gs_gaussians (gs_peak_rss_mb) of the run's final Gaussians
+    notes: list[str]  # what a reader must know (e.g. a skipped loss term)
+    evaluated: bool  # the evaluate step completed
+    evaluation: dict[str, float]  # its metrics ({} before it completed)
+    label: str | None  # the run's label (``tasks.backends.run_label``)
 
 
-def step_timings(scene: SceneStore, config: RunConfig, completed: list | None = None) -> dict[str, float]:
-    """Execution seconds of every completed step of a scene, from the groups' attributes (``completed``: their
-    statuses, when the caller has read them)."""
-    return {st.path: float(st.attrs.get("seconds", 0.0))
-            for st in (_completed(scene, config) if completed is None else completed)}
-
-
-def step_peaks(scene: SceneStore, config: RunConfig, completed: list | None = None
-               ) -> dict[str, dict[str, float | None]]:
-    """Peak memory of every completed step of a scene (``peak_rss_mb``, ``peak_gpu_mb``: ``tasks/memory.StepPeaks``),
-    stored beside its seconds; steps committed before the figure existed have none."""
-    return {st.path: {m: st.attrs.get(m) for m in ("peak_rss_mb", "peak_gpu_mb")}
-            for st in (_completed(scene, config) if completed is None else completed) if "peak_rss_mb" in st.attrs}
-
-
-def last_step(scene: SceneStore, config: RunConfig) -> str | None:
-    done = None
-    for step in scene_steps(config):
-        if not scene.status(step.spec, step.k).complete:
-            return done
-        done = step.path
-    return done
-
-
-def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, status: str,
-                 **fields: Any) -> SceneResult:
-    """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
-    done = _completed(scene, config)  # read once for the timings and the peaks
-    timings = step_timings(scene, config, done)
-    fields.setdefault("label", run_label(config))
-    result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
-                         seconds=sum(timings.values()), timings=timings, peaks=step_peaks(scene, config, done),
-                         **fields)
+def scene_summary(scene: SceneStore, config: RunConfig, label: str | None = None) -> SceneSummary:
+    """The summary of a scene's run with ``config``: its steps' statuses, each read once. ``label``: the run's
+    label when the caller has it (default ``run_label(config)``). The final Gaussians are the refine step's when
+    the run refines, else the fit's (none when the run does not fit or the step has not completed)."""
+    steps = scene_steps(config)
+    statuses = [scene.status(step.spec, step.k) for step in steps]
+    evaluate = scene.status(EVALUATE)
+    completed = [st for st in [*statuses, evaluate] if st.complete]
+    last = None
+    for step, st in zip(steps, statuses):
+        if not st.complete:
+            break
+        last = step.path
+    gaussians: dict[str, float] = {}
+    notes: list[str] = []
     fit = scene.status(FIT) if config.fit.enabled else None
     fitted = scene.status(REFINE) if fit is not None and config.refine.enabled else fit
     if fitted is not None and fitted.complete:
         a = fitted.attrs
-        result.metrics = {**result.metrics, "gs_psnr": float(a["psnr"]), "gs_gaussians": float(a["n_gaussians"])}
+        gaussians = {"gs_psnr": float(a["psnr"]), "gs_gaussians": float(a["n_gaussians"])}
         if a.get("peak_rss_mb") is not None:
-            result.metrics["gs_peak_rss_mb"] = float(a["peak_rss_mb"])
+            gaussians["gs_peak_rss_mb"] = float(a["peak_rss_mb"])
         note = fit.attrs.get("lpips_note", "")
         if "skipped" in note:
-            result.notes.append(f"3DGS fit: {note}")
+            notes.append(f"3DGS fit: {note}")
+    return SceneSummary(
+        scene.scene_id, len(steps), sum(st.complete for st in statuses), last,
+        {st.path: float(st.attrs.get("seconds", 0.0)) for st in completed},
+        {st.path: {m: st.attrs.get(m) for m in ("peak_rss_mb", "peak_gpu_mb")}
+         for st in completed if "peak_rss_mb" in st.attrs},
+        gaussians, notes, evaluate.complete,
+        {k: float(v) for k, v in evaluate.attrs.get("metrics", {}).items()} if evaluate.complete else {},
+        label or run_label(config))
+
+
+def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, status: str,
+                 **fields: Any) -> SceneResult:
+    """A scene's result as its store shows it (``scene_summary``): the last complete step, the steps' timings and
+    their sum, peaks, the final Gaussians' metrics beside ``fields``' metrics."""
+    summary = scene_summary(scene, config, fields.pop("label", None))
+    result = SceneResult(scene.scene_id, sources, status, step=summary.last_step, backend=config.backend,
+                         seconds=sum(summary.timings.values()), timings=summary.timings, peaks=summary.peaks,
+                         label=summary.label, **fields)
+    if summary.gaussians:
+        result.metrics = {**result.metrics, **summary.gaussians}
+    result.notes.extend(summary.notes)
     return result
 
 
@@ -105,10 +119,6 @@ def manifest_rows_for(result: SceneResult, run_id: str) -> list[dict[str, Any]]:
              "timings": result.timings, "metrics": result.metrics,
              "n_points": int(result.metrics["n_points"]) if "n_points" in result.metrics else None,
              "outputs": result.outputs} for s in result.sources]
-
-
-def read_manifest(store: Store) -> pa.Table:
-    return store.tables.latest("manifest", key=("source",), order="updated_at")
 
 
 # --------------------------------------------------------------------------------------------------

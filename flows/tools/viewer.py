@@ -2,7 +2,8 @@
 
 Plain functions over a store and a ``viser.ViserServer`` (no browser needed to call or test them):
 
-* ``scene_choices`` / ``resolve_scene``: the scenes of a store by id and source name;
+* the scenes of a store by id and source name are ``tasks.readers.scene_choices`` / ``resolve_scene`` (the one
+  resolver of every tool);
 * ``read_scene``: what a scene holds (``SceneData``): the input photo, per iteration the plan (trajectory,
   candidates, the collision detector G's verdicts), the estimated cameras of the lift, the synthesized frames,
   the fused clouds (read when first shown) and the fitted Gaussians when the fit ran;
@@ -25,13 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from navcrafter.flows.tools.report import read_manifest
 from navcrafter.models.camera.cameras import matrix_to_quat, quat_wxyz_to_matrix
 from navcrafter.models.gaussians.sh import SH_C0
 from navcrafter.schemas.layout import FIT, GEOMETRY, INGEST, LIFT, PLAN, REFINE, SYNTHESIZE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.tasks.common import load_cloud
-from navcrafter.tasks.readers import scene_label
+from navcrafter.tasks.readers import load_final_gaussians, resolve_scene, scene_choices, scene_label, scene_sources
 
 # RGB of each kind of camera
 COLOURS = {
@@ -47,59 +47,6 @@ COLOURS = {
 MAX_CLOUD_POINTS = 400_000  # per cloud sent to the browser (a random subset beyond, fixed seed)
 NO_FIT = "this scene has no fit yet (fit.enabled was off or the fit has not run): showing the fused cloud only"
 LAYERS = ("gaussians", "cloud", "planned", "estimated", "candidates", "input")
-
-
-class SceneNotFound(ValueError):
-    """A scene id (or prefix, or source name) that names no single scene of the store."""
-
-
-# --------------------------------------------------------------------------------------------------
-# The store's scenes
-# --------------------------------------------------------------------------------------------------
-def scene_sources(store: Store) -> dict[str, list[str]]:
-    """Source paths of each scene id: the manifest's rows, else the ingest step's ``source``."""
-
-    out: dict[str, list[str]] = {sid: [] for sid in store.scene_ids()}
-    for r in read_manifest(store).to_pylist():  # empty for scenes run outside a flow
-        if r.get("scene_id") in out and r.get("source") and r["source"] not in out[r["scene_id"]]:
-            out[r["scene_id"]].append(r["source"])
-    for sid, sources in out.items():
-        if not sources:
-            src = store.scene(sid).status(INGEST).attrs.get("source")
-            if src:
-                sources.append(src)
-    return out
-
-
-def scene_choices(store: Store) -> dict[str, str]:
-    """Dropdown label -> scene id: ``<source file name> (<id[:12]>)``, sorted by label."""
-    labels = {}
-    for sid, sources in scene_sources(store).items():
-        names = ", ".join(dict.fromkeys(Path(s).name for s in sources)) or "unknown source"
-        labels[f"{names} ({sid[:12]})"] = sid
-    return dict(sorted(labels.items()))
-
-
-def resolve_scene(store: Store, scene: str | None) -> str:
-    """The scene id named by ``scene``: an id, a unique id prefix, or a source (path or file name); ``None``
-    picks the first scene in dropdown order. Raises ``SceneNotFound`` naming the input and how to list scenes."""
-    hint = f"`navcrafter status {store.uri}` lists its scenes"
-    sources = scene_sources(store)
-    if not sources:
-        raise SceneNotFound(f"{store.uri} has no scenes yet; run `navcrafter explore PHOTOS --store {store.uri}`")
-    if scene is None:
-        return next(iter(scene_choices(store).values()))
-    matches = [sid for sid in sources if sid.startswith(scene)]
-    if not matches:
-        matches = [sid for sid, srcs in sources.items()
-                   if any(scene in (s, Path(s).name, Path(s).stem) for s in srcs)]
-    if len(matches) == 1:
-        return matches[0]
-    if not matches:
-        raise SceneNotFound(f"scene {scene!r} is not in {store.uri} (neither a scene id, an id prefix nor a "
-                            f"source name); {hint}")
-    raise SceneNotFound(f"scene {scene!r} matches {len(matches)} scenes of {store.uri} "
-                        f"({', '.join(m[:12] for m in matches[:5])}); give more characters of the id ({hint})")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -199,11 +146,9 @@ def read_scene(store: Store, scene_id: str) -> SceneData:
     data = SceneData(scene, scene_id, sources[0] if sources else "", scene_label(scene), ingest.attrs.get("backend"),
                      image, work, K0, width, height, iterations, clouds)
     if scene.status(FIT).complete:
-        from navcrafter.tasks.readers import load_gaussians, load_refined_gaussians
-
-        refined = scene.status(REFINE).complete
-        data.gaussians = load_refined_gaussians(scene) if refined else load_gaussians(scene)
-        a = scene.status(REFINE if refined else FIT).attrs
+        data.gaussians, step = load_final_gaussians(scene)
+        refined = step == REFINE
+        a = scene.status(step).attrs
         psnr = a.get("psnr")
         data.gaussians_note = (f"{len(data.gaussians)} Gaussians{' (refined)' if refined else ''}"
                                + (f", held-out PSNR {psnr:.2f} dB" if isinstance(psnr, (int, float)) else ""))
@@ -588,10 +533,10 @@ class Viewer:
 
 
 def build_viewer(server, store_uri: str | Store, scene_id: str | None = None) -> Viewer:
-    """The viewer of a store on a server: a dropdown of its scenes and the chosen scene (``resolve_scene``;
-    default the first) with its GUI. Raises ``SceneNotFound`` for an unknown scene."""
+    """The viewer of a store on a server: a dropdown of its scenes and the chosen scene (``tasks.readers
+    .resolve_scene``; default the first) with its GUI. Raises ``SceneNotFound`` for an unknown scene."""
     store = store_uri if isinstance(store_uri, Store) else Store(store_uri, create=False)
-    sid = resolve_scene(store, scene_id)
+    sid = resolve_scene(store, scene_id, default="first")
     choices = scene_choices(store)
     server.gui.configure_theme(show_share_button=False, control_width="medium")
     viewer = Viewer(server, store, choices)

@@ -62,6 +62,12 @@ class RE10KCameras:
     distortion: np.ndarray      # [N, 2]
     w2c: np.ndarray             # [N, 4, 4]
 
+    def rows(self) -> np.ndarray:
+        """The frame lines as numbers, ``[N, 19]``: timestamp, normalised fx fy cx cy, k1 k2, the 3x4
+        world-to-camera matrix row-major (the rows VideoX-Fun's ``process_pose_params`` takes)."""
+        return np.concatenate([self.timestamps_us[:, None].astype(np.float64), self.intrinsics, self.distortion,
+                               self.w2c[:, :3, :].reshape(len(self.w2c), 12)], axis=1)
+
 
 def read_re10k_cameras(path: str | Path) -> RE10KCameras:
     """Parse a RealEstate10K camera file (URL line, then 19 numbers per frame; see the module doc)."""

@@ -17,7 +17,7 @@ with opacity < ``prune_opa`` (and, after the first opacity reset, those larger t
 scale) are **pruned**; every ``reset_every`` steps opacities are clamped to ``2 prune_opa``. The number of
 Gaussians never exceeds ``max_gaussians``: growth is limited to the candidates with the largest gradients.
 Seeded (the split samples), so deterministic on the CPU. Device-agnostic: statistics and row surgery stay on
-the parameters' device (CUDA included, with either renderer of ``models.gaussians.backend``); the split
+the parameters' device (CUDA included, with either renderer of ``models.gaussians.renderer``); the split
 samples are drawn on the CPU from the seeded generator and moved, so they do not depend on the device.
 """
 

@@ -247,7 +247,7 @@ class GsplatStrategy:
     @staticmethod
     def _info(info: dict) -> dict:
         if info.get("radii_xy") is None:
-            raise ValueError("gsplat's strategies need per-axis radii: render with models.gaussians.backend.rasterize")
+            raise ValueError("gsplat's strategies need per-axis radii: render with models.gaussians.renderer.rasterize")
         return {**info, "radii": info["radii_xy"]}
 
     def initialize_state(self, scene_scale: float) -> dict[str, Any]:

@@ -6,9 +6,9 @@ Per iteration ``t`` one training view (a seeded permutation, one epoch after ano
     L = L1(rgb, image) + lambda_lpips * LPIPS(rgb, image) + lambda_depth * L1(1 / ED, 1 / D_cal)
 
 with unit weights by default (the paper's loss, ``fit.loss = "paper"``). ``ED`` is the rendered expected depth,
-``D_cal`` the view's calibrated monocular depth (``models.depthcalib``), compared in inverse depth, the space the
-calibration fits, over pixels where ``D_cal > 0`` (valid, not sky) and the render covers the pixel (alpha >
-0.5). ``fit.depth_space = "median"`` (the ``"light"`` weighting, 1 : 0.2 : 0.1) compares ``|ED - D_cal|``
+``D_cal`` the view's calibrated monocular depth (``models.reconstruction.depthcalib``), compared in inverse depth,
+the space the calibration fits, over pixels where ``D_cal > 0`` (valid, not sky) and the render covers the pixel
+(alpha > 0.5). ``fit.depth_space = "median"`` (the ``"light"`` weighting, 1 : 0.2 : 0.1) compares ``|ED - D_cal|``
 divided by the view's median ``D_cal`` instead. A term with ``lambda = 0`` is neither computed nor
 added; the LPIPS term needs a perceptual model (the official LPIPS weights) and is skipped otherwise.
 

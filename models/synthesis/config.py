@@ -36,8 +36,8 @@ class SynthesisConfig(_Section):
         "session loads per clip; the frames are the same.")
     model: Literal["navcrafter", "fun-camera"] = Field(
         "navcrafter", description="Synthesizer model (onnx backend): 'navcrafter' (NavCrafter's camera control on "
-        "Wan2.1 I2V, models/synthesis/camcontrol.py) or 'fun-camera' (VideoX-Fun's Wan2.1-Fun-V1.1-Control-Camera, "
-        "models/synthesis/funcamera.py). The exported synthesizer's manifest must hold that model.")
+        "Wan2.1 I2V, models/synthesis/camcontrol/) or 'fun-camera' (VideoX-Fun's Wan2.1-Fun-V1.1-Control-Camera, "
+        "models/synthesis/funcamera/). The exported synthesizer's manifest must hold that model.")
 
     # added after stores existed: keys the synthesize step only when set (schemas.keys)
     keyed_when_set: ClassVar[dict[str, Any]] = {"flow_shift": None, "plucker_convention": None,

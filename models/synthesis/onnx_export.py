@@ -28,7 +28,7 @@ numpy by the sampler, parameters in ``config.image_encoder``), then ``hidden_sta
 **Text** is precomputed here (UMT5 is ~11 GB and the prompt is fixed per export): as Wan's
 ``_get_t5_prompt_embeds``: tokenised to 512 tokens, encoded, positions past the prompt's length zeroed.
 
-**fun-camera** (``export_fun_camera_synthesizer``; ``funcamera.py``): the same directory layout with the DiT of
+**fun-camera** (``export_fun_camera_synthesizer``; ``funcamera/``): the same directory layout with the DiT of
 Wan2.1-Fun-V1.1-Control-Camera (architecture ``wan2.1-fun-v1.1-control-camera``; ``config.model = "fun-camera"``,
 ``config.condition_layout = "fun-camera"``, ``config.plucker_convention = "videox-fun"``; DiT inputs
 ``funcamera.FUN_DIT_INPUTS``); VAE, CLIP and text from a diffusers-format Wan2.1 I2V directory.
@@ -185,7 +185,7 @@ class SynthesisComponents:
         }
 
     def _fun_camera_config(self, num_frames: int, height: int, width: int, dynamic: bool) -> dict[str, Any]:
-        """The manifest ``config`` of a fun-camera synthesizer (``funcamera.py``): no render condition, no LoRA, no
+        """The manifest ``config`` of a fun-camera synthesizer (``funcamera/``): no render condition, no LoRA, no
         extra reference frames; ``condition_layout`` tells the sampler to build ``[noisy | start-image latents]``."""
         from navcrafter.models.synthesis import funcamera
 
@@ -580,7 +580,7 @@ def export_fun_camera_synthesizer(out_dir: str | Path, *, checkpoint_dir: str | 
                                   height: int, width: int, prompt: str = "",
                                   negative_prompt: str = DEFAULT_NEGATIVE_PROMPT, seed: int = 0,
                                   dynamic: bool | None = None) -> Path:
-    """The fun-camera synthesizer (``funcamera.py``) exported to ``out_dir`` like ``export_synthesizer``: tiny random
+    """The fun-camera synthesizer (``funcamera/``) exported to ``out_dir`` like ``export_synthesizer``: tiny random
     (``tiny=True``) or the official DiT in ``checkpoint_dir`` with the encoders of the diffusers Wan2.1 I2V
     ``base_dir``. Manifest architecture ``wan2.1-fun-v1.1-control-camera``, ``config.model = "fun-camera"``."""
     if tiny == (checkpoint_dir is not None):

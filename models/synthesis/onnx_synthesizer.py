@@ -11,16 +11,16 @@
   trajectory's: ``cameras.clip_relative_rays``); without one the sampler uses the conditioning image at
   ``trajectory[0]``;
 * **point-cloud renders and visibility masks**: the current cloud splatted along the trajectory with
-  ``models.pointrender.render_points`` (nearest point per pixel, z-buffered). The world-space point size defaults
-  to ``POINT_SIZE_FACTOR`` (1.5) times the cloud's median nearest-neighbour spacing (a KD-tree over at most 20k
-  sampled points; on a fused cloud this is about the fusion voxel, so neighbouring points close up into a
+  ``models.reconstruction.pointrender.render_points`` (nearest point per pixel, z-buffered). The world-space point
+  size defaults to ``POINT_SIZE_FACTOR`` (1.5) times the cloud's median nearest-neighbour spacing (a KD-tree over
+  at most 20k sampled points; on a fused cloud this is about the fusion voxel, so neighbouring points close up into a
   surface without bleeding over depth edges; ``render_points`` caps the splat at ``max_radius`` 3 px), or the
   ``point_size`` given to the constructor;
 * the request image, and the text embeddings stored in the model directory at export time;
 
 and runs ``pipeline.sample_video`` with an ``OrtRunner``, seeded with ``request.seed``.
 
-**fun-camera** (``synthesis.model = "fun-camera"``; ``funcamera.py``): the manifest must record ``config.model``
+**fun-camera** (``synthesis.model = "fun-camera"``; ``funcamera/``): the manifest must record ``config.model``
 ``"fun-camera"`` (architecture ``wan2.1-fun-v1.1-control-camera``) and the run's ``synthesis.model`` must name the
 model the directory holds, else ``SynthesizerModelError``. Its rays are ``funcamera.fun_camera_plucker`` (VideoX-Fun's
 convention, recorded as ``"videox-fun"``; ``synthesis.plucker_convention`` must stay unset), and it takes neither
@@ -207,7 +207,7 @@ class OnnxSynthesizer:
         T, H, W = self._check(request)
         K = request.intrinsics.K
         traj = np.asarray(request.trajectory, dtype=np.float64)
-        if self.model_name == "fun-camera":  # rays only: no render condition, no reference frame (funcamera.py)
+        if self.model_name == "fun-camera":  # rays only: no render condition, no reference frame (funcamera/)
             from navcrafter.models.synthesis.funcamera import fun_camera_plucker
 
             return (fun_camera_plucker(traj, K, H, W), np.zeros((T, H, W, 3), dtype=np.uint8),

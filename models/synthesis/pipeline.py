@@ -33,7 +33,7 @@ Sampling (``sample_video``), following diffusers' ``WanImageToVideoPipeline`` wh
    cancels the camera (a camera-free uncond branch would make CFG extrapolate the camera signal 6.5x);
 7. the final latents are VAE-decoded, mapped from [-1, 1] to uint8.
 
-A **fun-camera** model directory (manifest ``config.condition_layout = "fun-camera"``, ``funcamera.py``) is sampled by
+A **fun-camera** model directory (manifest ``config.condition_layout = "fun-camera"``, ``funcamera/``) is sampled by
 the same loop with its own conditions (``_fun_camera_conditions``): ``hidden_states = [noisy (16) | start-image
 latents (16)]`` (latent frame 0 = the image, later frames zero, no mask), CLIP features, the rays; no render
 condition and no reference frame (those DiT inputs are None and the graph has none).
@@ -264,7 +264,7 @@ def i2v_mask(num_latent_frames: int, h: int, w: int, temporal: int = 4) -> np.nd
 def condition_layout(config: dict) -> str:
     """The DiT's input layout a model directory's manifest ``config`` records: ``"navcrafter"`` (absent: NavCrafter's
     camera control, the I2V mask layout with render condition and reference frame) or ``"fun-camera"``
-    (``funcamera.py``: ``[noisy | start-image latents]``, camera rays only)."""
+    (``funcamera/``: ``[noisy | start-image latents]``, camera rays only)."""
     layout = config.get("condition_layout", "navcrafter")
     if layout not in ("navcrafter", "fun-camera"):
         raise SynthesisShapeError(f"unknown condition_layout {layout!r} in the model's manifest: re-export it with "

@@ -45,7 +45,7 @@ def export_monodepth(out: Path, *, checkpoint: Path | None = None, random: Rando
 
 def export_refiner(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None, seed: int = 0,
                    base: Path | None = None, prompt_embeds: Path | None = None, reference: bool = True) -> Path:
-    """Difix refiner (``models/refiner/difix.py``). ``checkpoint``: the ``nvidia/difix_ref`` diffusers directory
+    """Difix refiner (``models/refiner/difix/``). ``checkpoint``: the ``nvidia/difix_ref`` diffusers directory
     (or ``nvidia/difix`` with ``reference=False``), or an official training checkpoint ``model_*.pkl`` with
     ``base`` = the ``stabilityai/sd-turbo`` directory; the prompt embedding comes from the text encoder found
     there unless ``prompt_embeds`` (.npy) is given."""
@@ -75,7 +75,7 @@ def export_synthesizer(out: Path, *, num_frames: int, height: int, width: int, b
 def export_fun_camera(out_dir: Path, *, checkpoint_dir: Path | None = None, random: RandomPreset | None = None,
                       num_frames: int, height: int, width: int, seed: int = 0, base_dir: Path | None = None,
                       prompt: str = "") -> Path:
-    """The fun-camera synthesizer (Wan2.1-Fun-V1.1-Control-Camera, ``models/synthesis/funcamera.py``) into
+    """The fun-camera synthesizer (Wan2.1-Fun-V1.1-Control-Camera, ``models/synthesis/funcamera/``) into
     ``out_dir``; runs select it with ``synthesis.model = "fun-camera"``.
 
     ``checkpoint_dir``: the official model folder (``config.json`` + ``diffusion_pytorch_model*.safetensors``, read

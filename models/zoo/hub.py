@@ -29,7 +29,7 @@ pages and code, 2026-12-02):
   ``Wan-AI/Wan2.1-I2V-14B-720P-Diffusers``; the 480P tree itself was not seen.
 - ``alibaba-pai/Wan2.1-Fun-V1.1-1.3B-Control-Camera``: listed with its hub link in aigc-apps/VideoX-Fun's
   ``comfyui/wan2_1_fun/README.md`` (19.0 GB). Its file list was not seen; the files fetched are the ones
-  ``models/synthesis/funcamera.py`` ``load_fun_camera`` reads (``config.json`` + ``diffusion_pytorch_model*
+  ``models/synthesis/funcamera/weights.py`` ``load_fun_camera`` reads (``config.json`` + ``diffusion_pytorch_model*
   .safetensors`` at the root, per VideoX-Fun's ``transformer_subpath: ./``); its export also needs the diffusers
   Wan2.1 I2V encoders, pulled from the repository above without its 14B transformer.
 - ``facebook/VGGT-1B``: ``model.safetensors`` + ``config.json`` (PyTorchModelHubMixin) seen in public download
@@ -40,7 +40,7 @@ pages and code, 2026-12-02):
   in a hub listing.
 - ``nvidia/difix_ref`` (and ``nvidia/difix``): loaded as ``DifixPipeline.from_pretrained("nvidia/difix_ref")``
   in public code (street_crafter, Difix3D forks); its layout (unet/, vae/, text_encoder/, tokenizer/) is the one
-  ``models/refiner/difix.py`` documents from nvidia/difix's pinned download manifest.
+  ``models/refiner/difix/weights.py`` documents from nvidia/difix's pinned download manifest.
 - Evaluation URLs: the sources the networks' ``WeightFile`` entries name (``models/metrics/evalnets``); the LPIPS
   heads' raw-file URL assumes the repository's default branch is ``master`` (not checked) and the folder layout
   ``lpips/weights/v0.x/`` (seen in the repository index).
@@ -81,7 +81,7 @@ class Source:
     repo_id: str | None  # Hugging Face model repository, or None for URL sources
     patterns: tuple[str, ...] | None  # allow_patterns (None: the whole repository)
     required: tuple[str, ...]  # files the loader cannot do without
-    target: str | None  # role directory under model_dir (models.backends.ROLE_DIRS), "eval", or None
+    target: str | None  # role directory under model_dir (models.zoo.modeldir.ROLE_DIRS), "eval", or None
     summary: str
     urls: tuple[UrlFile, ...] = field(default_factory=tuple)
     needs: tuple[str, ...] = ()  # other sources (keys of SOURCES / HELPERS) pulled with this one, for its export
@@ -99,22 +99,24 @@ SOURCES: dict[str, Source] = {s.role: s for s in (
             "tokenizer/*", "image_processor/*"),
            tuple(f"{p}/config.json" for p in _WAN_PARTS) + ("tokenizer/tokenizer_config.json",),
            "synthesizer", "Wan2.1 I2V 14B base (diffusers layout); no camera control: CAMERA CONTROL UNTRAINED"),
-    # models/synthesis/funcamera.py load_fun_camera: config.json + diffusion_pytorch_model*.safetensors (single or
-    # sharded with its index) at the folder's root; the VAE, CLIP and UMT5 .pth pickles of that repository are not
-    # read (safetensors only): onnx_export.load_fun_camera_components takes them from the diffusers Wan2.1 I2V
-    # directory instead (HELPERS["wan-i2v-encoders"], without the 14B transformer).
+    # models/synthesis/funcamera/weights.py load_fun_camera: config.json + diffusion_pytorch_model*.safetensors
+    # (single or sharded with its index) at the folder's root; the VAE, CLIP and UMT5 .pth pickles of that
+    # repository are not read (safetensors only): onnx_export.load_fun_camera_components takes them from the
+    # diffusers Wan2.1 I2V directory instead (HELPERS["wan-i2v-encoders"], without the 14B transformer).
     Source("fun-camera", "alibaba-pai/Wan2.1-Fun-V1.1-1.3B-Control-Camera",
            ("config.json", "diffusion_pytorch_model*.safetensors", "diffusion_pytorch_model.safetensors.index.json"),
            ("config.json",), "synthesizer",
            "Wan2.1-Fun V1.1 1.3B Control-Camera DiT + the Wan2.1 I2V encoders (VAE, CLIP, UMT5)",
            needs=("wan-i2v-encoders",)),
-    # models/geometry/vggt.py load_vggt_weights: one official-layout state dict (.safetensors or tensor-only .pt).
+    # models/geometry/vggt/weights.py load_vggt_weights: one official-layout state dict (.safetensors or
+    # tensor-only .pt).
     Source("geometry", "facebook/VGGT-1B", ("model.safetensors", "config.json"), ("model.safetensors",),
            "geometry", "VGGT-1B multi-view geometry"),
-    # models/geometry/moge.py load_moge2_weights: the official model.pt ({"model_config", "model"}, weights_only).
+    # models/geometry/moge/weights.py load_moge2_weights: the official model.pt ({"model_config", "model"},
+    # weights_only).
     Source("monodepth", "Ruicheng/moge-2-vitl-normal", ("model.pt",), ("model.pt",), "monodepth",
            "MoGe-2 ViT-L (normal) monocular geometry"),
-    # models/refiner/difix.py load_difix_weights + encode_prompt: unet/ and vae/ safetensors, text_encoder/ and
+    # models/refiner/difix/ load_difix_weights + encode_prompt: unet/ and vae/ safetensors, text_encoder/ and
     # tokenizer/ for the fixed prompt "remove degradation".
     Source("refiner", "nvidia/difix_ref",
            ("model_index.json", "unet/config.json", "unet/diffusion_pytorch_model.safetensors", "vae/config.json",

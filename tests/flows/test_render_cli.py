@@ -1,4 +1,5 @@
-"""``navcrafter render`` (flows/cli/render.py): PLYs of any 3DGS tool and a scene's fitted Gaussians, rendered along
+"""``navcrafter render`` (flows/cli/render.py over flows/tools/render.py, whose own tests are
+tests/flows/tools/test_render.py): PLYs of any 3DGS tool and a scene's fitted Gaussians, rendered along
 presets and camera files to PNG frames and an MP4; bad input ends with a message and exit code 2."""
 
 from __future__ import annotations
@@ -10,28 +11,15 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from render_fixtures import blob_model, write_scene
 from typer.testing import CliRunner
 
 from navcrafter.flows.cli import app
-from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.ply import load_gaussian_ply, load_ply, save_ply
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 runner = CliRunner()
 SIZE = ["--width", "32", "--height", "32"]
-
-
-def blob_model(n=200, degree=3, seed=0) -> GaussianModel:
-    """Opaque coloured Gaussians in a box about (0, 0, 3), world up -y."""
-    g = torch.Generator().manual_seed(seed)
-    return GaussianModel(
-        means=torch.rand(n, 3, generator=g) * 2 - 1 + torch.tensor([0.0, 0.0, 3.0]),
-        quats=torch.randn(n, 4, generator=g),
-        log_scales=torch.full((n, 3), -2.5),
-        opacity_logits=torch.full((n,), 3.0),
-        sh_dc=torch.randn(n, 3, generator=g),
-        sh_rest=torch.randn(n, (degree + 1) ** 2 - 1, 3, generator=g) * 0.1,
-    )
 
 
 def inria_ply(path: Path, n=150, *, quat_scale=7.0, rows=None, count=None, props=None, fmt="binary_little_endian"
@@ -227,65 +215,6 @@ def test_a_camera_file_renders_at_its_poses_and_size(tmp_path):
 # --------------------------------------------------------------------------------------------------
 # A scene of a store (written through the store API: cheaper than running explore with the fit)
 # --------------------------------------------------------------------------------------------------
-def write_scene(root: Path, scene_id: str, model: GaussianModel | None, backend="simulation") -> None:
-    from navcrafter.schemas.layout import FIT, INGEST, PLAN
-    from navcrafter.schemas.store import Store
-
-    scene = Store(root).scene(scene_id)
-    w = scene.begin(INGEST, None, "k", backend)
-    w.write("image", np.zeros((24, 32, 3), np.uint8))
-    w.write("work_image", np.zeros((24, 32, 3), np.uint8))
-    w.commit(0.0, source="x.png", sha256=scene_id, original_size=[32, 24], original_mode="RGB",
-             exif_orientation=1, crop_box=[0, 0, 32, 24], normalised_size=[32, 24], work_size=[32, 24])
-    w = scene.begin(PLAN, 1, "k", backend)
-    w.write("trajectory", np.repeat(np.eye(4)[None], 3, axis=0))
-    w.write("K", np.array([[20.0, 0, 16], [0, 20, 12], [0, 0, 1]]))
-    w.write("centre", np.array([0.0, 0.0, 3.0]))
-    w.write("candidates", np.repeat(np.eye(4)[None], 2, axis=0))
-    w.commit(0.0, strategy="orbit", chosen=0)
-    if model is None:
-        return
-    w = scene.begin(FIT, None, "k", backend)
-    for name, t in model.tensors().items():
-        w.write(name, t.numpy())
-    F = 2
-    w.write("frame_ref", np.array([[1, 0], [1, 1]], np.int32))
-    w.write("c2w", np.repeat(np.eye(4)[None], F, axis=0))
-    w.write("K", np.repeat(np.eye(3)[None], F, axis=0))
-    w.write("holdout", np.array([False, True]))
-    w.write("holdout_renders", np.zeros((1, 8, 8, 3), np.uint8))
-    w.write("train", np.array([True, False]))
-    w.write("depth_targets", np.zeros((F, 8, 8), np.float32))
-    w.write("depth_calibration", np.zeros((0, 6)))
-    w.write("history", np.zeros((1, 6), np.float32))
-    w.commit(0.0, n_gaussians=len(model), sh_degree=model.sh_degree, resolution=[8, 8], holdout_every=2, n_train=1,
-             n_holdout=1, psnr=0.0, ssim=0.0, lpips=None, lpips_note="", init_psnr=0.0, scene_scale=1.0,
-             train_seconds=0.0, final_loss=0.0, peak_rss_mb=None)
-
-
-def test_scene_source_reads_the_fit_the_input_camera_and_the_centre(tmp_path):
-    from navcrafter.flows.cli.render import scene_source
-
-    model = blob_model(n=50, degree=1)
-    store = tmp_path / "store"
-    write_scene(store, "ab" * 32, model)
-    src = scene_source(str(store), "abab")  # a prefix will do
-    assert all(torch.equal(a, b) for a, b in zip(src.model.tensors().values(), model.tensors().values()))
-    np.testing.assert_allclose(src.c2w, np.eye(4))
-    assert (src.intrinsics.width, src.intrinsics.height, src.intrinsics.fx) == (32, 24, 20.0)
-    np.testing.assert_allclose(src.target, [0, 0, 3])
-    assert src.band == "SIMULATION" and src.name.startswith("scene abababababab")
-    assert scene_source(str(store), None).name == src.name  # the only scene
-    write_scene(store, "cd" * 32, None, backend="onnx")
-    with pytest.raises(ValueError, match=f"scene {'cd' * 32} has no fitted Gaussians; run explore with "
-                                         "fit.enabled=true"):
-        scene_source(str(store), "cd")
-    with pytest.raises(ValueError, match="holds 2 scenes; choose one with --scene"):
-        scene_source(str(store), None)
-    with pytest.raises(ValueError, match="--scene ef matches no scene"):
-        scene_source(str(store), "ef")
-
-
 def test_scene_render_through_the_cli(tmp_path):
     store = tmp_path / "store"
     write_scene(store, "ab" * 32, blob_model(n=80, degree=1))

@@ -59,7 +59,7 @@ def make_render_condition(render_latents: torch.Tensor, visibility: torch.Tensor
 
 
 def plucker_to_tensor(rays, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """``models.cameras.plucker_rays`` output ``[T, H, W, 6]`` (numpy or torch) to ``[1, 6, T, H, W]``."""
+    """``models.camera.cameras.plucker_rays`` output ``[T, H, W, 6]`` (numpy or torch) to ``[1, 6, T, H, W]``."""
     t = torch.as_tensor(rays, dtype=dtype)
     if t.ndim != 4 or t.shape[-1] != 6:
         raise ValueError(f"Plücker rays must be [T, H, W, 6], got {tuple(t.shape)}")

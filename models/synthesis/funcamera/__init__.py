@@ -74,7 +74,6 @@ from navcrafter.models.synthesis.funcamera.plucker import (
     fun_camera_plucker,
     fun_camera_plucker_from_re10k,
     fun_camera_relative_poses,
-    parse_re10k_poses,
 )
 from navcrafter.models.synthesis.funcamera.weights import (
     _transformer_dir,
@@ -109,7 +108,6 @@ __all__ = [
     "FunCameraConfig",
     "fun_camera_relative_poses",
     "fun_camera_plucker",
-    "parse_re10k_poses",
     "fun_camera_plucker_from_re10k",
     "fun_camera_pack",
     "pixel_unshuffle",

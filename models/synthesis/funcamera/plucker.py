@@ -8,6 +8,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from navcrafter.models.camera.camerafiles import RE10KCameras
+
 
 def fun_camera_relative_poses(c2w: np.ndarray) -> np.ndarray:
     """``get_relative_pose``: frame 0 becomes the identity and frame ``i`` ``w2c_0 @ c2w_i`` (float32 ``[T, 4, 4]``).
@@ -74,25 +76,18 @@ def fun_camera_plucker(c2w: np.ndarray, K: np.ndarray, height: int, width: int) 
     return _ray_condition(fxfycxcy, fun_camera_relative_poses(c2w), int(height), int(width))
 
 
-def parse_re10k_poses(text: str) -> list[list[float]]:
-    """A RealEstate10K pose file's camera lines, as ``process_pose_file`` reads them: the first line (the video
-    URL) is skipped, each further line is ``timestamp fx fy cx cy k1 k2 w2c(3x4, row-major)`` (19 numbers)."""
-    rows = [[float(x) for x in line.strip().split(" ")] for line in text.splitlines()[1:] if line.strip()]
-    bad = [i for i, r in enumerate(rows) if len(r) != 19]
-    if bad:
-        raise ValueError(f"RealEstate10K pose lines must hold 19 numbers; lines {[b + 2 for b in bad][:5]} do not")
-    return rows
-
-
-def fun_camera_plucker_from_re10k(cam_params: Sequence[Sequence[float]], width: int, height: int,
+def fun_camera_plucker_from_re10k(cam_params: RE10KCameras | Sequence[Sequence[float]], width: int, height: int,
                                   original_pose_width: int = 1280, original_pose_height: int = 720) -> np.ndarray:
     """``process_pose_params(cam_params, width, height, original_pose_width, original_pose_height)``: ``[T, H, W, 6]``.
+
+    ``cam_params``: a RealEstate10K camera file as ``models.camera.camerafiles.read_re10k_cameras`` reads it (the
+    one parser of the format), or its rows ``[T, 19]`` (``RE10KCameras.rows``).
 
     ``Camera(entry)``: normalised ``fx, fy, cx, cy = entry[1:5]``, ``w2c = entry[7:]`` as 3x4, ``c2w = inv(w2c)``.
     Aspect ratio: if the poses' ``W/H`` (1280/720 by default) exceeds the sample's, ``fx *= H·(W0/H0) / W``, else
     ``fy *= (W/(W0/H0)) / H``; then pixel intrinsics ``[fx·W, fy·H, cx·W, cy·H]``.
     """
-    rows = np.asarray(cam_params, dtype=np.float64)
+    rows = np.asarray(cam_params.rows() if isinstance(cam_params, RE10KCameras) else cam_params, dtype=np.float64)
     if rows.ndim != 2 or rows.shape[1] != 19:
         raise ValueError(f"cam_params must be [T, 19] RealEstate10K rows, got {rows.shape}")
     fx, fy, cx, cy = rows[:, 1].copy(), rows[:, 2].copy(), rows[:, 3], rows[:, 4]

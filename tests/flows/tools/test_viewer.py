@@ -116,8 +116,9 @@ def test_pose_and_gaussian_conversions():
 
 @pytest.mark.slow
 def test_viewer_gui_switches_scenes_and_says_when_there_is_no_fit(viewer_store, viser_server):
-    from navcrafter.flows.tools.viewer import NO_FIT, ROOT, SceneNotFound, build_viewer, resolve_scene
+    from navcrafter.flows.tools.viewer import NO_FIT, ROOT, build_viewer
     from navcrafter.schemas.store import Store
+    from navcrafter.tasks.readers import SceneNotFound, resolve_scene
 
     store, ids = viewer_store
     st = Store(store, create=False)

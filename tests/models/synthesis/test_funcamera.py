@@ -1,4 +1,4 @@
-"""fun-camera (Wan2.1-Fun-V1.1-Control-Camera, models/synthesis/funcamera.py): official layout, strict converter,
+"""fun-camera (Wan2.1-Fun-V1.1-Control-Camera, models/synthesis/funcamera/): official layout, strict converter,
 VideoX-Fun's Plücker convention, the adapter's place, ONNX vs torch, and the sampler on a tiny random export."""
 
 from __future__ import annotations
@@ -182,14 +182,19 @@ def test_plucker_rotation_and_navcrafter_cross_check():
         fc.fun_camera_plucker(np.stack(clip), K_SMALL + np.array([[0, 0.1, 0], [0, 0, 0], [0, 0, 0]]), 3, 4)
 
 
-def test_re10k_rows_intrinsics_adjustment():
+def test_re10k_rows_intrinsics_adjustment(tmp_path):
+    from navcrafter.models.camera.camerafiles import read_re10k_cameras
+
     w2c = np.eye(4)[:3]
     second = np.eye(4)
     second[:3, 3] = [0.0, 0.0, -1.0]  # world-to-camera: the camera moved +1 along z (forward)
     rows = [[0, 0.5, 0.9, 0.5, 0.5, 0, 0, *w2c.reshape(-1)], [1, 0.5, 0.9, 0.5, 0.5, 0, 0, *second[:3].reshape(-1)]]
-    text = "https://www.youtube.com/watch?v=x\n" + "\n".join(" ".join(str(v) for v in r) for r in rows) + "\n"
-    assert fc.parse_re10k_poses(text) == [[float(v) for v in r] for r in rows]
-    rays = fc.fun_camera_plucker_from_re10k(rows, width=32, height=32)  # 1280x720 poses on a square sample
+    path = tmp_path / "clip.txt"
+    path.write_text("https://www.youtube.com/watch?v=x\n" + "\n".join(" ".join(str(v) for v in r) for r in rows))
+    cams = read_re10k_cameras(path)  # the one RealEstate10K parser (models/camera/camerafiles.py)
+    np.testing.assert_array_equal(cams.rows(), rows)
+    rays = fc.fun_camera_plucker_from_re10k(cams, width=32, height=32)  # 1280x720 poses on a square sample
+    np.testing.assert_array_equal(rays, fc.fun_camera_plucker_from_re10k(rows, width=32, height=32))
     # pose W/H (16/9) > sample W/H (1): fx *= H * 16/9 / W, then pixel fx = fx * W
     K = np.array([[0.5 * 16 / 9 * 32, 0, 16], [0, 0.9 * 32, 16], [0, 0, 1]])
     c2w = np.stack([np.eye(4), np.linalg.inv(second)])
