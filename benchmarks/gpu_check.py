@@ -406,10 +406,12 @@ def item_fun_camera(ctx: dict) -> dict:
         if exc.name != name:  # navcrafter itself, or a dependency: a failed import, reported as one
             raise
         return {"status": "not built", "reason": f"{name} does not exist in this tree"}
-    needed = ("FunCameraConfig", "build_fun_camera", "fun_example_inputs", "_FunExportWrapper", "FUN_DIT_INPUTS",
-              "FUN_DIT_OUTPUTS")
+    needed = ("FunCameraConfig", "build_fun_camera", "fun_example_inputs", "FUN_DIT_INPUTS", "FUN_DIT_OUTPUTS")
     if lacking := [n for n in needed if not hasattr(mod, n)]:
         return {"status": "not built", "reason": f"{name} imports but lacks {', '.join(lacking)}"}
+    wrapper = getattr(importlib.import_module(f"{name}.export"), "_FunExportWrapper", None)  # the graph's wrapper
+    if wrapper is None:
+        return {"status": "not built", "reason": f"{name}.export imports but lacks _FunExportWrapper"}
     config = mod.FunCameraConfig.tiny() if ctx["dry_run"] else mod.FunCameraConfig.wan_1_3b()
     # latent grid of 81 frames at 256² (dry run: 5 frames at 32²... in tiny latents), batch 2 (the CFG pair)
     shape = (2, 2, 4, 4) if ctx["dry_run"] else (2, 21, 32, 32)
@@ -417,7 +419,7 @@ def item_fun_camera(ctx: dict) -> dict:
     box = [mod.build_fun_camera(config, device=dev)]
     inputs = {k: v.float() for k, v in mod.fun_example_inputs(box[0], shape).items()}
     names = list(mod.FUN_DIT_INPUTS)
-    return _torch_vs_ort(lambda: mod._FunExportWrapper(box.pop()), inputs, names, list(mod.FUN_DIT_OUTPUTS), ctx,
+    return _torch_vs_ort(lambda: wrapper(box.pop()), inputs, names, list(mod.FUN_DIT_OUTPUTS), ctx,
                          "fun_camera", {"config": "tiny" if ctx["dry_run"] else "wan-1.3b", "latent_shape": list(shape),
                                         "what": "one Fun-Camera DiT call on the CFG pair"})
 
