@@ -191,8 +191,9 @@ def worlds_markdown(result: dict) -> str:
              f"Each scan is the ground truth (`navcrafter demo-data --world`), {result['world_views']} start view(s) "
              "per world, every method from the same photos; means over the views. Holes in a scan are no data "
              "(skipped by the metrics; unscanned space counts as an obstacle for collisions). A scan's variants "
-             "(what the simulated video model draws where it has nothing to copy) move its object patches and "
-             "re-colour every patch; its structure stays in place.", "",
+             "(what the simulated video model draws where it has nothing to copy) move its object patches, move its "
+             "walls and ceiling with the generated rooms' settings (extent_change; structure_shift_m without a "
+             "ceiling) and re-colour every patch; the floor stays.", "",
              "| World | Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 1 % d0 ↑ | noise ratio ↓ | F 2 cm ↑ | "
              "collisions ↓ | close ↓ (all / last third) | new surface per iteration ↑ |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
