@@ -16,10 +16,12 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, ImageDraw
 
+from navcrafter.models.simulation.worlds import SCAN_KIND
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, INGEST, PLAN, SYNTHESIZE
-from navcrafter.tasks.backends import label_band, run_band, run_label
+from navcrafter.tasks.backends import label_band, run_band
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.readers import scene_run_label, truth_scene
 from navcrafter.tasks.runner import scene_steps
 
 THUMB = 256  # longer side of a thumbnail (input image, top-down plots), pixels
@@ -93,7 +95,8 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, l
     short = scene_id[:12]
     inp = scene.status(INGEST)
     sim = config.backend == "simulation"
-    label = label or run_label(config)  # the scene summary's label when the flow passes it
+    label = label or scene_run_label(scene, config)  # the scene summary's label when the flow passes it
+    scan = sim and (truth_scene(scene) or {}).get("kind") == SCAN_KIND
     source = PurePath(inp.attrs.get("source", "")).name or short
     lines = [f"# Scene `{short}`: {source}", ""]
     if label:
@@ -108,7 +111,8 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, l
     if inp.complete:
         image = Image.fromarray(scene.read(INGEST, None, "image"))
         lines += [
-            "## Input" + (" (demo render of a generated scene)" if sim else ""),
+            "## Input" + ((" (demo render of a scanned world)" if scan else " (demo render of a generated scene)")
+                          if sim else ""),
             "",
             f"![input image]({png_data_uri(thumbnail(image), palette=True)})",
             "",

@@ -9,13 +9,13 @@ from typing import Any
 
 import pyarrow as pa
 
-from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, FIT, PLAN, REFINE
 from navcrafter.schemas.store import SceneStore, Store
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.readers import scene_run_label
 from navcrafter.tasks.runner import scene_steps
 
 
@@ -77,7 +77,7 @@ def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, statu
     """A scene's result as its store shows it: the last complete step, the steps' timings and their sum."""
     done = _completed(scene, config)  # read once for the timings and the peaks
     timings = step_timings(scene, config, done)
-    fields.setdefault("label", run_label(config))
+    fields.setdefault("label", scene_run_label(scene, config))  # a scanned world's names the scan
     result = SceneResult(scene.scene_id, sources, status, step=last_step(scene, config), backend=config.backend,
                          seconds=sum(timings.values()), timings=timings, peaks=step_peaks(scene, config, done),
                          **fields)
@@ -139,8 +139,9 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
 
 
 def results_label(config: RunConfig, results: list[SceneResult]) -> str | None:
-    """The run's label: as the scene summaries carry it (read once per scene), else from the config."""
-    return next((r.label for r in results if r.label), None) or run_label(config)
+    """The run's label: the distinct labels the scene summaries carry (read once per scene: generated scenes and
+    scanned worlds differ), else from the config."""
+    return "; ".join(dict.fromkeys(r.label for r in results if r.label)) or run_label(config)
 
 
 def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -> list[str]:
@@ -148,7 +149,7 @@ def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -
     lines = []
     label = results_label(config, results)
     if config.backend == "simulation":
-        lines.append(f"{SIM_LABEL}. Distances are measured against the true scene surfaces.")
+        lines.append(f"{label}. Distances are measured against the true scene surfaces.")
     elif label:
         lines.append(f"{label}.")
     lines.append(f"Run {run_id}: {done} of {len(results)} images done; backend '{config.backend}', "
