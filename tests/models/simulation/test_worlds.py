@@ -244,6 +244,53 @@ def test_neutral_vertex_colour_textured_ply_and_glb_meshes(obj_room, tmp_path):
         np.testing.assert_allclose(_floor_colour(g, -1.0, -1.2), BLUE, atol=0.03)
 
 
+def test_ply_mesh_with_face_colours(tmp_path):
+    """A PLY whose faces carry the colour (``element face`` with red/green/blue, no vertex colour): drawn flat
+    in each face's colour."""
+    import trimesh
+
+    tris, cols = [], []
+    for name, quad in sf.room_quads():
+        for t in sf._subdivide(quad):
+            tris.append(t)
+            y = t.mean(0)[1]
+            cols.append(sf.CRATE_RGB if name == "crate" else sf.WALL if name != "floor" else
+                        sf.RED if y > sf.D / 2 else sf.BLUE)
+    tris = np.asarray(tris)
+    mesh = trimesh.Trimesh(tris.reshape(-1, 3), np.arange(3 * len(tris)).reshape(-1, 3), process=False,
+                           face_colors=np.c_[np.asarray(cols, dtype=np.uint8), np.full(len(cols), 255, np.uint8)])
+    mesh.merge_vertices()  # shared vertices: a face's colour must not bleed into its neighbours'
+    assert len(mesh.vertices) < 3 * len(mesh.faces) and mesh.visual.kind == "face"
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
+    head = data.split(b"end_header")[0]
+    assert b"element face" in head and b"property uchar red" in head.split(b"element face")[1]
+    assert b"red" not in head.split(b"element face")[0]  # no vertex colours: the faces alone carry it
+    (tmp_path / "faces.ply").write_bytes(data)
+    w, notes = _load(tmp_path / "faces.ply", up="z")
+    assert w.colour == "vertex" and "colour_note" not in w.info and not any("no colour" in n for n in notes)
+    scene = ScanScene(w)
+    np.testing.assert_allclose(_floor_colour(scene, -1.0, 1.2), RED, atol=0.01)
+    np.testing.assert_allclose(_floor_colour(scene, -1.0, -1.2), BLUE, atol=0.01)
+    r = render(scene, start_views(scene, 1, 0.25)[0], Intrinsics.from_fov(60, 32, 24))
+    shown = {tuple(c) for c in r.rgb[r.hit]}
+    assert shown <= {sf.RED, sf.BLUE, sf.WALL, sf.CRATE_RGB}, shown - {sf.RED, sf.BLUE, sf.WALL, sf.CRATE_RGB}
+
+
+def test_plain_point_cloud_is_neutral_grey_and_labelled(tmp_path):
+    """A point cloud without colour becomes a surface drawn in the labelled neutral grey (no invented colour)."""
+    path = sf.write_pcd_room(tmp_path / "plain.pcd", colours=False)
+    assert b"rgb" not in path.read_bytes()[:400]
+    w, notes = _load(path)
+    assert w.colour == "neutral" and w.corner_rgb is None and w.info["format"] == "point cloud"
+    assert "neutral grey" in w.info["colour_note"] and any("no colour" in n for n in notes), notes
+    scene = ScanScene(w)
+    pts, _ = sf.room_points(spacing=0.2, holes=True, seed=1)
+    assert np.median(scene.distance(pts - [sf.W / 2, sf.D / 2, 0.0])) < 0.03  # the room's surface
+    r = render(scene, start_views(scene, 1, 0.25)[0], Intrinsics.from_fov(60, 32, 24))
+    assert r.hit.mean() > 0.5 and np.ptp(r.rgb[r.hit], axis=1).max() == 0  # grey, shaded only
+    assert len(np.unique(r.rgb[r.hit][:, 0])) > 1  # headlight shading, not one flat colour
+
+
 @pytest.mark.parametrize("case", ["missing", "empty", "garbage", "nan", "millimetres", "tiny", "unknown",
                                   "object only"])
 def test_bad_scans_name_the_file_and_the_fix(case, tmp_path):
