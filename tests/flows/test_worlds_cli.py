@@ -65,8 +65,11 @@ def test_scan_world_demo_explore_and_evaluate(prefect_api_url, tmp_path):
     metrics = {m["name"]: m["value"] for m in Store(str(store)).tables.read("metrics").to_pylist()}
     assert 0 < metrics["coverage"] <= 1 and 0 <= metrics["noise_ratio"] < 1 and "collisions" in metrics
     assert metrics["cloud_median_dist_m"] < 0.2  # the lifted cloud lies on the scan (metres)
+    from navcrafter.models.simulation import LABEL
     from navcrafter.models.simulation.worlds import LABEL as SCAN_LABEL
 
+    said = " ".join(res.output.split())
+    assert " ".join(SCAN_LABEL.split()) in said and LABEL not in said  # explore announces the scans' label
     summaries = list((store / "runs").glob("*/summary.md"))
     assert summaries and all(SCAN_LABEL in p.read_text() for p in summaries)  # the run summary names the scan
     exports = list(store.rglob("trajectory.json"))
