@@ -59,7 +59,7 @@ from navcrafter.models.planning.planners import (
     search_space,
 )
 from navcrafter.models.reconstruction.pointrender import render_points
-from navcrafter.models.simulation import LABEL
+from navcrafter.models.simulation import LABEL, simulation_label
 from navcrafter.models.simulation.backend import SimulationTruth
 from navcrafter.models.simulation.demo import write_demo_collection
 from navcrafter.models.simulation.render import render
@@ -191,8 +191,9 @@ def worlds_markdown(result: dict) -> str:
              f"Each scan is the ground truth (`navcrafter demo-data --world`), {result['world_views']} start view(s) "
              "per world, every method from the same photos; means over the views. Holes in a scan are no data "
              "(skipped by the metrics; unscanned space counts as an obstacle for collisions). A scan's variants "
-             "(what the simulated video model draws where it has nothing to copy) move its object patches and "
-             "re-colour every patch; its structure stays in place.", "",
+             "(what the simulated video model draws where it has nothing to copy) move its object patches, move its "
+             "walls and ceiling with the generated rooms' settings (extent_change; structure_shift_m without a "
+             "ceiling) and re-colour every patch; the floor stays.", "",
              "| World | Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 1 % d0 ↑ | noise ratio ↓ | F 2 cm ↑ | "
              "collisions ↓ | close ↓ (all / last third) | new surface per iteration ↑ |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -377,25 +378,37 @@ def _paired_cell(p: dict) -> str:
     return f"{_f(p['mean_diff'], '+.3f')}{se}"
 
 
+def run_labels(generated: bool, scans: bool) -> str:
+    """The SIMULATION label(s) of a benchmark run: generated scenes', scanned worlds' (``simulation_label``)."""
+    return "; ".join(([simulation_label()] if generated or not scans else [])
+                     + ([simulation_label({"kind": "scan"})] if scans else []))
+
+
+def _setup(result: dict) -> str:
+    return (f"N={ITERATIONS} iterations, K=3 candidates for the baselines, one clip per iteration for every method"
+            f"{', quick sizes (25 frames at 128x128)' if result['quick'] else ', 81 frames at 256x256'}. "
+            "seen = share of the reference surface the method's true frames saw (true depth: the ceiling of any "
+            "lifting); coverage at 2 cm (the paper's), 5 cm, 1 % of d0; AUC of coverage over 0-2 % of d0; "
+            "precision = 1 - noise ratio at 2 cm; collisions = frames whose true camera is within r_safe of a true "
+            "surface or inside an object (per scene); close frames = share of frames more than half filled by a "
+            "surface nearer than 2 r_safe; planner time per iteration.")
+
+
 def markdown(result: dict) -> str:
     rows, (a, b) = result["runs"], result["seeds"]
     dev = is_development((a, b))
     kinds = result["kinds"]
     methods = list(result["methods"])
-    lines = ["# Planning benchmark (Table V shape) — SIMULATION, honest preset", "", f"> {LABEL}.", "",
-             f"**Seeds {a}-{b}** ({len(rows)} scene{'' if len(rows) == 1 else 's'}: {', '.join(kinds)}). "
-             + ("This range overlaps the development range 0-9 (tuning happens there): not an evaluation."
-                if dev else "A held-out range (development: seeds 0-9)."), "",
-             f"N={ITERATIONS} iterations, K=3 candidates for the baselines, one clip per iteration for every method"
-             f"{', quick sizes (25 frames at 128x128)' if result['quick'] else ', 81 frames at 256x256'}. "
-             "seen = share of the reference surface the method's true frames saw (true depth: the ceiling of any "
-             "lifting); coverage at 2 cm (the paper's), 5 cm, 1 % of d0; AUC of coverage over 0-2 % of d0; "
-             "precision = 1 - noise ratio at 2 cm; collisions = frames whose true camera is within r_safe of a true "
-             "surface or inside an object (per scene); close frames = share of frames more than half filled by a "
-             "surface nearer than 2 r_safe; planner time per iteration.", "",
-             "| Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 10 cm ↑ | cov 1 % d0 ↑ | AUC ↑ | precision ↑ | "
-             "F 2 cm ↑ | collisions ↓ | close ↓ | planner s/it |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["# Planning benchmark (Table V shape) — SIMULATION, honest preset", "",
+             f"> {result.get('label', LABEL)}.", ""]
+    if not rows:  # scanned worlds only (--worlds --kinds ""): their section follows
+        return "\n".join(lines + [_setup(result)]) + "\n"
+    lines += [f"**Seeds {a}-{b}** ({len(rows)} scene{'' if len(rows) == 1 else 's'}: {', '.join(kinds)}). "
+              + ("This range overlaps the development range 0-9 (tuning happens there): not an evaluation."
+                 if dev else "A held-out range (development: seeds 0-9)."), "", _setup(result), "",
+              "| Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 10 cm ↑ | cov 1 % d0 ↑ | AUC ↑ | precision ↑ | "
+              "F 2 cm ↑ | collisions ↓ | close ↓ | planner s/it |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
 
     def row(label: str, m: dict) -> str:
         return (f"| {label} | {_f(m.get('seen'))} | {_f(m.get('coverage'))} | {_f(m.get('coverage_at_0.05'))} | "
@@ -528,8 +541,9 @@ def main(argv: list[str] | None = None) -> int:
     names = tuple(methods)
     result = {**summarise(rows, names), "seeds": list(seeds), "kinds": list(kinds), "runs": rows,
               "per_kind": {k: summarise([r for r in rows if r["kind"] == k], names) for k in kinds},
-              "timing": times, "label": LABEL, "quick": args.quick, "iterations": ITERATIONS,
-              "development_seeds": list(DEV_SEEDS), **worlds, "wall_seconds": time.perf_counter() - t0}
+              "timing": times, "label": run_labels(bool(kinds), bool(worlds)), "quick": args.quick,
+              "iterations": ITERATIONS, "development_seeds": list(DEV_SEEDS), **worlds,
+              "wall_seconds": time.perf_counter() - t0}
     result["goal"] = goal(result) if "baseline" in methods and rows else {}
     (args.out / "results.json").write_text(json.dumps(result, indent=1))
     md = markdown(result) + (worlds_markdown(result) if worlds else "")

@@ -28,6 +28,7 @@ from navcrafter.tasks import score
 from navcrafter.tasks.clips import dataset as clip_tasks
 from navcrafter.tasks.clips import reconstruction as clip_reconstruction
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.readers import scene_run_label
 
 
 @dataclass
@@ -87,7 +88,8 @@ def evaluate_store(store: str, config: RunConfig, scene_ids: list[str] | None = 
     now = utcnow()
     s.tables.write("evaluations", [{**r, "evaluation_id": evaluation_id, "backend": config.backend,
                                     "created_at": now} for r in result.rows], part=evaluation_id)
-    md = score.evaluation_markdown(evaluation_id, result.rows, names, config.backend)
+    labels = [scene_run_label(s.scene(sid), config) for sid in ids]  # a scanned world's label names the scan
+    md = score.evaluation_markdown(evaluation_id, result.rows, names, config.backend, labels)
     result.report = f"evaluations/{evaluation_id}/report.md"
     s.write_bytes(result.report, md.encode())
     s.write_bytes(f"evaluations/{evaluation_id}/report.json", json.dumps(

@@ -13,6 +13,7 @@ from pathlib import Path
 from navcrafter.models.roles import Backend
 from navcrafter.models.runtime.onnxio import ModelDirError, load_manifest
 from navcrafter.models.simulation import LABEL as SIMULATION_LABEL
+from navcrafter.models.simulation import simulation_label
 from navcrafter.models.simulation.backend import SimulationError, simulation_backend
 from navcrafter.models.zoo.modeldir import (  # noqa: F401  (re-exported: the labels and the model directory's roles)
     BANDS,
@@ -62,10 +63,12 @@ def onnx_problems(config: RunConfig) -> list[str]:
     return problems
 
 
-def run_label(config: RunConfig) -> str | None:
-    """The label every user-facing output of this run must carry, if any."""
+def run_label(config: RunConfig, scene: dict | None = None) -> str | None:
+    """The label every user-facing output of this run must carry, if any. ``scene``: the ``scene`` spec of the
+    scene's simulation truth (``readers.truth_scene``), which names a scanned world in simulation mode
+    (``models.simulation.simulation_label``); without it, the generated scenes' label."""
     if config.backend == "simulation":
-        return SIMULATION_LABEL
+        return simulation_label(scene)
     if config.backend == "onnx" and config.model_dir is not None:
         return model_dir_label(config.model_dir)
     return None

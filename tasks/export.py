@@ -28,8 +28,14 @@ from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.layout import FIT, REFINE, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
-from navcrafter.tasks.backends import run_band, run_label
-from navcrafter.tasks.readers import CameraPath, camera_path, load_gaussians, load_refined_gaussians
+from navcrafter.tasks.backends import run_band
+from navcrafter.tasks.readers import (
+    CameraPath,
+    camera_path,
+    load_gaussians,
+    load_refined_gaussians,
+    scene_run_label,
+)
 from navcrafter.tasks.steps import StepContext
 
 
@@ -87,7 +93,7 @@ def export(ctx: StepContext) -> dict:
     config, scene, scene_id, writer = ctx.config, ctx.scene, ctx.scene_id, ctx.writer
     N = config.iterations
     store = scene.store
-    label = run_label(config)
+    label = scene_run_label(scene, config)  # a scanned world's label names the scan
     band = run_band(config)  # every rendered frame of a labelled run carries a band
     cloud = ctx.cloud(N)
     comments = [f"navcrafter scene {scene_id}", f"backend {config.backend}",

@@ -20,7 +20,7 @@ from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.recipe import resize_image
 from navcrafter.models.gaussians.train import TrainView
 from navcrafter.models.planning.planners import scene_centre
-from navcrafter.models.simulation import LABEL as SIMULATION_LABEL
+from navcrafter.models.simulation import simulation_label
 from navcrafter.schemas.config import RUN_CONFIG_FILE, RunConfig, StoredRunConfig
 from navcrafter.schemas.layout import (
     EXPORT,
@@ -200,6 +200,20 @@ def export_record(scene: SceneStore) -> dict:
     return json.loads(scene.store.read_bytes(doc["path"])) if doc else {}
 
 
+def truth_scene(scene: SceneStore) -> dict | None:
+    """The ``scene`` spec of a demo photo's hidden ground truth (ingest's ``simulation_truth``: kind, seed or the
+    scanned world's name), or None for any other image or before ingest completed."""
+    st = scene.status(INGEST)
+    record = st.attrs.get("simulation_truth") if st.complete else None
+    spec = record.get("scene") if isinstance(record, dict) else None
+    return spec if isinstance(spec, dict) else None
+
+
+def scene_run_label(scene: SceneStore, config: RunConfig) -> str | None:
+    """``run_label`` of ``config`` for this scene (a scanned world's simulation label names the scan)."""
+    return run_label(config, truth_scene(scene))
+
+
 def scene_label(scene: SceneStore) -> str | None:
     """The label every output of the scene's run carries (SIMULATION, RANDOM WEIGHTS, CAMERA CONTROL UNTRAINED;
     ``tasks.backends.run_label``), or None: the one its export recorded, else the stored run config's, else (a scene
@@ -212,10 +226,10 @@ def scene_label(scene: SceneStore) -> str | None:
         return label
     stored = stored_run_config(scene)
     if stored is not None:
-        return run_label(stored.config)
+        return scene_run_label(scene, stored.config)
     for spec in (INGEST, GEOMETRY, FIT):
         if scene.status(spec).attrs.get("backend") == "simulation":
-            return SIMULATION_LABEL
+            return simulation_label(truth_scene(scene))
     return None
 
 

@@ -39,7 +39,7 @@ from navcrafter.models.metrics.evalnets import fidfvd
 from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
 from navcrafter.models.metrics.image import psnr, ssim
 from navcrafter.models.metrics.pose import camera_guidance_precision
-from navcrafter.models.simulation import LABEL as SIM_LABEL
+from navcrafter.models.simulation import simulation_label
 from navcrafter.models.simulation.render import render
 from navcrafter.schemas.config import EvaluationConfig, RunConfig
 from navcrafter.schemas.layout import EVALUATE, EXPORT, FIT, GEOMETRY, LIFT, PLAN, REFINE, STEPS, SYNTHESIZE
@@ -438,13 +438,15 @@ def _cell(r: dict[str, Any], notes: list[str]) -> str:
 
 
 def evaluation_markdown(evaluation_id: str, rows: list[dict[str, Any]], names: dict[str, str],
-                        backend: str) -> str:
+                        backend: str, labels: list[str | None] | None = None) -> str:
     """The paper-shaped tables (one per ``TABLES`` entry: scenes as rows, metrics as columns), ending with a
-    line saying where Table VI (the 3DGS ablation) is."""
+    line saying where Table VI (the 3DGS ablation) is. ``labels``: the scenes' run labels
+    (``readers.scene_run_label``: generated scenes and scanned worlds differ); default the generated scenes'."""
 
     lines = ["# navcrafter evaluation", ""]
     if backend == "simulation":
-        lines += [f"> **{SIM_LABEL}.** Scores measure the pipeline on generated scenes, not learned models.", ""]
+        label = "; ".join(dict.fromkeys(x for x in labels or [] if x)) or simulation_label()
+        lines += [f"> **{label}.** Scores measure the pipeline on simulated ground truth, not learned models.", ""]
     lines += [f"Evaluation {evaluation_id}: {len({r['scene_id'] for r in rows if r['scene_id']})} scenes, "
               f"backend '{backend}'.", ""]
     notes: list[str] = []

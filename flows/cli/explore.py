@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
 
@@ -54,7 +55,7 @@ def explore(
 ) -> None:
     """Explore every image: geometry, N x (plan, synthesize, lift), export. Reruns resume."""
     # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
-    from navcrafter.models.simulation import LABEL
+    from navcrafter.models.simulation import GROUNDTRUTH_DIR, simulation_label
 
     cfg = run_config(preset, config, set_, {"backend": backend, "model_dir": str(models) if models else None,
                                             "max_parallel_scenes": parallel, "plan.trajectory": trajectory})
@@ -66,8 +67,15 @@ def explore(
             list_collection(photos)
     elif not Path(photos).exists():
         fail(f"{photos} does not exist; make a demo collection with `navcrafter demo-data {photos}`")
-    if cfg.backend == "simulation":
-        console.print(f"[bold yellow]{LABEL}.[/bold yellow]")
+    if cfg.backend == "simulation":  # the labels of the demo's scenes (generated, or scans: demo-data --world)
+        specs = []
+        for p in [] if "://" in photos else Path(photos).glob(f"{GROUNDTRUTH_DIR}/*/scene.json"):
+            try:
+                specs.append(json.loads(p.read_text()).get("scene"))
+            except (OSError, ValueError):  # ingest reports an unreadable truth record with its fix
+                continue
+        for label in dict.fromkeys(simulation_label(s) for s in specs or [None]):
+            console.print(f"[bold yellow]{label}.[/bold yellow]")
     elif cfg.backend == "onnx" and cfg.model_dir is not None and Path(cfg.model_dir).is_dir():
         # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
         from navcrafter.tasks.backends import run_label

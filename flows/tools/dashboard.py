@@ -17,10 +17,12 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from navcrafter.flows.tools.report import scene_summary
+from navcrafter.models.simulation.worlds import SCAN_KIND
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import INGEST, PLAN, SYNTHESIZE
 from navcrafter.tasks.backends import label_band, run_band
 from navcrafter.tasks.common import open_store
+from navcrafter.tasks.readers import truth_scene
 
 THUMB = 256  # longer side of a thumbnail (input image, top-down plots), pixels
 GRID_MAX = 512  # longer side of the render grid, pixels
@@ -96,6 +98,7 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, l
     sim = config.backend == "simulation"
     summary = scene_summary(scene, config, label)  # the flow passes the run summary's label, read once per scene
     label = summary.label
+    scan = sim and (truth_scene(scene) or {}).get("kind") == SCAN_KIND
     source = PurePath(inp.attrs.get("source", "")).name or short
     lines = [f"# Scene `{short}`: {source}", ""]
     if label:
@@ -108,7 +111,8 @@ def scene_dashboard_markdown(store_uri: str, scene_id: str, config: RunConfig, l
     if inp.complete:
         image = Image.fromarray(scene.read(INGEST, None, "image"))
         lines += [
-            "## Input" + (" (demo render of a generated scene)" if sim else ""),
+            "## Input" + ((" (demo render of a scanned world)" if scan else " (demo render of a generated scene)")
+                          if sim else ""),
             "",
             f"![input image]({png_data_uri(thumbnail(image), palette=True)})",
             "",

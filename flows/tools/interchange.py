@@ -41,7 +41,6 @@ from navcrafter.models.metrics.cloud_files import MESH_POINTS
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
 from navcrafter.schemas.layout import EXPORT, FIT, GEOMETRY, LIFT, SYNTHESIZE
 from navcrafter.schemas.store import Store, StoreError
-from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import load_cloud
 from navcrafter.tasks.readers import (
     SceneNotFound,
@@ -50,6 +49,7 @@ from navcrafter.tasks.readers import (
     resolve_scene,
     scene_label,
     scene_run_config,
+    scene_run_label,
     stored_run_config,
 )
 
@@ -148,7 +148,7 @@ def _labels(scene: SceneStore, config: RunConfig | None) -> tuple[str, str | Non
     backend = st.attrs.get("backend") or (config.backend if config is not None else "unknown")
     label = st.attrs.get("label") or scene_label(scene)
     if not label and config is not None:
-        label = run_label(config)
+        label = scene_run_label(scene, config)
     return backend, label or None
 
 

@@ -7,14 +7,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import PurePath
 from typing import Any
 
-from navcrafter.models.simulation import LABEL as SIM_LABEL
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE, FIT, PLAN, REFINE
 from navcrafter.schemas.store import SceneStore
 from navcrafter.schemas.tables import utcnow
 from navcrafter.tasks.backends import run_label
 from navcrafter.tasks.common import open_store
-from navcrafter.tasks.readers import read_manifest  # noqa: F401  (re-exported: the CLI and flows read it here)
+from navcrafter.tasks.readers import read_manifest, scene_run_label  # noqa: F401  (read_manifest re-exported: the CLI and flows read it here)
 from navcrafter.tasks.runner import scene_steps
 
 
@@ -61,8 +60,9 @@ class SceneSummary:
 
 def scene_summary(scene: SceneStore, config: RunConfig, label: str | None = None) -> SceneSummary:
     """The summary of a scene's run with ``config``: its steps' statuses, each read once. ``label``: the run's
-    label when the caller has it (default ``run_label(config)``). The final Gaussians are the refine step's when
-    the run refines, else the fit's (none when the run does not fit or the step has not completed)."""
+    label when the caller has it (default ``scene_run_label``: a scanned world's names the scan). The final
+    Gaussians are the refine step's when the run refines, else the fit's (none when the run does not fit or the
+    step has not completed)."""
     steps = scene_steps(config)
     statuses = [scene.status(step.spec, step.k) for step in steps]
     evaluate = scene.status(EVALUATE)
@@ -91,7 +91,7 @@ def scene_summary(scene: SceneStore, config: RunConfig, label: str | None = None
          for st in completed if "peak_rss_mb" in st.attrs},
         gaussians, notes, evaluate.complete,
         {k: float(v) for k, v in evaluate.attrs.get("metrics", {}).items()} if evaluate.complete else {},
-        label or run_label(config))
+        label or scene_run_label(scene, config))
 
 
 def scene_result(scene: SceneStore, sources: list[str], config: RunConfig, status: str,
@@ -149,8 +149,9 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
 
 
 def results_label(config: RunConfig, results: list[SceneResult]) -> str | None:
-    """The run's label: as the scene summaries carry it (read once per scene), else from the config."""
-    return next((r.label for r in results if r.label), None) or run_label(config)
+    """The run's label: the distinct labels the scene summaries carry (read once per scene: generated scenes and
+    scanned worlds differ), else from the config."""
+    return "; ".join(dict.fromkeys(r.label for r in results if r.label)) or run_label(config)
 
 
 def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -> list[str]:
@@ -158,7 +159,7 @@ def summary_header(run_id: str, config: RunConfig, results: list[SceneResult]) -
     lines = []
     label = results_label(config, results)
     if config.backend == "simulation":
-        lines.append(f"{SIM_LABEL}. Distances are measured against the true scene surfaces.")
+        lines.append(f"{label}. Distances are measured against the true scene surfaces.")
     elif label:
         lines.append(f"{label}.")
     lines.append(f"Run {run_id}: {done} of {len(results)} images done; backend '{config.backend}', "

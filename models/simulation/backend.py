@@ -187,16 +187,18 @@ VariantBuilder = Callable[[SimScene, np.random.Generator, SimulationConfig], Sim
 
 
 def _scan_variant(scene: SimScene, rng: np.random.Generator, cfg: SimulationConfig) -> SimScene:
-    """A world from a scan: its object patches moved and every patch re-coloured (``worlds.patches``)."""
+    """A world from a scan: its object patches moved, its walls and ceiling moved with the generated rooms' settings
+    and every patch re-coloured (``worlds.patches``)."""
     # deferred: a scan's open3d/trimesh readers load only when a scan is simulated
     from navcrafter.models.simulation.worlds.patches import variant_world
 
-    return variant_world(scene, int(rng.integers(1 << 31)), cfg.variant_shift_m)
+    return variant_world(scene, int(rng.integers(1 << 31)), cfg.variant_shift_m,
+                         structure_shift_m=tuple(cfg.structure_shift_m), extent_change=tuple(cfg.extent_change))
 
 
 # scene kind -> the builder of its per-clip variants; kinds not listed use ``procedural_variant``. Scanned worlds'
-# variants keep their structure in place (a scan has no walls to move: worlds.segments); other worlds register
-# theirs with ``register_variant_builder``.
+# variants move surface patches (worlds.segments / worlds.patches); other worlds register theirs with
+# ``register_variant_builder``.
 VARIANT_BUILDERS: dict[str, VariantBuilder] = {"scan": _scan_variant}
 _VARIANTS: OrderedDict = OrderedDict()
 _VARIANTS_LOCK = threading.Lock()

@@ -65,6 +65,70 @@ def test_scan_world_demo_explore_and_evaluate(prefect_api_url, tmp_path):
     metrics = {m["name"]: m["value"] for m in Store(str(store)).tables.read("metrics").to_pylist()}
     assert 0 < metrics["coverage"] <= 1 and 0 <= metrics["noise_ratio"] < 1 and "collisions" in metrics
     assert metrics["cloud_median_dist_m"] < 0.2  # the lifted cloud lies on the scan (metres)
+    from navcrafter.models.simulation import LABEL
+    from navcrafter.models.simulation.worlds import LABEL as SCAN_LABEL
+
+    said = " ".join(res.output.split())
+    assert " ".join(SCAN_LABEL.split()) in said and LABEL not in said  # explore announces the scans' label
+    summaries = list((store / "runs").glob("*/summary.md"))
+    assert summaries and all(SCAN_LABEL in p.read_text() for p in summaries)  # the run summary names the scan
+    exports = list(store.rglob("trajectory.json"))
+    assert exports and all(json.loads(p.read_text())["label"] == SCAN_LABEL for p in exports)
     res = runner.invoke(app, ["evaluate", str(store)])
     assert res.exit_code == 0, res.output[-3000:]
     assert "PSNR" in res.output
+    reports = list((store / "evaluations").glob("*/report.md"))
+    assert reports and all(SCAN_LABEL in p.read_text() for p in reports)
+
+
+def _ingested(tmp_path, kind: str | None, backend: str = "simulation"):
+    """A scene whose ingest step carries a demo photo's truth record of ``kind`` (None: an ordinary photo)."""
+    from navcrafter.schemas.layout import INGEST
+    from navcrafter.schemas.store import Store
+
+    scene = Store(str(tmp_path / f"store-{kind}-{backend}")).scene("a" * 64)
+    w = scene.begin(INGEST, None, "key", backend)
+    img = np.zeros((8, 8, 3), dtype=np.uint8)
+    w.write("image", img)
+    w.write("work_image", img)
+    attrs = {"source": "photo.png", "sha256": "a" * 64, "original_size": [8, 8], "original_mode": "RGB",
+             "exif_orientation": 1, "crop_box": [0, 0, 8, 8], "normalised_size": [8, 8], "work_size": [8, 8]}
+    if kind is not None:
+        attrs["simulation_truth"] = {"scene": {"kind": kind, "name": "room", "seed": 0}}
+    w.commit(0.0, **attrs)
+    return scene
+
+
+def test_a_scan_worlds_outputs_carry_the_scan_label(tmp_path):
+    """The run summary, the export's label reader, the dashboard and the evaluation report name the scan when the
+    scene is a scanned world (``simulation_label``: the one source), the generated scenes' label otherwise."""
+    from helpers import TINY
+
+    from navcrafter.flows.tools.dashboard import scene_dashboard_markdown
+    from navcrafter.flows.tools.report import SceneResult, scene_result, summary_markdown
+    from navcrafter.models.simulation import LABEL, simulation_label
+    from navcrafter.models.simulation.worlds import LABEL as SCAN_LABEL
+    from navcrafter.tasks.readers import scene_label, scene_run_label
+    from navcrafter.tasks.score import evaluation_markdown
+
+    assert SCAN_LABEL != LABEL and "scan" in SCAN_LABEL
+    assert simulation_label({"kind": "scan"}) == SCAN_LABEL and simulation_label({"kind": "room"}) == LABEL
+    assert simulation_label(None) == LABEL
+    sim = TINY.model_copy(update={"backend": "simulation"})
+    scan, room, photo = _ingested(tmp_path, "scan"), _ingested(tmp_path, "room"), _ingested(tmp_path, None)
+    assert scene_run_label(scan, sim) == SCAN_LABEL and scene_label(scan) == SCAN_LABEL
+    assert scene_run_label(room, sim) == LABEL and scene_label(room) == LABEL and scene_run_label(photo, sim) == LABEL
+    assert scene_run_label(_ingested(tmp_path, "scan", "onnx"), TINY.model_copy(update={"backend": "onnx"})) != \
+        SCAN_LABEL
+    r_scan = scene_result(scan, ["scan-room-v0.png"], sim, "done")
+    assert r_scan.label == SCAN_LABEL
+    md = summary_markdown("r1", sim, [r_scan])
+    assert SCAN_LABEL in md and "procedurally generated" not in md
+    both = summary_markdown("r2", sim, [r_scan, scene_result(room, ["room.png"], sim, "done")])
+    assert SCAN_LABEL in both and LABEL in both
+    assert LABEL in summary_markdown("r3", sim, [SceneResult("b" * 64, ["room.png"], "done")])
+    dash = scene_dashboard_markdown(str(tmp_path / "store-scan-simulation"), "a" * 64, sim)
+    assert SCAN_LABEL in dash and "scanned world" in dash and "generated" not in dash
+    report = evaluation_markdown("e1", [], {}, "simulation", [SCAN_LABEL])
+    assert SCAN_LABEL in report and LABEL not in report
+    assert LABEL in evaluation_markdown("e2", [], {}, "simulation")

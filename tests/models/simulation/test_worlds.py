@@ -118,21 +118,96 @@ def test_rgbd_sequence_is_fused_into_the_room(obj_room, tmp_path):
     assert abs(M[2, 2] - 1.0) < 0.02  # z stayed up (the floor was found near the cameras' up)
 
 
-def test_variant_moves_objects_not_structure_and_redraws_colours(obj_room):
+def _crate(scene: ScanScene) -> np.ndarray:
+    label, _ = scene.patches()
+    return label == label[np.argmin(np.linalg.norm(scene.world.corners.mean(1) - [1.5, 1.0, 0.8], axis=1))]
+
+
+def test_variant_moves_objects_and_redraws_colours_structure_stays_without_its_ranges(obj_room):
     _, scene = obj_room
-    label, movable = scene.patches()
-    crate = label == label[np.argmin(np.linalg.norm(scene.world.corners.mean(1) - [1.5, 1.0, 0.8], axis=1))]
-    assert movable[label[crate][0]] and movable.sum() == 1  # the crate alone may move
+    _, movable = scene.patches()
+    crate = _crate(scene)
+    assert movable[scene.patches()[0][crate][0]] and movable.sum() == 1  # the crate alone may move
     moved = []
     for v in range(6):
-        var = variant_world(scene, v, 0.3)
+        var = variant_world(scene, v, 0.3, structure_shift_m=(0.0, 0.0), extent_change=(0.0, 0.0))
         delta = var.world.corners - scene.world.corners
-        assert np.abs(delta[~crate]).max() == 0  # floor, walls and ceiling stay
+        assert np.abs(delta[~crate]).max() == 0  # floor, walls and ceiling stay without structure ranges
         shift = delta[crate].reshape(-1, 3)
         assert np.allclose(shift, shift[0]) and shift[0, 2] == 0 and np.linalg.norm(shift[0]) <= 0.3 + 1e-6
         moved.append(np.linalg.norm(shift[0]))
         assert 0 < np.abs(var.offsets).max() <= 0.2
+        # the structure draws have their own stream: the objects move exactly as with structure moves on
+        full = variant_world(scene, v, 0.3, structure_shift_m=(0.3, 1.0), extent_change=(0.1, 0.2))
+        np.testing.assert_array_equal(full.world.corners[crate], var.world.corners[crate])
+        np.testing.assert_array_equal(full.offsets, var.offsets)
     assert max(moved) > 0.05
+
+
+def _surfaces(world) -> dict[str, np.ndarray]:
+    """Triangle masks of the OBJ room's floor, ceiling and four walls (ground-truth frame, centred)."""
+    c = world.corners.astype(np.float64)
+    hw, hd = sf.W / 2, sf.D / 2
+    on = (lambda axis, v: (np.abs(c[:, :, axis] - v) < 0.01).all(1))  # the loader levels the room to ~1e-4
+    return {"floor": on(2, 0.0), "ceiling": on(2, sf.H), "west": on(0, -hw), "east": on(0, hw),
+            "south": on(1, -hd), "north": on(1, hd)}
+
+
+def test_variant_of_a_room_scan_changes_its_extents_like_a_generated_room(obj_room):
+    """Walls move along their normal so each horizontal extent changes by ``extent_change`` (split between its two
+    walls), the ceiling by ``extent_change`` x the height; the floor (which carries the camera) stays."""
+    _, scene = obj_room
+    parts = _surfaces(scene.world)
+    changes, seen = [], set()
+    for v in range(8):
+        var = variant_world(scene, v, 0.3, structure_shift_m=(0.3, 1.0), extent_change=(0.1, 0.2))
+        delta = (var.world.corners - scene.world.corners).astype(np.float64)
+        assert np.abs(delta[parts["floor"]]).max() == 0
+        move = {}
+        for name, sel in parts.items():
+            d = delta[sel].reshape(-1, 3)
+            assert np.allclose(d, d[0], atol=1e-5), name  # each surface moves rigidly
+            move[name] = d[0]
+        for a, b, axis, extent in (("west", "east", 0, sf.W), ("south", "north", 1, sf.D)):
+            for w in (a, b):  # along its own normal only
+                assert np.abs(np.delete(move[w], axis)).max() < 1e-3, (w, move[w])  # the loader levels to ~1e-4
+            change = (move[b][axis] - move[a][axis]) / extent  # the new extent minus the old, as a fraction
+            assert 0.1 - 1e-4 <= abs(change) <= 0.2 + 1e-4, (v, a, change)
+            assert move[b][axis] * change >= -1e-6 and move[a][axis] * change <= 1e-6  # both walls out or in
+            changes.append(change)
+        dz = move["ceiling"]
+        assert abs(dz[0]) < 1e-6 and abs(dz[1]) < 1e-6 and 0.1 - 1e-4 <= abs(dz[2]) / sf.H <= 0.2 + 1e-4
+        seen.add(bool(dz[2] > 0))
+    assert min(changes) < 0 < max(changes) and seen == {True, False}  # rooms grow and shrink
+    again = variant_world(scene, 3, 0.3, structure_shift_m=(0.3, 1.0), extent_change=(0.1, 0.2))
+    variant_world.cache_clear()
+    np.testing.assert_array_equal(again.world.corners, variant_world(
+        scene, 3, 0.3, structure_shift_m=(0.3, 1.0), extent_change=(0.1, 0.2)).world.corners)  # seeded
+
+
+def test_variant_of_a_scan_without_ceiling_moves_walls_like_facades(obj_room):
+    """No ceiling: no height to change; each wall moves along its normal by a signed ``structure_shift_m`` draw."""
+    from navcrafter.models.simulation.worlds.world import World
+
+    _, scene = obj_room
+    w = scene.world
+    keep = ~_surfaces(w)["ceiling"]
+    open_top = ScanScene(World("open", w.corners[keep], w.colour, None if w.corner_rgb is None else w.corner_rgb[keep],
+                               w.uvs[keep], w.texture_id[keep], w.textures, w.floor, w.info), source="open")
+    parts = _surfaces(open_top.world)
+    shifts = []
+    for v in range(4):
+        var = variant_world(open_top, v, 0.3, structure_shift_m=(0.3, 1.0), extent_change=(0.1, 0.2))
+        delta = (var.world.corners - open_top.world.corners).astype(np.float64)
+        assert np.abs(delta[parts["floor"]]).max() == 0
+        for name, axis in (("west", 0), ("east", 0), ("south", 1), ("north", 1)):
+            d = delta[parts[name]].reshape(-1, 3)
+            assert np.allclose(d, d[0], atol=1e-5) and np.abs(np.delete(d[0], axis)).max() < 1e-3
+            assert 0.3 - 1e-4 <= abs(d[0, axis]) <= 1.0 + 1e-4, (name, d[0])
+            shifts.append(d[0, axis])
+        still = variant_world(open_top, v, 0.3, structure_shift_m=(0.0, 0.0), extent_change=(0.1, 0.2))
+        assert np.abs((still.world.corners - open_top.world.corners)[~_crate(open_top)]).max() == 0
+    assert min(shifts) < 0 < max(shifts)
 
 
 def test_neutral_vertex_colour_textured_ply_and_glb_meshes(obj_room, tmp_path):
@@ -167,6 +242,53 @@ def test_neutral_vertex_colour_textured_ply_and_glb_meshes(obj_room, tmp_path):
         g = ScanScene(w)
         np.testing.assert_allclose(_floor_colour(g, -1.0, 1.2), RED, atol=0.03)
         np.testing.assert_allclose(_floor_colour(g, -1.0, -1.2), BLUE, atol=0.03)
+
+
+def test_ply_mesh_with_face_colours(tmp_path):
+    """A PLY whose faces carry the colour (``element face`` with red/green/blue, no vertex colour): drawn flat
+    in each face's colour."""
+    import trimesh
+
+    tris, cols = [], []
+    for name, quad in sf.room_quads():
+        for t in sf._subdivide(quad):
+            tris.append(t)
+            y = t.mean(0)[1]
+            cols.append(sf.CRATE_RGB if name == "crate" else sf.WALL if name != "floor" else
+                        sf.RED if y > sf.D / 2 else sf.BLUE)
+    tris = np.asarray(tris)
+    mesh = trimesh.Trimesh(tris.reshape(-1, 3), np.arange(3 * len(tris)).reshape(-1, 3), process=False,
+                           face_colors=np.c_[np.asarray(cols, dtype=np.uint8), np.full(len(cols), 255, np.uint8)])
+    mesh.merge_vertices()  # shared vertices: a face's colour must not bleed into its neighbours'
+    assert len(mesh.vertices) < 3 * len(mesh.faces) and mesh.visual.kind == "face"
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
+    head = data.split(b"end_header")[0]
+    assert b"element face" in head and b"property uchar red" in head.split(b"element face")[1]
+    assert b"red" not in head.split(b"element face")[0]  # no vertex colours: the faces alone carry it
+    (tmp_path / "faces.ply").write_bytes(data)
+    w, notes = _load(tmp_path / "faces.ply", up="z")
+    assert w.colour == "vertex" and "colour_note" not in w.info and not any("no colour" in n for n in notes)
+    scene = ScanScene(w)
+    np.testing.assert_allclose(_floor_colour(scene, -1.0, 1.2), RED, atol=0.01)
+    np.testing.assert_allclose(_floor_colour(scene, -1.0, -1.2), BLUE, atol=0.01)
+    r = render(scene, start_views(scene, 1, 0.25)[0], Intrinsics.from_fov(60, 32, 24))
+    shown = {tuple(c) for c in r.rgb[r.hit]}
+    assert shown <= {sf.RED, sf.BLUE, sf.WALL, sf.CRATE_RGB}, shown - {sf.RED, sf.BLUE, sf.WALL, sf.CRATE_RGB}
+
+
+def test_plain_point_cloud_is_neutral_grey_and_labelled(tmp_path):
+    """A point cloud without colour becomes a surface drawn in the labelled neutral grey (no invented colour)."""
+    path = sf.write_pcd_room(tmp_path / "plain.pcd", colours=False)
+    assert b"rgb" not in path.read_bytes()[:400]
+    w, notes = _load(path)
+    assert w.colour == "neutral" and w.corner_rgb is None and w.info["format"] == "point cloud"
+    assert "neutral grey" in w.info["colour_note"] and any("no colour" in n for n in notes), notes
+    scene = ScanScene(w)
+    pts, _ = sf.room_points(spacing=0.2, holes=True, seed=1)
+    assert np.median(scene.distance(pts - [sf.W / 2, sf.D / 2, 0.0])) < 0.03  # the room's surface
+    r = render(scene, start_views(scene, 1, 0.25)[0], Intrinsics.from_fov(60, 32, 24))
+    assert r.hit.mean() > 0.5 and np.ptp(r.rgb[r.hit], axis=1).max() == 0  # grey, shaded only
+    assert len(np.unique(r.rgb[r.hit][:, 0])) > 1  # headlight shading, not one flat colour
 
 
 @pytest.mark.parametrize("case", ["missing", "empty", "garbage", "nan", "millimetres", "tiny", "unknown",
