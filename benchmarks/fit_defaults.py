@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from seeds import is_development, parse_seeds  # benchmarks/seeds.py (the script's folder is on the path)
 
 from navcrafter.models.simulation.demo import write_demo_collection
 from navcrafter.models.simulation.scenes import KINDS
@@ -37,6 +37,10 @@ from navcrafter.tasks.common import simulation_truth
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.readers import load_gaussians
 from navcrafter.tasks.runner import run_scene
+
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.seeds import is_development, parse_seeds  # noqa: E402
 
 
 def short_schedule(iterations: int) -> dict:

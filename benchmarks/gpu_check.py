@@ -67,6 +67,8 @@ import traceback
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(HERE.parent))
 PAPER_SCENE_MIN = 4.79  # NavCrafter, Table V: minutes per scene
 DRY_RUN_LABEL = "DRY RUN (CPU, tiny configs): plumbing only, NOT a measurement"
 EXPLORE_CAP = 600  # --with-explore: the scene item's cap (beyond the 8-minute budget)
@@ -91,12 +93,10 @@ GSPLAT_EXT = "gsplat_cuda"  # the name gsplat 1.5 JIT-builds its kernels under (
 
 
 def _bench_import(name: str):
-    """A sibling benchmark module (benchmarks/ is not a package)."""
+    """A sibling benchmark module, ``benchmarks.<name>`` (imported when an item needs it)."""
     import importlib
 
-    if str(HERE) not in sys.path:
-        sys.path.insert(0, str(HERE))
-    return importlib.import_module(name)
+    return importlib.import_module(f"benchmarks.{name}")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -40,13 +40,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from seeds import is_development, parse_seeds  # benchmarks/seeds.py (the script's folder is on the path)
 
 from navcrafter.models.metrics.pose import camera_guidance_precision
 from navcrafter.models.simulation import LABEL
 from navcrafter.models.simulation.datasets import TRAJECTORIES, write_dataset
 from navcrafter.schemas.datasets import open_dataset
 from navcrafter.tasks.clips import export_clips, load_clip
+
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.seeds import is_development, parse_seeds  # noqa: E402
 
 METHODS = {"stock": {"attempts": "stock", "rotation_fallback": False}, "robust": {}}
 SOURCE_RESOLUTION = (360, 640)  # (height, width) of the rendered sequences, RealEstate10K's 16:9

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
-from planning import LABELS, METHODS, bench_config
 
 from navcrafter.models.simulation import LABEL
 from navcrafter.models.simulation.demo import write_demo_collection
@@ -27,6 +26,10 @@ from navcrafter.tasks.common import simulation_truth
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.readers import true_cameras
 from navcrafter.tasks.runner import run_scene
+
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.planning import LABELS, METHODS, bench_config  # noqa: E402
 
 COLOURS = {"baseline": (220, 60, 40), "baseline_global": (230, 160, 30), "ours": (40, 110, 220),
            "paper_ours": (60, 170, 80)}

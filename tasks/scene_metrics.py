@@ -47,7 +47,8 @@ from navcrafter.models.metrics.cloud import (
     unit,
 )
 from navcrafter.models.planning.planners import search_space
-from navcrafter.models.simulation.reference import reference_points
+from navcrafter.models.simulation.reference import object_region_prefixes, reference_points
+from navcrafter.models.simulation.render import render
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, STEPS, SYNTHESIZE
 from navcrafter.schemas.tables import utcnow
@@ -99,9 +100,6 @@ def exploration(truth, points_gt: np.ndarray, dist: np.ndarray, reference: np.nd
     distances ``dist`` to the true surfaces, the ``reference`` surface points, the scene scale ``d0_m`` (metres),
     ``frames_gt`` ``[T, 4, 4]``: every true camera of the run (input camera included) in the ground-truth frame,
     ``K``: their ``Intrinsics``. Reusable by any loop over scenes with a ground truth (the benchmark's)."""
-    from navcrafter.models.simulation.reference import object_region_prefixes
-    from navcrafter.models.simulation.render import render
-
     s = min(1.0, SEEN_SIDE / max(K.width, K.height))
     Ks = K.resize(max(1, round(K.width * s)), max(1, round(K.height * s))) if s < 1.0 else K
     depths = [render(truth.scene, c2w, Ks, colour=False).depth for c2w in np.asarray(frames_gt)]

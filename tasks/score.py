@@ -36,8 +36,9 @@ from typing import Any
 import numpy as np
 
 from navcrafter.models.metrics.evalnets import fidfvd
+from navcrafter.models.metrics.evalnets.lpips import lpips_distance
 from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
-from navcrafter.models.metrics.image import psnr, ssim
+from navcrafter.models.metrics.image import SSIM_WINDOW, psnr, ssim, ssim_map
 from navcrafter.models.metrics.pose import camera_guidance_precision
 from navcrafter.models.simulation import simulation_label
 from navcrafter.models.simulation.render import render
@@ -126,8 +127,6 @@ def reference_valid(scene: SceneStore, k: int, idx: np.ndarray) -> np.ndarray | 
     truth = simulation_truth(scene)
     if truth is None or getattr(truth.scene, "kind", None) != "scan":
         return None
-    from navcrafter.models.simulation.render import render
-
     H, W = scene.read(SYNTHESIZE, k, "frames").shape[1:3]
     K = truth.intrinsics_for(H, W)
     poses = truth.gt_pose(scene.read(PLAN, k, "trajectory")[idx])
@@ -168,8 +167,6 @@ def image_quality_rows(fake: np.ndarray, real: np.ndarray, config: EvaluationCon
                 note="; ".join(x for x in (note, capped) if x) or None, scene_id=scene_id),
             row("I", "SSIM", float(np.mean(ssim(a, b))), None, note=note, scene_id=scene_id)]
     try:
-        from navcrafter.models.metrics.evalnets.lpips import lpips_distance
-
         d = lpips_distance(a.astype(np.float32), b.astype(np.float32), net=config.lpips_net,
                            weights_dir=config.weights_dir)
         rows.append(row("I", "LPIPS", float(np.mean(d)), None, scene_id=scene_id,
@@ -183,8 +180,6 @@ def _masked_quality_rows(a: np.ndarray, b: np.ndarray, valid: np.ndarray, note: 
                          scene_id: str | None) -> list[dict[str, Any]]:
     """PSNR over the ``valid`` pixels of each frame, SSIM over its windows that are all valid (frames without any
     are left out)."""
-    from navcrafter.models.metrics.image import SSIM_WINDOW, ssim_map
-
     keep = valid.reshape(len(valid), -1).any(1)
     if not keep.any():
         return [row("I", m, status="unavailable", note="no scanned surface in any reference frame", scene_id=scene_id)

@@ -57,6 +57,7 @@ def demo_data(
 
 def _world_demo(folder: Path, worlds: list[Path], views: int, up: str, scale: float, starts: list[Path],
                 width: int, height: int) -> None:
+    # deferred: CLI start-up (`navcrafter --help` imports no command's dependencies)
     from navcrafter.models.camera.trajectories import read_camera_file
     from navcrafter.models.simulation.worlds import WorldError
     from navcrafter.models.simulation.worlds.demo import StartCameras, write_world_collection

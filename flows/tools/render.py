@@ -24,6 +24,12 @@ import numpy as np
 from navcrafter.models.camera import trajectories as tr
 from navcrafter.models.camera.cameras import Intrinsics
 from navcrafter.models.gaussians.model import GaussianModel
+from navcrafter.models.gaussians.ply import load_gaussian_ply, read_ply_header
+from navcrafter.models.gaussians.renderer import resolve_backend, resolve_device
+from navcrafter.models.gaussians.train import render_model
+from navcrafter.models.media import encode_mp4, label_frames
+from navcrafter.schemas.layout import FIT, PLAN, REFINE
+from navcrafter.schemas.store import Store
 
 DEFAULT_SIZE = 512  # a bare PLY's default width and height
 DEFAULT_FOV = 60.0  # a bare PLY's default horizontal field of view, degrees
@@ -60,8 +66,6 @@ class Cameras:
 
 def ply_source(path: Path) -> Source:
     """A bare PLY (checked and normalised by ``load_gaussian_ply``); labelled when its header comments say so."""
-    from navcrafter.models.gaussians.ply import load_gaussian_ply, read_ply_header
-
     if not path.is_file():
         raise ValueError(f"{path} does not exist or is not a file; give a 3D Gaussian Splatting .ply")
     model = load_gaussian_ply(path)
@@ -75,8 +79,7 @@ def scene_source(store_uri: str, scene_id: str | None) -> Source:
     (the first camera of its stored path), that camera's intrinsics at the scene's resolution and the scene
     centre. ``scene_id``: an id, a unique prefix or the photo's file name (``readers.resolve_scene``); None picks the
     store's only scene."""
-    from navcrafter.schemas.layout import FIT, PLAN, REFINE
-    from navcrafter.schemas.store import Store
+    # deferred: open3d (tasks.readers, tasks.backends) loads only for a stored scene, not a bare PLY
     from navcrafter.tasks.backends import label_band
     from navcrafter.tasks.readers import (
         camera_path,
@@ -184,8 +187,6 @@ def render_cameras(src: Source, trajectory: str, camfile: tr.CameraFile | None, 
 
 def render_device(device: str, renderer: str):
     """The torch device of ``device`` (auto, cpu, cuda[:N]), checked against ``renderer``."""
-    from navcrafter.models.gaussians.renderer import resolve_backend, resolve_device
-
     dev = resolve_device(device)
     resolve_backend(renderer, dev)
     return dev
@@ -216,9 +217,6 @@ def render_frames(src: Source, cams: Cameras, background: tuple[float, float, fl
     render there are removed), ``out/render.mp4`` and ``out/cameras.json`` (the cameras, OpenCV c2w, and the
     label); each frame is labelled with the source's band. ``on_frame(i)`` after each frame. Returns the PNGs."""
     from PIL import Image
-
-    from navcrafter.models.gaussians.train import render_model
-    from navcrafter.models.media import encode_mp4, label_frames
 
     model = src.model.to(device)  # once: render_model's own move is then a no-op
     frames_dir = out / "frames"

@@ -224,6 +224,7 @@ def close_frame_mask(scene, c2w_gt: np.ndarray, intrinsics, near_m: float,
     """Per camera (``c2w_gt`` ``[T, 4, 4]``, ground-truth frame, metres): whether more than half of its
     pixels show a true surface nearer (z-depth) than ``near_m``. Rendered (depth only) with ``intrinsics``
     scaled down to ``max_side`` pixels on the longer side."""
+    # deferred: open3d (the simulation's renderer) loads only for ground-truth scenes
     from navcrafter.models.simulation.render import render
 
     w, h = intrinsics.width, intrinsics.height

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from navcrafter.models.camera.cameras import unproject_depth
+
 _BITS = 21  # per axis: 2^21 voxels of 2 cm span 42 km
 _OFFSET = 1 << (_BITS - 1)
 
@@ -129,8 +131,6 @@ def views_to_cloud(images: np.ndarray, depth: np.ndarray, confidence: np.ndarray
                    max_depth: float = np.inf) -> Cloud:
     """Unproject views ``[S, H, W]`` (z-depth, world poses ``[S, 4, 4]``, intrinsics ``[S, 3, 3]``)
     to one cloud, keeping pixels with confidence >= ``min_confidence`` and depth < ``max_depth``."""
-    from navcrafter.models.camera.cameras import unproject_depth
-
     parts = []
     for i in range(len(depth)):
         mask = (confidence[i] >= min_confidence) & (depth[i] < max_depth)

@@ -37,6 +37,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from navcrafter.models.synthesis.pipeline import clip_preprocess
+
 TEXT_TOKENS = 512  # UMT5 sequence length of Wan2.1 (onnx_export.TEXT_TOKENS)
 
 
@@ -243,6 +245,7 @@ class WanEncoders:
     def __init__(self, components: Any, device: str = "cpu", text_encoder: Any = None, tokenizer: Any = None) -> None:
         import torch
 
+        # deferred: torch loads only when the Wan encoders are built
         from navcrafter.models.synthesis.onnx_export import ClipImageFeatures, VaeDecoder, VaeEncoder
 
         if (text_encoder is None) != (tokenizer is None):
@@ -288,8 +291,6 @@ class WanEncoders:
         return self._run(self._dec, z[None])[0]
 
     def image_features(self, image: np.ndarray) -> np.ndarray:
-        from navcrafter.models.synthesis.pipeline import clip_preprocess
-
         img = _check_image(image, "WanEncoders")
         return self._run(self._clip, clip_preprocess(img, self.components.image_preprocess))[0]
 
@@ -301,6 +302,7 @@ class WanEncoders:
                     f"(and negative prompt), not {prompt!r}: load the components with that prompt "
                     f"(onnx_export.load_components(base, prompt=...)), or pass text_encoder= and tokenizer= "
                     f"(UMT5 from the base folder) to encode any prompt")
+            # deferred: torch loads only when prompts are encoded
             from navcrafter.models.synthesis.onnx_export import encode_prompts
 
             self._text[prompt] = encode_prompts(self._text_encoder, self._tokenizer, [prompt])[0]

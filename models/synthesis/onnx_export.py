@@ -49,6 +49,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from navcrafter.models.runtime.onnxio import MANIFEST, export_graph, sha256_file, write_manifest
 from navcrafter.models.synthesis.config import WAN_FLOW_SHIFT
 
 ARCHITECTURE = "wan2.1-i2v-camera"
@@ -187,6 +188,7 @@ class SynthesisComponents:
     def _fun_camera_config(self, num_frames: int, height: int, width: int, dynamic: bool) -> dict[str, Any]:
         """The manifest ``config`` of a fun-camera synthesizer (``funcamera/``): no render condition, no LoRA, no
         extra reference frames; ``condition_layout`` tells the sampler to build ``[noisy | start-image latents]``."""
+        # deferred: diffusers loads with funcamera only for the fun-camera model
         from navcrafter.models.synthesis import funcamera
 
         fun = self.dit.config
@@ -234,6 +236,7 @@ def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFA
 
     ``control_dir``: camera-control weights trained on this tiny base (``navcrafter train-camera`` with
     ``random_base: tiny`` and the same ``seed``) replace the random control."""
+    # deferred: diffusers loads with camcontrol only when the camera-controlled DiT is built or read
     from navcrafter.models.synthesis.camcontrol import (
         TINY_I2V_CONFIG,
         build_camera_wan,
@@ -254,7 +257,7 @@ def tiny_components(seed: int = 0, prompt: str = "", negative_prompt: str = DEFA
         image_preprocess=_preprocess_params(TINY_CLIP_IMAGE_SIZE, TINY_CLIP_IMAGE_SIZE, CLIP_MEAN, CLIP_STD),
         weights={"source": "random", "seed": int(seed)}, prompt=prompt, negative_prompt=negative_prompt)
     if control_dir is not None:
-        from navcrafter.models.runtime.onnxio import sha256_file
+        # deferred: diffusers loads with camcontrol only when the camera-controlled DiT is built or read
         from navcrafter.models.synthesis.camcontrol import CONTROL_CONFIG, CONTROL_WEIGHTS
 
         control_dir = Path(control_dir)
@@ -284,6 +287,7 @@ def _tiny_encoders(seed: int, image_dim: int, text_dim: int):
 def tiny_fun_camera_components(seed: int = 0, prompt: str = "",
                                negative_prompt: str = DEFAULT_NEGATIVE_PROMPT) -> SynthesisComponents:
     """Tiny random fun-camera synthesizer (``funcamera.tiny_fun_camera``) with the tiny VAE, CLIP and text."""
+    # deferred: diffusers loads with funcamera only for the fun-camera model
     from navcrafter.models.synthesis.funcamera import tiny_fun_camera
 
     dit = tiny_fun_camera(seed)
@@ -301,8 +305,6 @@ def _preprocess_params(shortest_edge: int, crop: int, mean, std) -> dict[str, An
 
 
 def _hash_dir(directory: Path, root: Path) -> dict[str, str]:
-    from navcrafter.models.runtime.onnxio import sha256_file
-
     out = {}
     for f in sorted(Path(directory).rglob("*")):
         if f.is_file() and f.suffix in (".safetensors", ".json", ".model", ".txt"):
@@ -367,7 +369,7 @@ def load_components(base_dir: str | Path, control_dir: str | Path | None = None,
     ``base_dir`` holds ``transformer/``, ``vae/``, ``image_encoder/``, ``text_encoder/``, ``tokenizer/`` and
     optionally ``image_processor/`` (CLIPImageProcessor config). Only safetensors weights are read.
     """
-    from navcrafter.models.runtime.onnxio import sha256_file
+    # deferred: diffusers loads with camcontrol only when the camera-controlled DiT is built or read
     from navcrafter.models.synthesis.camcontrol import CONTROL_CONFIG, CONTROL_WEIGHTS, CameraControlledWan
 
     base_dir = Path(base_dir)
@@ -398,7 +400,7 @@ def load_fun_camera_components(checkpoint_dir: str | Path, base_dir: str | Path,
     (``funcamera.load_fun_camera``: ``config.json`` + ``diffusion_pytorch_model*.safetensors``), the VAE, CLIP image
     encoder and UMT5 from a diffusers-format Wan2.1 I2V directory ``base_dir`` (the Fun folder ships the same
     Wan2.1 VAE, open-clip ViT-H/14 and umt5-xxl as ``.pth`` pickles in Wan's original format, which are not read)."""
-    from navcrafter.models.runtime.onnxio import sha256_file
+    # deferred: diffusers loads with funcamera only for the fun-camera model
     from navcrafter.models.synthesis.funcamera import _transformer_dir, load_fun_camera
 
     checkpoint_dir, base_dir = Path(checkpoint_dir), Path(base_dir)
@@ -465,13 +467,14 @@ def _export_one(name: str, module: nn.Module, out: Path, sh: _Shapes):
     """Export one graph."""
     from torch.export import Dim
 
-    from navcrafter.models.runtime.onnxio import export_graph
+    # deferred: diffusers loads with camcontrol only when the camera-controlled DiT is built or read
     from navcrafter.models.synthesis.camcontrol import DIT_INPUTS, DIT_OUTPUTS, example_inputs, export_dit
 
     dyn = sh.dynamic
     batch = Dim("batch", min=1, max=64)
     hh, ww = Dim("latent_height", min=1, max=1024), Dim("latent_width", min=1, max=1024)
     if name == "dit" and getattr(module, "model_name", "navcrafter") == "fun-camera":
+        # deferred: diffusers loads with funcamera only for the fun-camera model
         from navcrafter.models.synthesis.funcamera import export_fun_camera_dit
 
         p_h, p_w = module.config.patch_size[1:]
@@ -524,8 +527,6 @@ def export_components(components: SynthesisComponents, out_dir: str | Path, *, n
     width`` (DiT batch 2 = one CFG pair, VAE encoder batch 2, decoder and CLIP batch 1); several times faster to
     export (tests), but the model then only runs at that size.
     """
-    from navcrafter.models.runtime.onnxio import MANIFEST, write_manifest
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)  # a directory with a manifest is a finished export (written last)
@@ -542,6 +543,7 @@ def export_components(components: SynthesisComponents, out_dir: str | Path, *, n
     config = components.config(num_frames, height, width, dynamic)
     architecture = ARCHITECTURE
     if getattr(components.dit, "model_name", "navcrafter") == "fun-camera":
+        # deferred: diffusers loads with funcamera only for the fun-camera model
         from navcrafter.models.synthesis.funcamera import ARCHITECTURE as architecture
     write_manifest(out, kind=KIND, architecture=architecture, config=config, weights=components.weights,
                    graphs=graphs, extra_files=[TEXT_EMBEDDINGS])

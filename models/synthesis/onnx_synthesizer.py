@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from navcrafter.models.camera.cameras import PLUCKER_CONVENTIONS, clip_relative_rays, plucker_rays
 from navcrafter.models.roles import SynthesisRequest
 from navcrafter.models.synthesis.pipeline import (
     OrtRunner,
@@ -106,6 +107,7 @@ class OnnxSynthesizer:
     def _model(self, mcfg: dict, wanted: str) -> str:
         """The model the directory holds (manifest ``config.model``; absent: NavCrafter's), which must be the run's
         ``synthesis.model``."""
+        # deferred: diffusers loads with funcamera only when a synthesizer is opened, not on import
         from navcrafter.models.synthesis import funcamera
 
         have = mcfg.get("model", "navcrafter")
@@ -125,7 +127,7 @@ class OnnxSynthesizer:
 
     def _convention(self, mcfg: dict, wanted: str | None) -> str:
         """The weights' recorded Plücker convention (manifest), checked against the run's when it sets one."""
-        from navcrafter.models.camera.cameras import PLUCKER_CONVENTIONS
+        # deferred: diffusers loads with funcamera only when a synthesizer is opened, not on import
         from navcrafter.models.synthesis import funcamera
 
         have = mcfg.get("plucker_convention")
@@ -201,13 +203,14 @@ class OnnxSynthesizer:
         trajectory's first camera is the origin and its scale normalises the reference translation too); None
         when the request has no reference (the sampler then uses the conditioning image at ``trajectory[0]``).
         """
-        from navcrafter.models.camera.cameras import clip_relative_rays, plucker_rays
+        # deferred: torch loads only when conditions are rendered (importing this module stays torch-free)
         from navcrafter.models.reconstruction.pointrender import render_points
 
         T, H, W = self._check(request)
         K = request.intrinsics.K
         traj = np.asarray(request.trajectory, dtype=np.float64)
         if self.model_name == "fun-camera":  # rays only: no render condition, no reference frame (funcamera/)
+            # deferred: diffusers loads with funcamera only for the fun-camera model
             from navcrafter.models.synthesis.funcamera import fun_camera_plucker
 
             return (fun_camera_plucker(traj, K, H, W), np.zeros((T, H, W, 3), dtype=np.uint8),

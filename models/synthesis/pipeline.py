@@ -51,6 +51,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from navcrafter.models.runtime.onnxio import GraphRunner, load_manifest
 from navcrafter.models.synthesis.config import WAN_FLOW_SHIFT, SynthesisConfig
 
 
@@ -119,6 +120,7 @@ class TorchRunner:
                  width: int | None = None, device: str = "cpu") -> None:
         import torch
 
+        # deferred: torch (onnx_export) loads only for the torch runner
         from navcrafter.models.synthesis.onnx_export import ClipImageFeatures, VaeDecoder, VaeEncoder
 
         self.torch = torch
@@ -166,7 +168,7 @@ class OrtRunner:
 
     def __init__(self, model_dir: str | Path, providers: list[str] | None = None, verify: bool = True,
                  offload: bool = False) -> None:
-        from navcrafter.models.runtime.onnxio import GraphRunner, load_manifest
+        # deferred: onnx_export imports torch; the onnxruntime runner needs only its KIND
         from navcrafter.models.synthesis.onnx_export import KIND
 
         self.model_dir = Path(model_dir)
@@ -376,6 +378,7 @@ def prepare_conditions(runner: Runner, image: np.ndarray, plucker: np.ndarray, r
     """
     import torch
 
+    # deferred: diffusers loads with camcontrol only when conditions are prepared, not on import
     from navcrafter.models.synthesis.camcontrol import pack_visibility_mask
 
     T, H, W = check_inputs(runner, image, plucker, renders, masks, reference_image, reference_plucker)

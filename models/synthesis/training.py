@@ -48,15 +48,29 @@ from typing import Any
 import numpy as np
 import torch
 
+from navcrafter.models.camera.cameras import clip_relative_rays, plucker_rays
 from navcrafter.models.synthesis.camcontrol import (
     TRAINING_LORA_SCALE,
+    CameraControlConfig,
     CameraControlledWan,
     load_camera_control,
     make_render_condition,
     plucker_to_tensor,
     save_camera_control,
 )
-from navcrafter.models.synthesis.pipeline import i2v_mask
+from navcrafter.models.synthesis.distributed import (
+    ParameterUse,
+    apply_control_config,
+    full_module_state,
+    full_optimizer_state,
+    load_full_module_state,
+    load_full_optimizer_state,
+    rank0_only,
+    read_control_state,
+    save_control_state,
+    shard_model,
+)
+from navcrafter.models.synthesis.pipeline import SamplerConfig, i2v_mask, initial_noise, make_scheduler
 from navcrafter.models.synthesis.training_config import CHECKPOINT_DIR, CameraTrainingConfig
 
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -106,8 +120,6 @@ def clip_conditions(model: CameraControlledWan, clip: dict[str, Any], device: to
     (CLIP features), ``plucker`` (rays in the control's recorded convention), ``cond`` (render condition or
     None), ``image_reference`` / ``image_reference_plucker`` (the extra reference frame or None).
     """
-    from navcrafter.models.camera.cameras import plucker_rays
-
     cfg = model.config
     name = clip.get("attrs", {}).get("clip_id", "?")
     x0 = np.asarray(clip["latents"], dtype=np.float32)
@@ -141,8 +153,6 @@ def clip_conditions(model: CameraControlledWan, clip: dict[str, Any], device: to
                                             torch.as_tensor(np.asarray(clip["visibility"], np.float32))[None],
                                             cfg.vae_stride)
     if "reference_latents" in clip:
-        from navcrafter.models.camera.cameras import clip_relative_rays
-
         out["image_reference"] = torch.as_tensor(np.asarray(clip["reference_latents"], np.float32))[None]
         ref_rays = clip_relative_rays(c2w, np.asarray(clip["reference_c2w"], np.float64)[None], K[0], H, W,
                                       convention=cfg.plucker_convention)
@@ -270,8 +280,6 @@ class CameraTrainer:
         model.train()
         self.sharded = config.parallel == "fsdp" and self.world_size > 1
         if self.sharded:
-            from navcrafter.models.synthesis.distributed import shard_model
-
             shard_model(model, device=self.device)
             # fully_shard replaced every parameter by a sharded DTensor: optimise those
             params = trainable_parameter_list(model, config)
@@ -320,8 +328,6 @@ class CameraTrainer:
         total = 0.0
         use = None
         if self.sharded:
-            from navcrafter.models.synthesis.distributed import ParameterUse
-
             use = ParameterUse(len(self.params), self.device)
         for j, index in enumerate(indices):
             c = clip_conditions(self.model, self.clips[self.clip_of(index)], self.device)
@@ -367,12 +373,6 @@ class CameraTrainer:
         final = root / name
         train_base = self.config.trainable in ("base", "all")
         if self.sharded:
-            from navcrafter.models.synthesis.distributed import (
-                full_module_state,
-                full_optimizer_state,
-                save_control_state,
-            )
-
             full_control = full_module_state(self.model.control)
             full_base = full_module_state(self.model.base) if train_base else {}
             opt_state = full_optimizer_state(self.opt)
@@ -429,15 +429,6 @@ class CameraTrainer:
     def _load_sharded(self, path: Path) -> dict[str, Any]:
         from safetensors.torch import load_file
 
-        from navcrafter.models.synthesis.camcontrol import CameraControlConfig
-        from navcrafter.models.synthesis.distributed import (
-            apply_control_config,
-            load_full_module_state,
-            load_full_optimizer_state,
-            rank0_only,
-            read_control_state,
-        )
-
         full: dict[str, Any] = {}  # rank 0's full tensors
 
         def read() -> tuple[dict[str, Any], bool, dict[str, Any]]:
@@ -460,8 +451,6 @@ class CameraTrainer:
     def resume(self, run_dir: str | os.PathLike) -> bool:
         """Load the newest complete checkpoint of ``run_dir``; False when there is none."""
         if self.sharded:  # rank 0 reads the files (the other ranks need not see them)
-            from navcrafter.models.synthesis.distributed import rank0_only
-
             latest = rank0_only(lambda: latest_checkpoint(run_dir))
         else:
             latest = latest_checkpoint(run_dir)
@@ -576,8 +565,6 @@ def sample_clip(model: CameraControlledWan, c: dict[str, torch.Tensor | None], *
     """Denoised latents ``[1, C, F, h, w]`` for the stored conditions ``c`` (``clip_conditions``), with the
     product's scheduler (``pipeline.make_scheduler``: DPM-solver on flow sigmas) and noise
     (``pipeline.initial_noise``). CFG over the text (``null_text``; with ``guidance_scale == 1`` one branch)."""
-    from navcrafter.models.synthesis.pipeline import SamplerConfig, initial_noise, make_scheduler
-
     was = model.training
     model.eval()
     x0 = c["x0"]

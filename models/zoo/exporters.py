@@ -11,6 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
+from navcrafter.models.geometry import moge
+from navcrafter.models.refiner import difix
+from navcrafter.models.synthesis import onnx_export
 from navcrafter.models.zoo.modeldir import role_dir
 
 RandomPreset = Literal["tiny", "full"]
@@ -25,6 +28,7 @@ def _need_source(role: str, random: str | None, source) -> None:
 
 def export_geometry(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None,
                     seed: int = 0) -> Path:
+    # deferred: VGGT's modules load transformers and scipy only when a geometry model is exported
     from navcrafter.models.geometry.vggt import VGGTConfig
     from navcrafter.models.geometry.vggt import export_geometry as _export
 
@@ -35,12 +39,9 @@ def export_geometry(out: Path, *, checkpoint: Path | None = None, random: Random
 
 def export_monodepth(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None,
                      seed: int = 0) -> Path:
-    from navcrafter.models.geometry.moge import MoGe2Config
-    from navcrafter.models.geometry.moge import export_monodepth as _export
-
     _need_source("monodepth", random, checkpoint)
-    config = MoGe2Config.tiny() if random == "tiny" else MoGe2Config.vitl_normal()
-    return _export(Path(out), config, weights=checkpoint, seed=seed)
+    config = moge.MoGe2Config.tiny() if random == "tiny" else moge.MoGe2Config.vitl_normal()
+    return moge.export_monodepth(Path(out), config, weights=checkpoint, seed=seed)
 
 
 def export_refiner(out: Path, *, checkpoint: Path | None = None, random: RandomPreset | None = None, seed: int = 0,
@@ -49,27 +50,23 @@ def export_refiner(out: Path, *, checkpoint: Path | None = None, random: RandomP
     (or ``nvidia/difix`` with ``reference=False``), or an official training checkpoint ``model_*.pkl`` with
     ``base`` = the ``stabilityai/sd-turbo`` directory; the prompt embedding comes from the text encoder found
     there unless ``prompt_embeds`` (.npy) is given."""
-    from navcrafter.models.refiner.difix import DifixConfig
-    from navcrafter.models.refiner.difix import export_refiner as _export
-
     _need_source("refiner", random, checkpoint)
     if random is not None and (base is not None or prompt_embeds is not None):
         raise ValueError("export-refiner: --base and --prompt-embeds go with --checkpoint, not --random")
-    config = DifixConfig.tiny(reference) if random == "tiny" else DifixConfig.sd_turbo(reference)
-    return _export(Path(out), config, weights=checkpoint, seed=seed, base=base, prompt_embeds=prompt_embeds)
+    config = difix.DifixConfig.tiny(reference) if random == "tiny" else difix.DifixConfig.sd_turbo(reference)
+    return difix.export_refiner(Path(out), config, weights=checkpoint, seed=seed, base=base,
+                                prompt_embeds=prompt_embeds)
 
 
 def export_synthesizer(out: Path, *, num_frames: int, height: int, width: int, base_dir: Path | None = None,
                        control_dir: Path | None = None, random: RandomPreset | None = None, prompt: str = "",
                        seed: int = 0) -> Path:
-    from navcrafter.models.synthesis.onnx_export import export_synthesizer as _export
-
     _need_source("synthesizer", random, base_dir)
     if random == "full":
         raise NotImplementedError("export-synthesizer --random full is not provided: a random 1.3B-width DiT "
                                   "is timed by benchmarks/synthesis.py --config wan-1.3b instead")
-    return _export(Path(out), base_dir=base_dir, control_dir=control_dir, tiny=random == "tiny",
-                   num_frames=num_frames, height=height, width=width, prompt=prompt, seed=seed)
+    return onnx_export.export_synthesizer(Path(out), base_dir=base_dir, control_dir=control_dir, tiny=random == "tiny",
+                                          num_frames=num_frames, height=height, width=width, prompt=prompt, seed=seed)
 
 
 def export_fun_camera(out_dir: Path, *, checkpoint_dir: Path | None = None, random: RandomPreset | None = None,
@@ -83,8 +80,6 @@ def export_fun_camera(out_dir: Path, *, checkpoint_dir: Path | None = None, rand
     encoder and UMT5 (the Fun folder's ``.pth`` encoders are not read). ``random="tiny"``: tiny random weights
     (tests); ``"full"`` is not built. ``num_frames`` / ``height`` / ``width`` as for ``export_synthesizer``.
     """
-    from navcrafter.models.synthesis.onnx_export import export_fun_camera_synthesizer
-
     if (random is None) == (checkpoint_dir is None):
         raise ValueError("export_fun_camera: give either checkpoint_dir (the official Wan2.1-Fun-V1.1-*-Control-Camera "
                          "folder) or random='tiny' (random weights, for tests)")
@@ -93,9 +88,9 @@ def export_fun_camera(out_dir: Path, *, checkpoint_dir: Path | None = None, rand
                                   "only times the DiT; use funcamera.build_fun_camera(FunCameraConfig.wan_1_3b())")
     if random is not None and base_dir is not None:
         raise ValueError("export_fun_camera: base_dir goes with checkpoint_dir, not random")
-    return export_fun_camera_synthesizer(Path(out_dir), checkpoint_dir=checkpoint_dir, base_dir=base_dir,
-                                         tiny=random == "tiny", num_frames=num_frames, height=height, width=width,
-                                         prompt=prompt, seed=seed)
+    return onnx_export.export_fun_camera_synthesizer(Path(out_dir), checkpoint_dir=checkpoint_dir, base_dir=base_dir,
+                                                     tiny=random == "tiny", num_frames=num_frames, height=height,
+                                                     width=width, prompt=prompt, seed=seed)
 
 
 def export_all(model_dir: Path, *, num_frames: int, height: int, width: int, random: RandomPreset = "tiny",

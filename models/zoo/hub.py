@@ -58,6 +58,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from navcrafter.models.runtime import onnxio
+from navcrafter.models.runtime.onnxio import sha256_file
+
 MANIFEST_NAME = "navcrafter-manifest.json"
 URL_CACHE = "navcrafter-urls"
 EVAL_DIR = "eval"
@@ -216,8 +219,6 @@ def record_snapshot(cache_dir: Path, repo_id: str, commit: str, files: dict[str,
 
 
 def _sha256(path: Path) -> str:
-    from navcrafter.models.runtime.onnxio import sha256_file
-
     return sha256_file(path)
 
 
@@ -225,8 +226,6 @@ class _Hasher:
     """sha256 of files, remembered across processes as ``load_manifest`` does (path, size, mtime)."""
 
     def __init__(self) -> None:
-        from navcrafter.models.runtime import onnxio
-
         self._onnxio = onnxio
         self.cache = onnxio._read_checksum_cache()
         self.fresh: dict = {}
@@ -403,6 +402,7 @@ def _http_download(uf: UrlFile, path: Path) -> None:
 # --------------------------------------------------------------------------------------------------
 def _export_monodepth(out: Path, snap: Path) -> Path:
     """MoGe-2 exported at the config its checkpoint declares (``model_config``), else ViT-L (normal)."""
+    # deferred: torch loads with MoGe only when its checkpoint is read and exported
     from navcrafter.models.geometry.moge import MoGe2Config, _read_checkpoint
     from navcrafter.models.geometry.moge import export_monodepth as _export
 
@@ -418,10 +418,12 @@ def _export_fun_camera(out: Path, snap: Path, base: Path, sizes: dict[str, int])
     ``onnx_export.export_fun_camera_synthesizer(out, checkpoint_dir=, base_dir=, num_frames=, height=, width=)``."""
     import inspect
 
+    # deferred: torch loads with the exporters only when a downloaded checkpoint is exported
     from navcrafter.models.zoo import exporters
 
     fn = getattr(exporters, "export_fun_camera", None)
     if fn is None:
+        # deferred: torch loads with the exporters only when a downloaded checkpoint is exported
         from navcrafter.models.synthesis.onnx_export import export_fun_camera_synthesizer as fn
     params = inspect.signature(fn).parameters
     values = {"checkpoint_dir": snap, "checkpoint": snap, "base_dir": base, "base": base, **sizes}
@@ -433,6 +435,7 @@ def _export_fun_camera(out: Path, snap: Path, base: Path, sizes: dict[str, int])
 
 
 def _export(src: Source, snap: Path, model_dir: Path, sizes: dict[str, int], needed: dict[str, Path]) -> Path:
+    # deferred: torch loads with the exporters and modeldir only when a downloaded checkpoint is exported
     from navcrafter.models.zoo import exporters
     from navcrafter.models.zoo.modeldir import role_dir
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from navcrafter.models.metrics import pose
 from navcrafter.models.simulation.datasets import MANIFEST
 from navcrafter.schemas.clips import CAMERAS, CONDITION, GENERATION, REFERENCE, clip_key
 from navcrafter.schemas.config import EvaluationConfig
@@ -108,12 +109,10 @@ def score_clip(clips: Path, generated: Path, key: str, config: EvaluationConfig)
         return [row("I", "PSNR", status="failed", note=str(exc), scene_id=key)]
     rows = image_quality_rows(fake, clip["reference"], config, scene_id=key)
     if config.camera_guidance:
-        from navcrafter.models.metrics.pose import camera_guidance_precision
-
         frames = np.concatenate([clip["condition"][None], fake])
         with tempfile.TemporaryDirectory(prefix="navcrafter-colmap-") as work:
-            res = camera_guidance_precision(frames, clip["c2w"], clip["K"][0], work, scale="farthest",
-                                            num_threads=2)
+            res = pose.camera_guidance_precision(frames, clip["c2w"], clip["K"][0], work, scale="farthest",
+                                                 num_threads=2)
         note = f"COLMAP (known K) on the conditioning image (frame 0) and the {len(fake)} frames after it"
         rows += pose_error_rows([("", res, np.arange(len(frames)))], note, scene_id=key)
     return rows

@@ -62,6 +62,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from navcrafter.models.camera.cameras import unproject_depth
+from navcrafter.models.synthesis.onnx_synthesizer import default_point_size
+from navcrafter.models.synthesis.pipeline import _to_video
+from navcrafter.schemas.datasets import DatasetError, open_dataset
 from navcrafter.schemas.training import (
     CLIP_ARRAYS,
     CLIP_REQUIRED,
@@ -125,8 +129,6 @@ def clip_id(source_index: int, kind: str, sequence: str, start: int) -> str:
 
 def _open_reader(kind: str, root: str, dataset_split: str | None, *, num_frames: int, stride: int,
                  resolution: int, seed: int, clips: int | None = None):
-    from navcrafter.schemas.datasets import open_dataset
-
     options: dict[str, Any] = {"num_frames": num_frames, "stride": stride, "resolution": resolution, "seed": seed,
                                "clips_per_dataset": clips}
     if kind == "re10k":
@@ -144,8 +146,6 @@ def _source_reader(src: DataSource, config: CameraTrainingConfig):
 
 def plan_clips(config: CameraTrainingConfig) -> list[ClipRef]:
     """The clips of a run, in the readers' draw order (source by source), with their split assigned."""
-    from navcrafter.schemas.datasets import DatasetError
-
     d = config.data
     if not d.sources:
         raise ValueError("data.sources is empty: add at least one dataset (kind 're10k' or 'dl3dv', root folder)")
@@ -261,6 +261,7 @@ def _write_array(group, name: str, data: np.ndarray, dtype: str) -> None:
 def _depth_for(image_path: Path, clip: str) -> np.ndarray:
     from PIL import Image
 
+    # deferred: open3d (models.simulation) loads only for a simulated source's depth maps
     from navcrafter.models.simulation.datasets import depth_path
 
     path = depth_path(image_path)
@@ -307,9 +308,8 @@ def render_condition(image: np.ndarray, depth: np.ndarray, c2w: np.ndarray, K: n
     """Frame 0's coloured points (``depth [H, W]`` lifted with ``K[0]``, camera frame of ``c2w[0]``) rendered
     along ``c2w [T, 4, 4]`` / ``K [T, 3, 3]``: renders uint8 ``[T, H, W, 3]``, visibility uint8 ``[T, H, W]``
     and the point size used."""
-    from navcrafter.models.camera.cameras import unproject_depth
+    # deferred: torch loads only when a clip's point-cloud condition is rendered
     from navcrafter.models.reconstruction.pointrender import render_points
-    from navcrafter.models.synthesis.onnx_synthesizer import default_point_size
 
     T = len(c2w)
     H, W = depth.shape
@@ -328,8 +328,6 @@ def render_condition(image: np.ndarray, depth: np.ndarray, c2w: np.ndarray, K: n
 
 def _clip_arrays(ref: ClipRef, encoders: ClipEncoders, config: CameraTrainingConfig
                  ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    from navcrafter.models.synthesis.pipeline import _to_video
-
     d = config.data
     reader = _open_reader(ref.kind, ref.root, ref.dataset_split, num_frames=ref.num_frames - 1, stride=ref.stride,
                           resolution=ref.resolution, seed=config.seed)

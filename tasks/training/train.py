@@ -22,7 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from navcrafter.models.synthesis.encoders import WanEncoders
+from navcrafter.models.synthesis.pipeline import video_to_frames
 from navcrafter.schemas.training import CLIP_STORE, FINAL_CONTROL_DIR, CameraTrainingConfig
+from navcrafter.tasks.training.clips import ClipDataset
 
 CONFIG_FILE = "config.json"
 VALIDATION_FILE = "validation.json"
@@ -60,6 +63,7 @@ def load_run_config(run_dir: str | os.PathLike) -> CameraTrainingConfig:
 
 def control_config(config: CameraTrainingConfig):
     """The ``CameraControlConfig`` of the run: the preset of the base's width, then ``config.control``."""
+    # deferred: torch and diffusers (models.synthesis.camcontrol) load only when the control is configured
     from navcrafter.models.synthesis.camcontrol import CameraControlConfig, tiny_camera_config
 
     start = tiny_camera_config() if config.random_base == "tiny" else CameraControlConfig()
@@ -73,6 +77,7 @@ def control_config(config: CameraTrainingConfig):
 def build_model(config: CameraTrainingConfig, device: str = "cpu"):
     """The camera-controlled DiT to train: the pretrained base (``config.base``) or the tiny random one, with a
     fresh zero-initialised control of ``control_config(config)``."""
+    # deferred: torch and diffusers (the camera-controlled Wan) load only when a model is built
     from navcrafter.models.synthesis.camcontrol import TINY_I2V_CONFIG, CameraControlledWan, build_camera_wan
 
     ccfg = control_config(config)
@@ -89,7 +94,7 @@ def build_model(config: CameraTrainingConfig, device: str = "cpu"):
 def build_encoders(config: CameraTrainingConfig):
     """The encoders of the clip store: the base's Wan VAE, CLIP and text encoder (tiny random ones for the tiny
     base)."""
-    from navcrafter.models.synthesis.encoders import WanEncoders
+    # deferred: torch loads only when the encoders are built
     from navcrafter.models.synthesis.onnx_export import load_components, tiny_components
 
     if config.random_base == "tiny":
@@ -100,8 +105,6 @@ def build_encoders(config: CameraTrainingConfig):
 
 
 def open_clips(run_dir: str | os.PathLike, split: str):
-    from navcrafter.tasks.training.clips import ClipDataset
-
     return ClipDataset(Path(run_dir) / CLIP_STORE, split=split)
 
 
@@ -124,6 +127,7 @@ def train(run_dir: str | os.PathLike, *, rank: int = 0, world_size: int = 1, dev
     Every ``validate_every`` steps rank 0 measures the camera-conditioning gap on the validation clips (when
     there are at least 2), appends it to the run's validation history (saved with the checkpoints) and calls
     ``on_validate(history)``."""
+    # deferred: torch and diffusers load only when training runs
     from navcrafter.models.synthesis.training import CameraTrainer, camera_gap, trainable_parameters
 
     config = load_run_config(run_dir)
@@ -167,6 +171,7 @@ def launch(run_dir: str | os.PathLike, nproc: int, *, timeout: float | None = No
 def validate(run_dir: str | os.PathLike) -> dict[str, Any]:
     """The camera-conditioning gap of the newest checkpoint on the validation clips (train clips when there
     are fewer than 2), written to ``RUN/validation.json``."""
+    # deferred: torch and diffusers load only when validating
     from navcrafter.models.synthesis.training import camera_gap
 
     config, ckpt, model = checkpoint_model(run_dir, "validate")
@@ -186,7 +191,7 @@ def sample_frames_png(run_dir: str | os.PathLike, index: int = 0, frames: int = 
     strength ``synthesis.lora_scale``, no CFG)."""
     from PIL import Image
 
-    from navcrafter.models.synthesis.pipeline import video_to_frames
+    # deferred: torch and diffusers load only when sampling; schemas.config loads torch
     from navcrafter.models.synthesis.training import clip_conditions, sample_clip
     from navcrafter.schemas.config import SynthesisConfig
 
@@ -212,6 +217,7 @@ def sample_frames_png(run_dir: str | os.PathLike, index: int = 0, frames: int = 
 def checkpoint_model(run_dir: str | os.PathLike, what: str, *, with_base: bool = True):
     """``(config, checkpoint folder, model)`` of the run's newest checkpoint: the control weights loaded, and the
     base too when the run trained it and ``with_base``; ``what`` names the caller's action in the error."""
+    # deferred: torch and diffusers load only when a checkpoint is read
     from navcrafter.models.synthesis.camcontrol import load_camera_control
     from navcrafter.models.synthesis.training import latest_checkpoint
 
@@ -231,6 +237,7 @@ def checkpoint_model(run_dir: str | os.PathLike, what: str, *, with_base: bool =
 def export_control(run_dir: str | os.PathLike) -> Path:
     """``RUN/control``: the newest checkpoint's control weights, their config's ``extra`` recording the
     training data and steps (what ``export-synthesizer --control`` copies into the manifest)."""
+    # deferred: torch and diffusers load only when the control is exported
     from navcrafter.models.synthesis.camcontrol import save_camera_control
     from navcrafter.models.synthesis.training import STATE_FILE
 

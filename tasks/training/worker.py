@@ -10,12 +10,12 @@ from __future__ import annotations
 import os
 import sys
 
+from navcrafter.tasks.training.train import train
+
 
 def main(argv: list[str]) -> int:
     import torch
     import torch.distributed as dist
-
-    from navcrafter.tasks.training.train import train
 
     if len(argv) != 1:
         print("usage: torchrun --nproc_per_node N -m navcrafter.tasks.training.worker RUN_DIR", file=sys.stderr)

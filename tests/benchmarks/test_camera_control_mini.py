@@ -3,23 +3,15 @@ and Table III's per-frame errors) on true renders of one small scene: each can f
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def mini():
-    spec = importlib.util.spec_from_file_location("camera_control_mini", ROOT / "benchmarks" / "camera_control_mini.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["camera_control_mini"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    from benchmarks import camera_control_mini
+
+    return camera_control_mini
 
 
 @pytest.fixture(scope="module")

@@ -36,12 +36,9 @@ NOT_ON_IMAGE = ("diffusers", "pydantic", "pydantic_core", "gsplat", "zarr", "pre
 
 
 def _gpu_check():
-    import importlib.util
+    from benchmarks import gpu_check
 
-    spec = importlib.util.spec_from_file_location("gpu_check_image", ROOT / "benchmarks" / "gpu_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return gpu_check
 
 
 @pytest.fixture(scope="module")

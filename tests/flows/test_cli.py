@@ -1,6 +1,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 from typer.testing import CliRunner
@@ -15,6 +17,25 @@ def test_help(cmd):
     res = runner.invoke(app, [*cmd, "--help"])
     assert res.exit_code == 0, res.output
     assert "Usage" in res.output
+
+
+HEAVY = ("torch", "open3d", "onnxruntime", "prefect", "viser", "pycolmap", "diffusers", "scipy", "zarr")
+
+
+@pytest.mark.subprocess
+def test_help_loads_no_heavy_dependency():
+    """`navcrafter --help` and a command's --help start light: the commands' imports are deferred (`# deferred: CLI
+    start-up` in flows/cli/). A fresh interpreter, since this session has long imported torch."""
+    code = ("import json, sys\nfrom navcrafter.flows.cli import main\n"
+            "for argv in (['--help'], ['explore', '--help'], ['render', '--help'], ['models', '--help']):\n"
+            "    sys.argv = ['navcrafter', *argv]\n"
+            "    try:\n        main()\n    except SystemExit:\n        pass\n"
+            "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    loaded = set(json.loads(p.stdout.strip().splitlines()[-1]))
+    assert "typer" in loaded  # the check sees what was imported
+    assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
 
 
 def test_usage_errors_are_clear(tmp_path):

@@ -10,6 +10,7 @@ import torch
 from navcrafter.models.geometry.moge.model import MoGe2
 from navcrafter.models.geometry.moge.processing import num_tokens_for_level
 from navcrafter.models.geometry.moge.weights import load_moge2_weights
+from navcrafter.models.runtime import onnxio
 
 if TYPE_CHECKING:
     from navcrafter.models.geometry.moge.config import MoGe2Config
@@ -22,8 +23,6 @@ def export_monodepth(out_dir: Path, config: MoGe2Config, weights: Path | None = 
     ``metric_scale`` as ``MoGe2``; ``head_maps_to_size`` + ``postprocess`` finish them)
     plus the manifest (kind ``monodepth``, architecture ``moge-2``). Random weights from ``seed`` unless a
     checkpoint is given. Returns ``out_dir``."""
-    from navcrafter.models.runtime import onnxio
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)

@@ -11,6 +11,7 @@ from torch import nn
 from navcrafter.models.geometry.vggt.config import OUTPUT_NAMES
 from navcrafter.models.geometry.vggt.model import VGGT
 from navcrafter.models.geometry.vggt.weights import load_vggt_weights
+from navcrafter.models.runtime import onnxio
 
 if TYPE_CHECKING:
     from navcrafter.models.geometry.vggt.config import VGGTConfig
@@ -36,8 +37,6 @@ def export_geometry(out_dir: Path, config: VGGTConfig, weights: Path | None = No
     ``weights`` names an official checkpoint.
     """
     from torch.export import Dim
-
-    from navcrafter.models.runtime import onnxio
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -22,6 +22,7 @@ from navcrafter.models.refiner.difix.config import (
 from navcrafter.models.refiner.difix.model import DifixRefinerModel, randomize_adapters
 from navcrafter.models.refiner.difix.prompt import encode_prompt, random_prompt_embeds
 from navcrafter.models.refiner.difix.weights import load_difix_weights
+from navcrafter.models.runtime import onnxio
 
 if TYPE_CHECKING:
     from navcrafter.models.refiner.difix.config import DifixConfig
@@ -60,8 +61,6 @@ def export_refiner(out_dir: Path, config: DifixConfig, weights: Path | None = No
     embedding: ``prompt_embeds`` (array or ``.npy``) if given, else ``prompt`` encoded with the text encoder of
     the checkpoint directory or of ``base``; random weights get a seeded random embedding."""
     from torch.export import Dim
-
-    from navcrafter.models.runtime import onnxio
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,7 @@ import torch
 from navcrafter.models import checkpoints
 from navcrafter.models.refiner.difix.config import OFFICIAL_KEYS_SD_TURBO, UNET_FILE, VAE_FILE, DifixWeightsError
 from navcrafter.models.refiner.difix.modules import lora_target_modules
+from navcrafter.models.runtime.onnxio import sha256_file
 
 if TYPE_CHECKING:
     from navcrafter.models.refiner.difix.model import DifixRefinerModel
@@ -69,8 +70,6 @@ def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
 def _read_checkpoint(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], dict[str, Any]]:
     """(unet, vae, info) from a diffusers directory or a training ``.pkl``; info has "files" (name -> sha256)
     and, for ``.pkl``, "rank_vae" and "vae_lora_target_modules"."""
-    from navcrafter.models.runtime.onnxio import sha256_file
-
     if path.is_dir():
         unet_file, vae_file = path / UNET_FILE, path / VAE_FILE
         if not unet_file.is_file() or not vae_file.is_file():
@@ -97,8 +96,6 @@ def _read_checkpoint(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, tor
 def _base_weights(base: Path, model: DifixRefinerModel) -> tuple[dict, dict, dict[str, str]]:
     """SD-Turbo's UNet and VAE (plain diffusers names) with the VAE renamed to the LoRA layout
     (``X.weight`` -> ``X.base_layer.weight`` for adapted modules)."""
-    from navcrafter.models.runtime.onnxio import sha256_file
-
     base = Path(base)
     unet_file, vae_file = base / UNET_FILE, base / VAE_FILE
     if not unet_file.is_file() or not vae_file.is_file():

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 import torch.nn as nn
 
+from navcrafter.models.runtime.onnxio import export_graph
 from navcrafter.models.synthesis.camcontrol.config import DIT_INPUTS, DIT_OUTPUTS, TEXT_TOKENS
 
 if TYPE_CHECKING:
@@ -73,8 +74,6 @@ def export_dit(model: CameraControlledWan, out_path: str | os.PathLike, example_
     Reference frames are ``config.inference_reference_frames`` (constant in the graph).
     """
     from torch.export import Dim
-
-    from navcrafter.models.runtime.onnxio import export_graph
 
     b, f, h, w = (int(v) for v in example_shape)
     p_t, p_h, p_w = model.base.config.patch_size

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn as nn
 
+from navcrafter.models.runtime.onnxio import export_graph
 from navcrafter.models.synthesis.funcamera.config import (
     FUN_DIT_INPUTS,
     FUN_DIT_OUTPUTS,
@@ -56,8 +57,6 @@ def export_fun_camera_dit(model: FunCameraWan, out_path: str | os.PathLike, exam
     ``dynamic``: batch, latent frames, height, width and image tokens dynamic (text fixed at 512), else exactly
     ``example_shape``."""
     from torch.export import Dim
-
-    from navcrafter.models.runtime.onnxio import export_graph
 
     b, f, h, w = (int(v) for v in example_shape)
     p_t, p_h, p_w = model.config.patch_size

@@ -14,6 +14,7 @@ import torch
 from diffusers.models.transformers.transformer_wan import WanTransformer3DModel
 
 from navcrafter.models import checkpoints
+from navcrafter.models.synthesis.camcontrol import CameraControlledWan
 from navcrafter.models.synthesis.funcamera.config import (
     KEY_LIST_1_3B,
     LATENT_CHANNELS,
@@ -212,8 +213,6 @@ def init_navcrafter_from_fun_camera(fun: FunCameraWan, control_config=None):
     LoRA encoder, reference attention, render embedding), so the control starts from zero. See
     models/synthesis/README.md ("Fun-Camera").
     """
-    from navcrafter.models.synthesis.camcontrol import CameraControlledWan
-
     cfg = fun.config
     kwargs = {**cfg.diffusers_kwargs(), "in_channels": 2 * LATENT_CHANNELS + 4}
     with torch.device(fun.base.device):

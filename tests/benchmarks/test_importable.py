@@ -1,0 +1,28 @@
+"""Every benchmark script is a module of the ``benchmarks`` package (issue 33): ``import benchmarks.<name>`` works
+(tests and ``gpu_check`` import them so, never by path) as well as ``python benchmarks/<name>.py``. A script that
+imports a sibling does so as ``from benchmarks.<sibling> import ...`` after putting the repository root on the path
+when run as a script (``if __package__ in (None, ""): sys.path.insert(...)``). Import only: nothing runs."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+# to do: being edited in parallel, issue 33 -- fitting.py and planning.py still import `seeds` as a top-level module
+# (script style); trajectory_figure.py imports benchmarks.planning. Remove the three once both use the pattern above.
+NOT_YET_IMPORTABLE = {"fitting", "planning", "trajectory_figure"}
+# none of the scripts needs a GPU to be imported (gpu_check and the *_gpu scripts look for CUDA when they run)
+NAMES = sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem != "__init__")
+
+
+def test_the_scripts_are_found():
+    assert {"gpu_check", "seeds", "synthesis", "fit_defaults", "pose_floor"} <= set(NAMES)
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if n not in NOT_YET_IMPORTABLE])
+def test_imports_as_a_module(name):
+    module = importlib.import_module(f"benchmarks.{name}")
+    assert Path(module.__file__).resolve() == BENCHMARKS / f"{name}.py"
