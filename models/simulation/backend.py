@@ -63,6 +63,8 @@ from navcrafter.models.simulation.config import SimulationConfig
 from navcrafter.models.simulation.render import render
 from navcrafter.models.simulation.scenes import GENERATOR_VERSION, KINDS, SceneObject, SimScene, generate_scene
 from navcrafter.models.simulation.textures import Material
+from navcrafter.models.simulation.worlds.patches import variant_world
+from navcrafter.models.simulation.worlds.scene import scene_from_record
 
 BACKEND = "simulation"
 
@@ -89,8 +91,6 @@ class SimulationTruth:
     def from_record(cls, record: dict, world_scale: float | None = None) -> SimulationTruth:
         spec = record["scene"]
         if spec.get("kind") == "scan":  # a world from a real scan (models/simulation/worlds)
-            from navcrafter.models.simulation.worlds.scene import scene_from_record
-
             return cls(scene_from_record(record), np.asarray(record["photo_c2w"], dtype=np.float64),
                        Intrinsics.from_dict(record["work_intrinsics"]), world_scale)
         if int(spec.get("generator_version", -1)) != GENERATOR_VERSION:
@@ -189,9 +189,6 @@ VariantBuilder = Callable[[SimScene, np.random.Generator, SimulationConfig], Sim
 def _scan_variant(scene: SimScene, rng: np.random.Generator, cfg: SimulationConfig) -> SimScene:
     """A world from a scan: its object patches moved, its walls and ceiling moved with the generated rooms' settings
     and every patch re-coloured (``worlds.patches``)."""
-    # deferred: a scan's open3d/trimesh readers load only when a scan is simulated
-    from navcrafter.models.simulation.worlds.patches import variant_world
-
     return variant_world(scene, int(rng.integers(1 << 31)), cfg.variant_shift_m,
                          structure_shift_m=tuple(cfg.structure_shift_m), extent_change=tuple(cfg.extent_change))
 
