@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
-from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at
+from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at, project
 from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.planning.planners import (
     WORLD_UP,
@@ -90,7 +90,10 @@ class VoxelMap:
             d = np.zeros(len(z))
             d[ok] = v.depth[w[ok], u[ok]]
             seen = ok & (d > 0)
-            free |= seen & (z < d - voxel)
+            trusted = seen.copy()
+            if v.anchored is not None:  # a generated frame carves free space only where it copied known content
+                trusted[ok] &= v.anchored[w[ok], u[ok]]
+            free |= trusted & (z < d - voxel)
             behind |= seen & (z > d + voxel)
         grid = np.full(len(centres), UNKNOWN, dtype=np.uint8)
         grid[free] = FREE
@@ -135,6 +138,30 @@ class ExplorerDetector(CollisionDetector):
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
+
+    def _visibility(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per position: seen free (by an observation, or by a generated frame where it copied known content: see
+        ``anchored_pixels``; or near an earlier camera); behind a surface in some view (any pixel)."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        free = np.zeros(len(x), dtype=bool)
+        occluded = np.zeros(len(x), dtype=bool)
+        if len(self.centres):
+            free |= np.linalg.norm(x[:, None] - self.centres[None], axis=-1).min(1) < self.r_safe
+        for v in self.views:
+            uv, z = project(x, v.c2w, v.K)
+            H, W = v.depth.shape
+            u, w = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+            ok = (z > 0) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+            if not ok.any():
+                continue
+            d = np.zeros(len(x))
+            trusted = np.zeros(len(x), dtype=bool)
+            ui, wi = u[ok].astype(int), w[ok].astype(int)
+            d[ok] = v.depth[wi, ui]
+            trusted[ok] = True if v.anchored is None else v.anchored[wi, ui]
+            occluded |= ok & (d > 0) & (z >= d)
+            free |= ok & trusted & (d > 0) & (z < d)
+        return free, occluded
 
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:
@@ -185,6 +212,25 @@ class ExplorerDetector(CollisionDetector):
     def trajectory_collides(self, trajectory: np.ndarray) -> bool:
         near, unseen, _ = self.path_flags(trajectory, first_only=True)
         return bool((near | unseen).any())
+
+
+def anchored_pixels(depth: np.ndarray, c2w: np.ndarray, K: np.ndarray, prior_points: np.ndarray,
+                    point_size: float, rel_tol: float) -> np.ndarray:
+    """Pixels of a generated frame (lifted ``depth`` ``[H, W]`` at its estimated camera ``c2w``, intrinsics ``K``)
+    whose depth agrees, within ``rel_tol`` of the depth, with the point cloud the video model was conditioned on
+    (``prior_points``, rendered from the same camera): there the model copied content it was shown. Elsewhere it
+    invented the content, and its depth is no evidence that the space in front is free: an object nobody saw may
+    stand there, drawn elsewhere or not at all (a video model's hallucinations move objects and walls; the honest
+    simulation's variants do the same)."""
+    from navcrafter.models.reconstruction.pointrender import render_points
+
+    H, W = depth.shape
+    if len(prior_points) == 0:
+        return np.zeros((H, W), dtype=bool)
+    shown = render_points(prior_points, c2w, K, H, W, point_size)
+    dc = np.asarray(shown.depth, dtype=np.float64)
+    d = np.asarray(depth, dtype=np.float64)
+    return np.asarray(shown.mask) & (d > 0) & (dc > 0) & (np.abs(d - dc) <= rel_tol * dc)
 
 
 def _cast(vmap: VoxelMap, poses: np.ndarray, dirs_cam: np.ndarray, max_range: float, d0: float,
@@ -403,4 +449,4 @@ class ExplorerPlanner:
         return res
 
 
-__all__ = ["ExplorerDetector", "ExplorerPlanner", "VoxelMap", "shaped_trajectory", "look_at"]
+__all__ = ["ExplorerDetector", "ExplorerPlanner", "VoxelMap", "anchored_pixels", "shaped_trajectory", "look_at"]
