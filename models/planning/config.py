@@ -97,6 +97,9 @@ class PlanConfig(_Section):
     explore_yaw_deg: float = Field(35.0, ge=0, le=90, description="explorer: end poses also turned by +-this.")
     explore_prefix: float = Field(
         0.1, ge=0, le=1, description="explorer: share of the clip's first frames that stay in seen free space.")
+    explore_reach: float = Field(
+        2.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
+        "unknown space an earlier frame of its clip looked at (0: only seen free space).")
     explore_free_space: Literal["anchored", "all"] = Field(
         "anchored", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
@@ -114,7 +117,8 @@ class PlanConfig(_Section):
                                                 "explore_frames": 4, "explore_accuracy": 0.01,
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
                                                 "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
-                                                "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08}
+                                                "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
+                                                "explore_reach": 2.0}
 
     @field_validator("trajectory")
     @classmethod

@@ -163,6 +163,19 @@ class ExplorerDetector(CollisionDetector):
             free |= ok & trusted & (d > 0) & (z < d)
         return free, occluded
 
+    @staticmethod
+    def _escape(clearance: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """``near`` with an escape forgiven: a clip that starts too near a surface (an earlier clip's camera drifted
+        there) may leave, its clearance never falling, until it is clear; staying there is no escape (every frame
+        would count as a collision), nor is a path that never gets clear."""
+        if not near[0] or near.all():
+            return near
+        k = int(np.argmin(near))  # the first clear frame
+        rising = np.r_[True, np.diff(clearance[:k + 1]) > 0]
+        out = near.copy()
+        out[:k] = ~rising[:k]
+        return out
+
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:
             return np.ones(len(x), dtype=bool)
@@ -181,7 +194,7 @@ class ExplorerDetector(CollisionDetector):
         way: see the module docstring); the clearance. ``first_only``: stop at the first flagged pose."""
         x = trajectory[:, :3, 3]
         clearance = self.clearance(x)
-        near = clearance < self.path_clearance(x)
+        near = self._escape(clearance, clearance < self.path_clearance(x))
         if first_only and near.any():
             return near, np.zeros(len(x), dtype=bool), clearance
         free, occluded = self._visibility(x)
@@ -282,7 +295,7 @@ class _Scorer:
             key = frame.astype(np.int64) * n + cells
             order = np.lexsort((w, key))
             key, w, frame = key[order], w[order], frame[order]
-            last = np.r_[key[1:] != key[:-1], True]  # the largest weight of each (frame, cell)
+            last = np.r_[key[1:] != key[:-1], True][:len(key)]  # the largest weight of each (frame, cell)
             gain = np.bincount(frame[last], weights=w[last], minlength=len(poses))
             out.append(gain * np.minimum(1.0, anchor / cfg.explore_anchor))
         return np.concatenate(out) if out else np.zeros(0)
@@ -365,7 +378,8 @@ class ExplorerPlanner:
         ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
         vmap = VoxelMap.build(state, points, cfg.explore_voxels)
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
-                               follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix)
+                               follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix,
+                               reach=cfg.explore_reach)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S

@@ -130,3 +130,20 @@ def test_a_generated_frame_carves_free_space_only_where_it_copied_the_cloud_it_w
     assert det_all._visibility(inside_box)[0][0]
     assert VoxelMap.build(dataclasses.replace(state, views=trusting), state.cloud_points, 48).lookup(inside_box)[1][0] \
         == FREE
+
+
+def test_a_clip_that_starts_too_near_a_surface_may_back_away_but_not_stay_or_come_closer():
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap)
+    start = np.eye(4)
+    start[:3, 3] = [0.0, 0.0, 3.85]  # 0.15 from the wall: an earlier clip drifted there
+    away = np.repeat(start[None], 11, 0)
+    away[:, 2, 3] = np.linspace(3.85, 2.5, 11)
+    near, unseen, clearance = det.path_flags(away)
+    assert clearance[0] < 0.25 and not near.any() and not unseen.any()
+    stay = np.repeat(start[None], 11, 0)
+    assert det.path_flags(stay)[0].all()  # staying is no escape
+    back_and_forth = away.copy()
+    back_and_forth[1, 2, 3] = 3.9  # first closer, then away
+    assert det.path_flags(back_and_forth)[0][1]
