@@ -98,7 +98,7 @@ class PlanConfig(_Section):
     explore_prefix: float = Field(
         0.1, ge=0, le=1, description="explorer: share of the clip's first frames that stay in seen free space.")
     explore_reach: float = Field(
-        2.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
+        1.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
         "unknown space an earlier frame of its clip looked at (0: only seen free space).")
     explore_free_space: Literal["anchored", "all"] = Field(
         "anchored", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
@@ -118,7 +118,7 @@ class PlanConfig(_Section):
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
                                                 "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
-                                                "explore_reach": 2.0}
+                                                "explore_reach": 1.0}
 
     @field_validator("trajectory")
     @classmethod

@@ -133,7 +133,7 @@ class VoxelMap:
 class ExplorerDetector(CollisionDetector):
     """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
 
-    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 2.0,
+    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
                  **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)

@@ -63,7 +63,7 @@ def test_trajectory_shapes_keep_their_ends_and_differ_on_the_way():
 def test_unknown_space_is_entered_only_after_the_clip_looked_at_it_and_never_behind_a_surface():
     state = wall_state()
     vmap = VoxelMap.build(state, state.cloud_points, 48)
-    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25, reach=2.0)
     # turn right on the spot first (the clip looks 50 deg right, beyond the input view's 40), then move there:
     # allowed once seen, after the prefix, within two cells of the space the input view saw free
     turn = look_at(np.zeros(3), np.array([3.0, 0.0, 2.5]))
