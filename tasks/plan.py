@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from navcrafter.models.planning.explore import anchored_pixels
 from navcrafter.models.planning.orbit import orbit_azimuth_deg, orbit_radius, orbit_trajectory
 from navcrafter.models.planning.planners import (
     PlanningState,
@@ -38,14 +39,21 @@ def planning_state(scene: SceneStore, k: int, config: RunConfig) -> PlanningStat
     geo = scene.read_all(GEOMETRY)
     centre = scene_centre(geo["depth"], geo["confidence"], config.plan.centre_depth_quantile)
     views = [SeenView(np.eye(4), geo["K"], geo["depth"])]
+    cfg = config.plan
+    point_size = 1.5 * config.lift.voxel_size
     for j in range(1, k):
         lifted = scene.read_all(LIFT, j)
-        views += [SeenView(c, K, d) for c, K, d in zip(lifted["c2w"], lifted["K"], lifted["depth"])]
+        anchored = [None] * len(lifted["c2w"])
+        if cfg.strategy == "explorer" and cfg.explore_free_space == "anchored":  # what clip j copied from the cloud
+            prior = load_cloud(scene, j - 1).points
+            anchored = [anchored_pixels(d, c, K, prior, point_size, cfg.explore_anchor_tolerance)
+                        for c, K, d in zip(lifted["c2w"], lifted["K"], lifted["depth"])]
+        views += [SeenView(c, K, d, a) for c, K, d, a in zip(lifted["c2w"], lifted["K"], lifted["depth"], anchored)]
     return PlanningState(
         current=current_pose(scene, k), centre=centre, d0=float(np.linalg.norm(centre)), K=geo["K"],
         height=config.synthesis.height, width=config.synthesis.width,
         cloud_points=load_cloud(scene, k - 1).points, views=views, num_frames=config.synthesis.num_frames,
-        point_size=1.5 * config.lift.voxel_size)
+        point_size=point_size)
 
 
 def plan(ctx: StepContext) -> dict:

@@ -97,6 +97,17 @@ class PlanConfig(_Section):
     explore_yaw_deg: float = Field(35.0, ge=0, le=90, description="explorer: end poses also turned by +-this.")
     explore_prefix: float = Field(
         0.1, ge=0, le=1, description="explorer: share of the clip's first frames that stay in seen free space.")
+    explore_reach: float = Field(
+        1.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
+        "unknown space an earlier frame of its clip looked at (0: only seen free space).")
+    explore_free_space: Literal["anchored", "all"] = Field(
+        "anchored", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
+        "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
+        "model invented may hide an object it drew elsewhere or not at all) or 'all' (every pixel, as the input "
+        "photo's).")
+    explore_anchor_tolerance: float = Field(
+        0.08, gt=0, description="explorer: relative depth agreement for a generated pixel to count as anchored (the "
+        "geometry model's per-clip depth error of 3-5 %, VGGT / MoGe / DUSt3R, plus the cloud's voxel size).")
 
     # added after stores existed: keys the plan step only when set (schemas.keys)
     keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
@@ -105,7 +116,9 @@ class PlanConfig(_Section):
                                                 "explore_candidates": 60, "explore_voxels": 48, "explore_rays": 16,
                                                 "explore_frames": 4, "explore_accuracy": 0.01,
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
-                                                "explore_yaw_deg": 35.0, "explore_prefix": 0.1}
+                                                "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
+                                                "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
+                                                "explore_reach": 1.0}
 
     @field_validator("trajectory")
     @classmethod

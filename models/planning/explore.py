@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
-from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at
+from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at, project
 from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.planning.planners import (
     WORLD_UP,
@@ -90,7 +90,10 @@ class VoxelMap:
             d = np.zeros(len(z))
             d[ok] = v.depth[w[ok], u[ok]]
             seen = ok & (d > 0)
-            free |= seen & (z < d - voxel)
+            trusted = seen.copy()
+            if v.anchored is not None:  # a generated frame carves free space only where it copied known content
+                trusted[ok] &= v.anchored[w[ok], u[ok]]
+            free |= trusted & (z < d - voxel)
             behind |= seen & (z > d + voxel)
         grid = np.full(len(centres), UNKNOWN, dtype=np.uint8)
         grid[free] = FREE
@@ -130,11 +133,48 @@ class VoxelMap:
 class ExplorerDetector(CollisionDetector):
     """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
 
-    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 2.0,
+    def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
                  **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
+
+    def _visibility(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per position: seen free (by an observation, or by a generated frame where it copied known content: see
+        ``anchored_pixels``; or near an earlier camera); behind a surface in some view (any pixel)."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        free = np.zeros(len(x), dtype=bool)
+        occluded = np.zeros(len(x), dtype=bool)
+        if len(self.centres):
+            free |= np.linalg.norm(x[:, None] - self.centres[None], axis=-1).min(1) < self.r_safe
+        for v in self.views:
+            uv, z = project(x, v.c2w, v.K)
+            H, W = v.depth.shape
+            u, w = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+            ok = (z > 0) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+            if not ok.any():
+                continue
+            d = np.zeros(len(x))
+            trusted = np.zeros(len(x), dtype=bool)
+            ui, wi = u[ok].astype(int), w[ok].astype(int)
+            d[ok] = v.depth[wi, ui]
+            trusted[ok] = True if v.anchored is None else v.anchored[wi, ui]
+            occluded |= ok & (d > 0) & (z >= d)
+            free |= ok & trusted & (d > 0) & (z < d)
+        return free, occluded
+
+    @staticmethod
+    def _escape(clearance: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """``near`` with an escape forgiven: a clip that starts too near a surface (an earlier clip's camera drifted
+        there) may leave, its clearance never falling, until it is clear; staying there is no escape (every frame
+        would count as a collision), nor is a path that never gets clear."""
+        if not near[0] or near.all():
+            return near
+        k = int(np.argmin(near))  # the first clear frame
+        rising = np.r_[True, np.diff(clearance[:k + 1]) > 0]
+        out = near.copy()
+        out[:k] = ~rising[:k]
+        return out
 
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:
@@ -154,7 +194,7 @@ class ExplorerDetector(CollisionDetector):
         way: see the module docstring); the clearance. ``first_only``: stop at the first flagged pose."""
         x = trajectory[:, :3, 3]
         clearance = self.clearance(x)
-        near = clearance < self.path_clearance(x)
+        near = self._escape(clearance, clearance < self.path_clearance(x))
         if first_only and near.any():
             return near, np.zeros(len(x), dtype=bool), clearance
         free, occluded = self._visibility(x)
@@ -185,6 +225,25 @@ class ExplorerDetector(CollisionDetector):
     def trajectory_collides(self, trajectory: np.ndarray) -> bool:
         near, unseen, _ = self.path_flags(trajectory, first_only=True)
         return bool((near | unseen).any())
+
+
+def anchored_pixels(depth: np.ndarray, c2w: np.ndarray, K: np.ndarray, prior_points: np.ndarray,
+                    point_size: float, rel_tol: float) -> np.ndarray:
+    """Pixels of a generated frame (lifted ``depth`` ``[H, W]`` at its estimated camera ``c2w``, intrinsics ``K``)
+    whose depth agrees, within ``rel_tol`` of the depth, with the point cloud the video model was conditioned on
+    (``prior_points``, rendered from the same camera): there the model copied content it was shown. Elsewhere it
+    invented the content, and its depth is no evidence that the space in front is free: an object nobody saw may
+    stand there, drawn elsewhere or not at all (a video model's hallucinations move objects and walls; the honest
+    simulation's variants do the same)."""
+    from navcrafter.models.reconstruction.pointrender import render_points
+
+    H, W = depth.shape
+    if len(prior_points) == 0:
+        return np.zeros((H, W), dtype=bool)
+    shown = render_points(prior_points, c2w, K, H, W, point_size)
+    dc = np.asarray(shown.depth, dtype=np.float64)
+    d = np.asarray(depth, dtype=np.float64)
+    return np.asarray(shown.mask) & (d > 0) & (dc > 0) & (np.abs(d - dc) <= rel_tol * dc)
 
 
 def _cast(vmap: VoxelMap, poses: np.ndarray, dirs_cam: np.ndarray, max_range: float, d0: float,
@@ -236,7 +295,7 @@ class _Scorer:
             key = frame.astype(np.int64) * n + cells
             order = np.lexsort((w, key))
             key, w, frame = key[order], w[order], frame[order]
-            last = np.r_[key[1:] != key[:-1], True]  # the largest weight of each (frame, cell)
+            last = np.r_[key[1:] != key[:-1], True][:len(key)]  # the largest weight of each (frame, cell)
             gain = np.bincount(frame[last], weights=w[last], minlength=len(poses))
             out.append(gain * np.minimum(1.0, anchor / cfg.explore_anchor))
         return np.concatenate(out) if out else np.zeros(0)
@@ -319,7 +378,8 @@ class ExplorerPlanner:
         ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
         vmap = VoxelMap.build(state, points, cfg.explore_voxels)
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
-                               follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix)
+                               follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix,
+                               reach=cfg.explore_reach)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S
@@ -403,4 +463,4 @@ class ExplorerPlanner:
         return res
 
 
-__all__ = ["ExplorerDetector", "ExplorerPlanner", "VoxelMap", "shaped_trajectory", "look_at"]
+__all__ = ["ExplorerDetector", "ExplorerPlanner", "VoxelMap", "anchored_pixels", "shaped_trajectory", "look_at"]

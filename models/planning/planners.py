@@ -194,6 +194,9 @@ class SeenView:
     c2w: np.ndarray
     K: np.ndarray
     depth: np.ndarray
+    # [H, W] bool: pixels whose depth copies content known before the view was made (a generated frame's
+    # anchored pixels, ``explore.anchored_pixels``); None: every pixel is an observation (the input photo)
+    anchored: np.ndarray | None = None
 
 
 class CollisionDetector:

@@ -3,6 +3,8 @@ the planner end to end."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from test_planning import box, observe, room_state, scene_of
@@ -15,9 +17,10 @@ from navcrafter.models.planning.explore import (
     ExplorerDetector,
     ExplorerPlanner,
     VoxelMap,
+    anchored_pixels,
     shaped_trajectory,
 )
-from navcrafter.models.planning.planners import PlanningState
+from navcrafter.models.planning.planners import PlanningState, SeenView
 from navcrafter.models.planning.registry import PLANNERS
 from navcrafter.schemas.config import PlanConfig
 
@@ -60,7 +63,7 @@ def test_trajectory_shapes_keep_their_ends_and_differ_on_the_way():
 def test_unknown_space_is_entered_only_after_the_clip_looked_at_it_and_never_behind_a_surface():
     state = wall_state()
     vmap = VoxelMap.build(state, state.cloud_points, 48)
-    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25, reach=2.0)
     # turn right on the spot first (the clip looks 50 deg right, beyond the input view's 40), then move there:
     # allowed once seen, after the prefix, within two cells of the space the input view saw free
     turn = look_at(np.zeros(3), np.array([3.0, 0.0, 2.5]))
@@ -102,3 +105,45 @@ def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying():
         assert res.scores[res.chosen] > 0
     else:
         assert res.fallback == "static" and np.allclose(res.trajectory, state.current)
+
+
+def test_a_generated_frame_carves_free_space_only_where_it_copied_the_cloud_it_was_shown():
+    state = wall_state()
+    # what the input view showed is anchored where a frame shows it again (here: the same camera and depth)
+    again = anchored_pixels(state.views[0].depth, np.eye(4), K.K, state.cloud_points, 0.05, 0.08)
+    assert again[state.views[0].depth > 0].mean() > 0.9
+    # a clip turns right, where the cloud shows nothing; the video model invents the room there and leaves out
+    # the box that truly stands at x = 2.3 (a variant with a side wall at x = 5 and no box)
+    right = look_at(np.zeros(3), np.array([5.0, 0.0, 0.0]))
+    invented = scene_of(box(-3, -3, 4.0, 6, 6, 0.2), box(5, -3, -3, 0.2, 6, 8))
+    _, (gen,) = observe(invented, [right], K)
+    mask = anchored_pixels(gen.depth, right, K.K, state.cloud_points, 0.05, 0.08)
+    assert not mask[gen.depth > 0].any()  # nothing it showed was in the cloud
+    inside_box = np.array([[2.3, 0.0, 0.0]])
+    views = [state.views[0], SeenView(right, K.K, gen.depth, mask)]
+    vmap = VoxelMap.build(dataclasses.replace(state, views=views), state.cloud_points, 48)
+    det = ExplorerDetector(state.cloud_points, 0.25, views, thin=False, vmap=vmap)
+    assert not det._visibility(inside_box)[0][0]  # not free: the frame invented what stands there
+    assert vmap.lookup(inside_box)[1][0] != FREE
+    trusting = [state.views[0], SeenView(right, K.K, gen.depth)]  # every pixel trusted: the box's place looks free
+    det_all = ExplorerDetector(state.cloud_points, 0.25, trusting, thin=False, vmap=vmap)
+    assert det_all._visibility(inside_box)[0][0]
+    assert VoxelMap.build(dataclasses.replace(state, views=trusting), state.cloud_points, 48).lookup(inside_box)[1][0] \
+        == FREE
+
+
+def test_a_clip_that_starts_too_near_a_surface_may_back_away_but_not_stay_or_come_closer():
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap)
+    start = np.eye(4)
+    start[:3, 3] = [0.0, 0.0, 3.85]  # 0.15 from the wall: an earlier clip drifted there
+    away = np.repeat(start[None], 11, 0)
+    away[:, 2, 3] = np.linspace(3.85, 2.5, 11)
+    near, unseen, clearance = det.path_flags(away)
+    assert clearance[0] < 0.25 and not near.any() and not unseen.any()
+    stay = np.repeat(start[None], 11, 0)
+    assert det.path_flags(stay)[0].all()  # staying is no escape
+    back_and_forth = away.copy()
+    back_and_forth[1, 2, 3] = 3.9  # first closer, then away
+    assert det.path_flags(back_and_forth)[0][1]
