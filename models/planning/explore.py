@@ -46,6 +46,7 @@ from navcrafter.models.planning.planners import (
     PlanningState,
     PlanResult,
     estimate_ground,
+    forgive_escape,
     look_at_centre,
     optimise_trajectory,
     planning_cloud,
@@ -163,19 +164,6 @@ class ExplorerDetector(CollisionDetector):
             free |= ok & trusted & (d > 0) & (z < d)
         return free, occluded
 
-    @staticmethod
-    def _escape(clearance: np.ndarray, near: np.ndarray) -> np.ndarray:
-        """``near`` with an escape forgiven: a clip that starts too near a surface (an earlier clip's camera drifted
-        there) may leave, its clearance never falling, until it is clear; staying there is no escape (every frame
-        would count as a collision), nor is a path that never gets clear."""
-        if not near[0] or near.all():
-            return near
-        k = int(np.argmin(near))  # the first clear frame
-        rising = np.r_[True, np.diff(clearance[:k + 1]) > 0]
-        out = near.copy()
-        out[:k] = ~rising[:k]
-        return out
-
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:
             return np.ones(len(x), dtype=bool)
@@ -194,7 +182,7 @@ class ExplorerDetector(CollisionDetector):
         way: see the module docstring); the clearance. ``first_only``: stop at the first flagged pose."""
         x = trajectory[:, :3, 3]
         clearance = self.clearance(x)
-        near = self._escape(clearance, clearance < self.path_clearance(x))
+        near = forgive_escape(clearance, clearance < self.path_clearance(x))
         if first_only and near.any():
             return near, np.zeros(len(x), dtype=bool), clearance
         free, occluded = self._visibility(x)

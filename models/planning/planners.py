@@ -199,6 +199,20 @@ class SeenView:
     anchored: np.ndarray | None = None
 
 
+def forgive_escape(clearance: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """``near`` (per pose: too near a surface) with an escape forgiven: a clip that starts too near a surface (an
+    earlier clip's true camera drifted there) may leave, its clearance rising frame by frame, until it is clear.
+    Staying there is no escape (every frame would count as a collision, and G would reject every path, so the camera
+    would stay put), nor is a path that never gets clear."""
+    if not near[0] or near.all():
+        return near
+    k = int(np.argmin(near))  # the first clear frame
+    rising = np.r_[True, np.diff(clearance[:k + 1]) > 0]
+    out = near.copy()
+    out[:k] = ~rising[:k]
+    return out
+
+
 class CollisionDetector:
     """G: within ``r_safe`` of an observed surface, or outside the free space seen by earlier cameras
     (see the module docstring, step 2).
@@ -286,11 +300,12 @@ class CollisionDetector:
         return self.r_safe + self.follow_error * travelled
 
     def path_flags(self, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per pose of ``trajectory`` [T, 4, 4]: closer to a surface than the path's clearance, outside the seen free
-        space; and the clearance itself."""
+        """Per pose of ``trajectory`` [T, 4, 4]: closer to a surface than the path's clearance (an escape from a
+        start that is already too near forgiven: ``forgive_escape``), outside the seen free space; and the clearance
+        itself."""
         x = trajectory[:, :3, 3]
         clearance = self.clearance(x)
-        return clearance < self.path_clearance(x), ~self.seen_free(x), clearance
+        return forgive_escape(clearance, clearance < self.path_clearance(x)), ~self.seen_free(x), clearance
 
     def trajectory_collides(self, trajectory: np.ndarray) -> bool:
         near, unseen, _ = self.path_flags(trajectory)

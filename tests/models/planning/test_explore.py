@@ -20,7 +20,7 @@ from navcrafter.models.planning.explore import (
     anchored_pixels,
     shaped_trajectory,
 )
-from navcrafter.models.planning.planners import PlanningState, SeenView
+from navcrafter.models.planning.planners import CollisionDetector, PlanningState, SeenView
 from navcrafter.models.planning.registry import PLANNERS
 from navcrafter.schemas.config import PlanConfig
 
@@ -147,3 +147,20 @@ def test_a_clip_that_starts_too_near_a_surface_may_back_away_but_not_stay_or_com
     back_and_forth = away.copy()
     back_and_forth[1, 2, 3] = 3.9  # first closer, then away
     assert det.path_flags(back_and_forth)[0][1]
+
+
+def test_the_paper_planner_may_also_back_away_from_a_start_too_near_a_surface():
+    """G of Algorithm 1 forgives the same escape (``planners.forgive_escape``): before, every path from such a start
+    failed G, the camera stayed put, and every later frame of the run counted as a collision."""
+    state = wall_state()
+    det = CollisionDetector(state.cloud_points, 0.25, state.views)
+    start = np.eye(4)
+    start[:3, 3] = [0.0, 0.0, 3.85]
+    away = np.repeat(start[None], 11, 0)
+    away[:, 2, 3] = np.linspace(3.85, 2.5, 11)
+    near, _, clearance = det.path_flags(away)
+    assert clearance[0] < 0.25 and not near.any()
+    assert det.path_flags(np.repeat(start[None], 11, 0))[0].all()  # staying is no escape
+    closer = away.copy()
+    closer[1, 2, 3] = 3.9
+    assert det.path_flags(closer)[0][1]
