@@ -42,7 +42,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from seeds import DEV_SEEDS, is_development, parse_seeds  # benchmarks/seeds.py (the script's folder is on the path)
 
 from navcrafter.models.camera.cameras import Intrinsics, look_at, unproject_depth
 from navcrafter.models.planning.explore import ExplorerPlanner
@@ -70,6 +69,10 @@ from navcrafter.schemas.store import Store
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.runner import run_scene
 from navcrafter.tasks.scene_metrics import evaluate_scene
+
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.seeds import DEV_SEEDS, is_development, parse_seeds  # noqa: E402
 
 ITERATIONS = 3
 

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("flows", "tasks", "schemas", "models")
 MARK = "# deferred:"
 # to do: being edited in parallel, issue 33 -- remove these entries once those files' imports are sorted out
-NOT_YET_CHECKED = ("models/planning/", "models/gaussians/")
+NOT_YET_CHECKED = ("models/gaussians/",)
 # only a file with an indented internal import can fail: the others are not parsed (keeps the walk well under 2 s)
 INDENTED_INTERNAL = re.compile(r"^[ \t]+(from[ \t]+(navcrafter\b|\.)|import[ \t]+navcrafter\b)", re.MULTILINE)
 

@@ -6,6 +6,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import Field, field_validator, model_validator
 
+from navcrafter.models.planning.user import parse_spec
 from navcrafter.models.settings import Section as _Section
 
 
@@ -128,8 +129,6 @@ class PlanConfig(_Section):
             return None
         if not value:
             raise ValueError("plan.trajectory must list at least one preset or camera file (or be null)")
-        from navcrafter.models.planning.user import parse_spec
-
         out = []
         for entry in value:
             spec = parse_spec(entry)

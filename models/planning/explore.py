@@ -38,7 +38,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
-from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at, project
+from navcrafter.models.camera.cameras import (
+    axis_angle_to_matrix,
+    camera_directions,
+    interpolate_poses,
+    look_at,
+    project,
+)
 from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.planning.planners import (
     WORLD_UP,
@@ -53,6 +59,7 @@ from navcrafter.models.planning.planners import (
     search_space,
     space_positions,
 )
+from navcrafter.models.reconstruction.pointrender import render_points
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 SHAPES = ("arc", "dolly", "orbit")
@@ -223,8 +230,6 @@ def anchored_pixels(depth: np.ndarray, c2w: np.ndarray, K: np.ndarray, prior_poi
     invented the content, and its depth is no evidence that the space in front is free: an object nobody saw may
     stand there, drawn elsewhere or not at all (a video model's hallucinations move objects and walls; the honest
     simulation's variants do the same)."""
-    from navcrafter.models.reconstruction.pointrender import render_points
-
     H, W = depth.shape
     if len(prior_points) == 0:
         return np.zeros((H, W), dtype=bool)
@@ -306,8 +311,6 @@ def _end_pose(position: np.ndarray, centre: np.ndarray, yaw_deg: float, forward:
     base = look_at_centre(position, centre, forward)
     if yaw_deg == 0.0:
         return base
-    from navcrafter.models.camera.cameras import axis_angle_to_matrix
-
     out = base.copy()
     out[:3, :3] = axis_angle_to_matrix(WORLD_UP, np.deg2rad(yaw_deg)) @ base[:3, :3]
     return out
@@ -341,8 +344,6 @@ def shaped_trajectory(current: np.ndarray, end: np.ndarray, centre: np.ndarray, 
         return out
     h0n, h1n = h0 / np.linalg.norm(h0), h1 / np.linalg.norm(h1)
     ang = np.arctan2(np.cross(h0n, h1n) @ up, h0n @ h1n)
-    from navcrafter.models.camera.cameras import axis_angle_to_matrix
-
     for i, f in enumerate(np.linspace(0.0, 1.0, num)):
         hd = axis_angle_to_matrix(up, f * ang) @ h0n
         r, e = (1 - f) * r0 + f * r1, (1 - f) * e0 + f * e1

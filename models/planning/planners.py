@@ -60,7 +60,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
-from navcrafter.models.camera.cameras import interpolate_poses, look_at, project
+from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at, project
 from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.reconstruction.pointcloud import thin_points
 from navcrafter.models.reconstruction.pointrender import render_points
@@ -379,8 +379,6 @@ def view_surfaces(views: list[SeenView], step: int = 4, max_jump: float = 1.0):
     neighbours and the triangles across it are dropped (as are those spanning depths more than a
     factor ``1 + max_jump`` apart), so no phantom surface blocks space that other views saw free."""
     import open3d as o3d
-
-    from navcrafter.models.camera.cameras import camera_directions
 
     verts, tris, offset = [], [], 0
     for v in views:
