@@ -365,6 +365,7 @@ class SparseScene:
         self.backend = load_backend(scene, cfg)
         self._frames: dict[int, np.ndarray] = {}
         self._true_depth: dict[int, np.ndarray] = {}
+        self._targets: dict[tuple[int, bool], np.ndarray | None] = {}
 
     def frame(self, f: int) -> np.ndarray:
         """Frame f at the synthesis size (uint8)."""
@@ -402,6 +403,12 @@ class SparseScene:
                                 rel_tol=VISIBILITY_TOL) for d, f in zip(self.test_depth, self.test)]
 
     def depth_target(self, f: int, oracle: bool) -> np.ndarray | None:
+        """Frame f's depth supervision (computed once; the monocular prediction is seeded by the frame)."""
+        if (f, oracle) not in self._targets:
+            self._targets[(f, oracle)] = self._depth_target(f, oracle)
+        return self._targets[(f, oracle)]
+
+    def _depth_target(self, f: int, oracle: bool) -> np.ndarray | None:
         """Frame f's depth supervision at the fit's size: the calibrated monocular depth as the fit step makes it
         (against the lift's geometry depth where it ran on the frame, else the cloud rendered into it), or with
         ``oracle`` the frame's true depth (what it shows, world units)."""
@@ -710,8 +717,12 @@ def sparse_markdown(res: dict) -> str:
              f"{p['n_scenes']} scenes.", "",
              f"Protocol: {p['description']}", "",
              f"Fit: {p['iterations']} iterations at {p['resolution'][0]}x{p['resolution'][1]} (longer / refine: "
-             f"+{p['continue_iterations']}); lambda_depth {p['lambda_depth']} in {p['depth_space']} depth "
-             f"({p['lambda_source']}); DropGaussian gamma {p['drop_gamma']} over the whole fit.", "",
+             f"+{p['continue_iterations']}); " + (
+                 f"lambda_depth tuned over {p['lambda_grid']} in {p['depth_space']} depth (the depth@lambda rows): "
+                 f"mean masked PSNR over views and scenes {p.get('lambda_scores')}, choice "
+                 f"**{p.get('lambda_choice')}**" if p.get("lambda_grid") else
+                 f"lambda_depth {p['lambda_depth']} in {p['depth_space']} depth ({p['lambda_source']})") +
+             f"; DropGaussian gamma {p['drop_gamma']} over the whole fit.", "",
              "| views | variant | n | masked PSNR (dB) | masked SSIM | LPIPS | depth AbsRel | converged | "
              "visible px |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for V, vv in res["views"].items():
