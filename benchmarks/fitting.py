@@ -709,6 +709,27 @@ def sparse_results(rows: list[dict], protocol: dict) -> dict:
     return {"protocol": protocol, "views": views, "paired": paired}
 
 
+def merge_sparse(results: list[dict]) -> dict:
+    """One ``results.json`` from runs of the same protocol over different seeds (``--merge``): the per-fit
+    records are pooled and the tables and pairs recomputed."""
+    keys = ("quick", "views", "clips", "iterations", "continue_iterations", "resolution", "lambda_depth",
+            "depth_space", "drop_gamma", "sparse_init_fraction", "convergence_tol", "visibility_tol")
+    p0 = results[0]["protocol"]
+    for r in results[1:]:
+        diff = [k for k in keys if r["protocol"].get(k) != p0.get(k)]
+        if diff:
+            raise ValueError(f"cannot merge runs of different protocols (they differ in {diff})")
+    rows = [{**f, "views": int(V), "variant": name} for r in results for V, vv in r["views"].items()
+            for name, s in vv.items() for f in s["fits"]]
+    seeds = sorted({r["seed"] for r in rows})
+    protocol = {**p0, "seeds": [seeds[0], seeds[-1]], "seed_list": seeds,
+                "kinds": sorted({k for r in results for k in r["protocol"]["kinds"]}),
+                "development": any(r["protocol"]["development"] for r in results),
+                "complete": all(r["protocol"]["complete"] for r in results),
+                "n_scenes": len({r["photo"] for r in rows}), "merged_from": len(results)}
+    return sparse_results(rows, protocol)
+
+
 def sparse_markdown(res: dict) -> str:
     p = res["protocol"]
     lines = [f"# 3DGS fitting ablation, sparse views (Table VI shape){' — quick' if p['quick'] else ''}", "",
@@ -815,7 +836,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="--views: where --lambda-depth comes from (recorded in the protocol)")
     ap.add_argument("--tune-lambda", action="store_true", help="--views, development seeds only: fit none and "
                     f"depth at lambda_depth in {LAMBDA_GRID}, and name the best by mean masked PSNR")
+    ap.add_argument("--merge", default=None, help="--views: comma-separated output folders of runs of the same "
+                    "protocol over other seeds; writes their pooled results.json / results.md into --out")
     args = ap.parse_args(argv)
+    if args.merge:
+        res = merge_sparse([json.loads((Path(d) / "results.json").read_text()) for d in args.merge.split(",") if d])
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "results.json").write_text(json.dumps(res, indent=1))
+        md = sparse_markdown(res)
+        (args.out / "results.md").write_text(md)
+        print(md)
+        return 0
     seeds = args.seeds or ((10, 10) if args.quick else (10, 12))
     kinds = tuple(k for k in args.kinds.split(",") if k)
     args.out.mkdir(parents=True, exist_ok=True)

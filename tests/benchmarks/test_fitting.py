@@ -54,6 +54,23 @@ def test_results_shape_and_paired_effects(fb):
     assert "oracle_depth" not in res["paired"]["3"]  # no such records, no pair
 
 
+def test_merge_pools_the_fits_of_runs_over_other_seeds(fb):
+    proto = {"quick": True, "views": [3], "kinds": ["room"], "development": False, "complete": True, "seeds": [0, 0]}
+    runs = []
+    for photo, gain in (("room-10.png", 0.4), ("room-11.png", -0.2)):
+        rows = [_row(photo, 3, "none", 20.0, 0.2), _row(photo, 3, "depth", 20.0 + gain, 0.1)]
+        for r in rows:
+            r["seed"] = int(photo[5:7])
+        runs.append(fb.sparse_results(rows, dict(proto)))
+    res = fb.merge_sparse(runs)
+    assert res["paired"]["3"]["depth"]["n"] == 2 and res["paired"]["3"]["depth"]["wins"] == 1
+    assert res["paired"]["3"]["depth"]["delta_psnr"] == pytest.approx(0.1)
+    assert res["protocol"]["seeds"] == [10, 11] and res["protocol"]["n_scenes"] == 2
+    runs[1]["protocol"]["lambda_depth"] = 0.5
+    with pytest.raises(ValueError, match="lambda_depth"):
+        fb.merge_sparse(runs)
+
+
 @pytest.mark.slow
 def test_tiny_run_writes_the_table(fb, tmp_path):
     out = tmp_path / "out"
