@@ -55,6 +55,7 @@ grid of lambda_depth and names the best by mean masked PSNR over views and scene
     python benchmarks/fitting.py --out bench-out/sparse --views 3,6,12 --seeds 10-12
     python benchmarks/fitting.py --out bench-out/sparse-quick --quick --views 3,6 --seeds 10-10
     python benchmarks/fitting.py --out bench-out/lambda --quick --views 3,6 --seeds 0-0 --tune-lambda
+    python benchmarks/fitting.py --out bench-out/pooled --merge bench-out/seed10,bench-out/seed11  # pool seeds
 """
 
 from __future__ import annotations
