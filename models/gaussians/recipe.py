@@ -94,9 +94,15 @@ def continue_training(model: GaussianModel, views: list[TrainView], fit: FitConf
                       callback=None) -> tuple[GaussianTrainer, TrainResult]:
     """Train a fitted ``model`` ``refine.iterations`` more on ``views``: the fit's settings, density control off,
     the position rate decaying from 10 x to 1 x ``fit.lr_means_final``. Returns (trainer, result)."""
+    trainer = continuation_trainer(model, views, fit, refine, seed, scene_scale, lpips_model)
+    return trainer, trainer.train(callback)
+
+
+def continuation_trainer(model: GaussianModel, views: list[TrainView], fit: FitConfig, refine: RefineConfig,
+                         seed: int, scene_scale: float, lpips_model=None) -> GaussianTrainer:
+    """The trainer ``continue_training`` runs (untrained: a caller may evaluate it while it trains)."""
     lam_lpips = fit.lambda_lpips if lpips_model is not None else 0.0
     settings = fit.model_copy(update={"iterations": refine.iterations, "densify": False,
                                       "lr_means": 10 * fit.lr_means_final, "sh_degree_interval": 1})
-    trainer = GaussianTrainer(model, views, settings, scene_scale=scene_scale, seed=seed, lambda_lpips=lam_lpips,
-                              perceptual=lpips_model if lam_lpips > 0 else None)
-    return trainer, trainer.train(callback)
+    return GaussianTrainer(model, views, settings, scene_scale=scene_scale, seed=seed, lambda_lpips=lam_lpips,
+                           perceptual=lpips_model if lam_lpips > 0 else None)
