@@ -68,7 +68,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from seeds import is_development, parse_seeds  # benchmarks/seeds.py (the script's folder is on the path)
 
 from navcrafter.models.gaussians.recipe import continue_training, heldout_metrics, load_lpips
 from navcrafter.models.simulation import LABEL
@@ -82,6 +81,10 @@ from navcrafter.tasks.common import load_cloud, simulation_truth
 from navcrafter.tasks.ingest import ingest
 from navcrafter.tasks.readers import load_fit_views, load_gaussians, load_refined_gaussians
 from navcrafter.tasks.runner import run_scene
+
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.seeds import is_development, parse_seeds  # noqa: E402
 
 VARIANTS = {
     "none": {"fit.lambda_depth": 0.0, "fit.drop_gamma": 0.0},

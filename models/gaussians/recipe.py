@@ -13,6 +13,8 @@ from navcrafter.models.gaussians.config import FitConfig, RefineConfig
 from navcrafter.models.gaussians.model import GaussianModel
 from navcrafter.models.gaussians.train import GaussianTrainer, TrainResult, TrainView
 from navcrafter.models.metrics.config import EvaluationConfig
+from navcrafter.models.metrics.evalnets.lpips import LPIPS, lpips_distance
+from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
 from navcrafter.models.metrics.image import psnr, ssim
 
 HISTORY_COLUMNS = ("loss", "l1", "lpips", "depth", "drop_rate", "n_gaussians")
@@ -61,9 +63,6 @@ def init_subset(points: np.ndarray, colors: np.ndarray, max_points: int | None, 
 
 def load_lpips(evaluation: EvaluationConfig):
     """(LPIPS model or None, note): the official LPIPS network, never a random one."""
-    from navcrafter.models.metrics.evalnets.lpips import LPIPS
-    from navcrafter.models.metrics.evalnets.weights import MetricUnavailable
-
     try:
         model = LPIPS.from_pretrained(evaluation.lpips_net, evaluation.weights_dir)
     except MetricUnavailable as exc:
@@ -78,8 +77,6 @@ def heldout_metrics(rgb: np.ndarray, gt: np.ndarray, lpips_model=None) -> dict:
     """Mean PSNR / SSIM (and LPIPS with its official model, else None) of renders against held-out frames."""
     metrics = {"psnr": float(np.mean(psnr(rgb, gt))), "ssim": float(np.mean(ssim(rgb, gt))), "lpips": None}
     if lpips_model is not None:
-        from navcrafter.models.metrics.evalnets.lpips import lpips_distance
-
         metrics["lpips"] = float(np.mean(lpips_distance(rgb, gt, model=lpips_model)))
     return metrics
 

@@ -186,6 +186,7 @@ def rasterize(
         if kwargs:
             raise TypeError(f"the {which} renderer does not take {sorted(kwargs)} (gsplat-only arguments)")
         if which == "cpu":
+            # deferred: numba and the compiled CPU kernels load only when the CPU renderer is chosen
             from navcrafter.models.gaussians.cpu_rasterize import rasterization as ours
         else:
             ours = rasterization

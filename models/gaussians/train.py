@@ -121,6 +121,7 @@ class GaussianTrainer:
         self.device = resolve_device(config.device)
         self.renderer = resolve_backend(config.renderer, self.device)  # "cpu" | "torch" | "gsplat"; raises early
         if self.renderer == "cpu":
+            # deferred: numba and the compiled CPU kernels load only when the CPU renderer is chosen
             from navcrafter.models.gaussians.cpu_rasterize import set_threads
 
             set_threads(config.threads)

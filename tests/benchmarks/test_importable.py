@@ -11,8 +11,6 @@ from pathlib import Path
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-# to do: being edited in parallel, issue 33 -- fitting.py still imports `seeds` as a top-level module (script style)
-NOT_YET_IMPORTABLE = {"fitting"}
 # none of the scripts needs a GPU to be imported (gpu_check and the *_gpu scripts look for CUDA when they run)
 NAMES = sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem != "__init__")
 
@@ -21,7 +19,7 @@ def test_the_scripts_are_found():
     assert {"gpu_check", "seeds", "synthesis", "fit_defaults", "pose_floor"} <= set(NAMES)
 
 
-@pytest.mark.parametrize("name", [n for n in NAMES if n not in NOT_YET_IMPORTABLE])
+@pytest.mark.parametrize("name", NAMES)
 def test_imports_as_a_module(name):
     module = importlib.import_module(f"benchmarks.{name}")
     assert Path(module.__file__).resolve() == BENCHMARKS / f"{name}.py"
