@@ -277,3 +277,11 @@ def submit(server, collection: Path, store: Path, *extra: str) -> list[str]:
     ids = UUID.findall(res.stdout)
     assert ids and f"{server['api'].removesuffix('/api')}/runs/flow-run/{ids[0]}" in res.stdout  # dashboard
     return ids
+
+
+def official_close(got, want) -> float:
+    """Largest difference of ``got`` from the official implementation's ``want``, relative to max(1, the reference's
+    largest magnitude) (the ``official_parity`` tests' measure; they require <= 1e-4)."""
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    assert got.shape == want.shape, (got.shape, want.shape)
+    return float(np.abs(got - want).max() / max(1.0, np.abs(want).max()))

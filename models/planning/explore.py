@@ -43,7 +43,6 @@ from navcrafter.models.camera.cameras import (
     camera_directions,
     interpolate_poses,
     look_at,
-    project,
 )
 from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.planning.planners import (
@@ -146,30 +145,6 @@ class ExplorerDetector(CollisionDetector):
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
-
-    def _visibility(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per position: seen free (by an observation, or by a generated frame where it copied known content: see
-        ``anchored_pixels``; or near an earlier camera); behind a surface in some view (any pixel)."""
-        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
-        free = np.zeros(len(x), dtype=bool)
-        occluded = np.zeros(len(x), dtype=bool)
-        if len(self.centres):
-            free |= np.linalg.norm(x[:, None] - self.centres[None], axis=-1).min(1) < self.r_safe
-        for v in self.views:
-            uv, z = project(x, v.c2w, v.K)
-            H, W = v.depth.shape
-            u, w = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-            ok = (z > 0) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
-            if not ok.any():
-                continue
-            d = np.zeros(len(x))
-            trusted = np.zeros(len(x), dtype=bool)
-            ui, wi = u[ok].astype(int), w[ok].astype(int)
-            d[ok] = v.depth[wi, ui]
-            trusted[ok] = True if v.anchored is None else v.anchored[wi, ui]
-            occluded |= ok & (d > 0) & (z >= d)
-            free |= ok & trusted & (d > 0) & (z < d)
-        return free, occluded
 
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:

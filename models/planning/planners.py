@@ -267,7 +267,9 @@ class CollisionDetector:
         return free | (~occluded if self.unknown_is_free else False)
 
     def _visibility(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per position: seen free by some view (or near an earlier camera); behind a surface in some view."""
+        """Per position: seen free by some view (or near an earlier camera); behind a surface in some view (any
+        pixel). A view with ``anchored`` pixels (a generated frame: ``explore.anchored_pixels``) carves free space
+        only where it copied known content: its invented depth is no evidence that the space in front is free."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         free = np.zeros(len(x), dtype=bool)
         occluded = np.zeros(len(x), dtype=bool)
@@ -281,9 +283,12 @@ class CollisionDetector:
             if not ok.any():
                 continue
             d = np.zeros(len(x))
-            d[ok] = v.depth[w[ok].astype(int), u[ok].astype(int)]
+            trusted = np.zeros(len(x), dtype=bool)
+            ui, wi = u[ok].astype(int), w[ok].astype(int)
+            d[ok] = v.depth[wi, ui]
+            trusted[ok] = True if v.anchored is None else v.anchored[wi, ui]
             occluded |= ok & (d > 0) & (z >= d)
-            free |= ok & (d > 0) & (z < d)
+            free |= ok & trusted & (d > 0) & (z < d)
         return free, occluded
 
     def collides(self, x: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import official_close
 
 from navcrafter.models.geometry.moge import (
     MoGe2,
@@ -30,13 +31,6 @@ FIXTURE = Path(__file__).with_name("fixtures") / "official" / "moge2"
 TOL = 1e-4
 
 pytestmark = [pytest.mark.official_parity, pytest.mark.usefixtures("one_torch_thread")]
-
-
-def _close(got: np.ndarray, want: np.ndarray) -> float:
-    """Largest difference relative to max(1, the reference's largest magnitude)."""
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    assert got.shape == want.shape
-    return float(np.abs(got - want).max() / max(1.0, np.abs(want).max()))
 
 
 @pytest.fixture(scope="module")
@@ -67,10 +61,10 @@ def test_network_and_head_resize_match_official_forward(official, case):
     points, mask, normal = head_maps_to_size(out["points_raw"][0], out["mask_logits"][0], out["normal_raw"][0],
                                              size=(spec["height"], spec["width"]), remap_output="exp")
     want = {k.split(".")[-1]: v for k, v in cases.items() if k.startswith(f"case{case}.forward.")}
-    assert _close(points, want["points"]) <= TOL
-    assert _close(normal, want["normal"]) <= TOL
-    assert _close(mask, want["mask"]) <= TOL
-    assert _close(out["metric_scale"][0], want["metric_scale"]) <= TOL
+    assert official_close(points, want["points"]) <= TOL
+    assert official_close(normal, want["normal"]) <= TOL
+    assert official_close(mask, want["mask"]) <= TOL
+    assert official_close(out["metric_scale"][0], want["metric_scale"]) <= TOL
 
 
 @pytest.mark.parametrize("known_fov", [False, True])
@@ -87,9 +81,9 @@ def test_pipeline_matches_official_infer(official, case, known_fov):
         want.update({k.split(".")[-1]: v for k, v in cases.items() if k.startswith(f"case{case}.infer_fov.")})
     assert 0.2 < valid.mean() < 0.8  # the random heads give a mixed mask: both branches are compared
     assert np.array_equal(result.valid, valid)
-    assert _close(result.intrinsics, want["intrinsics"]) <= TOL
-    assert _close(result.depth[valid], want["depth"][valid]) <= TOL
+    assert official_close(result.intrinsics, want["intrinsics"]) <= TOL
+    assert official_close(result.depth[valid], want["depth"][valid]) <= TOL
     assert np.isinf(result.depth[~valid]).all() and np.isinf(want["depth"][~valid]).all()
-    assert _close(result.points[valid], want["points"][valid]) <= TOL
+    assert official_close(result.points[valid], want["points"][valid]) <= TOL
     assert np.isinf(result.points[~valid]).all() and np.isinf(want["points"][~valid]).all()
-    assert _close(result.normal, want["normal"]) <= TOL
+    assert official_close(result.normal, want["normal"]) <= TOL

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import official_close
 
 from navcrafter.models.geometry.processing import (
     extri_intri_to_pose_encoding,
@@ -27,13 +28,6 @@ FIXTURE = Path(__file__).with_name("fixtures") / "official" / "vggt"
 TOL = 1e-4
 
 pytestmark = [pytest.mark.official_parity, pytest.mark.usefixtures("one_torch_thread")]
-
-
-def _close(got, want) -> float:
-    """Largest difference relative to max(1, the reference's largest magnitude)."""
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    assert got.shape == want.shape, (got.shape, want.shape)
-    return float(np.abs(got - want).max() / max(1.0, np.abs(want).max()))
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +60,7 @@ def test_aggregator_tokens_match(official):
         tokens = model.aggregator(cases["images"], tuple(range(model.config.depth)))
     assert model.aggregator.patch_start_idx == meta["patch_start_idx"]
     for i in range(model.config.depth):
-        assert _close(tokens[i], cases[f"aggregator.{i}"]) <= TOL, i
+        assert official_close(tokens[i], cases[f"aggregator.{i}"]) <= TOL, i
 
 
 def test_heads_match(official):
@@ -74,20 +68,20 @@ def test_heads_match(official):
     with torch.no_grad():
         pred = model(cases["images"])
     for name in ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf"):
-        assert _close(pred[name], cases[f"pred.{name}"]) <= TOL, name
+        assert official_close(pred[name], cases[f"pred.{name}"]) <= TOL, name
     # the confidences are 1 + exp(x): compared on log(c - 1) too, where small values are not hidden by 1
     for name in ("depth_conf", "world_points_conf"):
-        assert _close(torch.log(pred[name] - 1), torch.log(cases[f"pred.{name}"] - 1)) <= TOL, name
+        assert official_close(torch.log(pred[name] - 1), torch.log(cases[f"pred.{name}"] - 1)) <= TOL, name
 
 
 def test_pose_encoding_conversions_match(official):
     _, _, cases = official
     hw = (392, 518)
     enc = extri_intri_to_pose_encoding(cases["pose.extrinsics"].numpy(), cases["pose.intrinsics"].numpy(), hw)
-    assert _close(enc, cases["pose.encoding"]) <= 1e-6
+    assert official_close(enc, cases["pose.encoding"]) <= 1e-6
     ext, K = pose_encoding_to_extri_intri(cases["pose.encoding"].numpy(), hw)
-    assert _close(ext, cases["pose.extrinsics_back"]) <= 1e-6
-    assert _close(K, cases["pose.intrinsics_back"]) <= 1e-6
+    assert official_close(ext, cases["pose.extrinsics_back"]) <= 1e-6
+    assert official_close(K, cases["pose.intrinsics_back"]) <= 1e-6
 
 
 @pytest.mark.parametrize("name", ["crop_wide", "crop_tall", "pad_tall"])

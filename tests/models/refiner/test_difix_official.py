@@ -12,9 +12,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
+from helpers import official_close
 
 from navcrafter.models.refiner.difix import DifixConfig, DifixRefinerModel, load_difix_weights
 
@@ -22,13 +22,6 @@ FIXTURE = Path(__file__).with_name("fixtures") / "official" / "difix"
 TOL = 1e-4
 
 pytestmark = [pytest.mark.official_parity, pytest.mark.usefixtures("one_torch_thread")]
-
-
-def _close(got, want) -> float:
-    """Largest difference relative to max(1, the reference's largest magnitude)."""
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    assert got.shape == want.shape, (got.shape, want.shape)
-    return float(np.abs(got - want).max() / max(1.0, np.abs(want).max()))
 
 
 def _model(meta: dict, reference_mixing: bool) -> DifixRefinerModel:
@@ -67,12 +60,13 @@ def test_vae_encoder_and_decoder_with_skips_match(official):
     with torch.no_grad():
         mean, std, skips = model.encode(x)
         mean_ref, logvar_ref = c["encoder.moments"].chunk(2, dim=1)
-        assert _close(mean, mean_ref) <= TOL
-        assert _close(std, torch.exp(0.5 * logvar_ref.clamp(-30.0, 20.0))) <= TOL
+        assert official_close(mean, mean_ref) <= TOL
+        assert official_close(std, torch.exp(0.5 * logvar_ref.clamp(-30.0, 20.0))) <= TOL
         assert len(skips) == 4
         for i, s in enumerate(skips):
-            assert _close(s, c[f"encoder.skip{i}"]) <= TOL, i
-        assert _close(model.decode(mean_ref, [c[f"encoder.skip{i}"] for i in range(4)]), c["decoder.out"]) <= TOL
+            assert official_close(s, c[f"encoder.skip{i}"]) <= TOL, i
+        decoded = model.decode(mean_ref, [c[f"encoder.skip{i}"] for i in range(4)])
+        assert official_close(decoded, c["decoder.out"]) <= TOL
 
 
 @pytest.mark.parametrize("reference_mixing", [True, False])
@@ -84,7 +78,7 @@ def test_one_step_refinement_matches_difix_forward(official, reference_mixing):
     with torch.no_grad():
         out = model(views[:, 0], views[:, 1] if reference_mixing else None, c["prompt_embeds"],
                     latent_noise=c[f"{name}.latent_noise"])
-    assert _close(out, c[f"{name}.out"]) <= TOL
+    assert official_close(out, c[f"{name}.out"]) <= TOL
     assert 0.05 < c[f"{name}.out"].abs().mean() < 0.95  # not saturated by the final clamp
 
 

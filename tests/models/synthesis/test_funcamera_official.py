@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import official_close
 
 from navcrafter.models.synthesis.funcamera import fun_camera_pack, load_fun_camera
 
@@ -22,13 +23,6 @@ FIXTURE = Path(__file__).with_name("fixtures") / "official" / "funcamera"
 TOL = 1e-4
 
 pytestmark = [pytest.mark.official_parity, pytest.mark.usefixtures("one_torch_thread")]
-
-
-def _close(got, want) -> float:
-    """Largest difference relative to max(1, the reference's largest magnitude)."""
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    assert got.shape == want.shape, (got.shape, want.shape)
-    return float(np.abs(got - want).max() / max(1.0, np.abs(want).max()))
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +45,7 @@ def test_adapter_on_the_pipeline_packing_matches(official):
     _, model, cases = official
     with torch.no_grad():
         got = model.control_adapter(fun_camera_pack(cases["plucker"]))
-    assert _close(got, cases["adapter"]) <= TOL
+    assert official_close(got, cases["adapter"]) <= TOL
 
 
 @pytest.mark.parametrize("camera", [True, False])
@@ -61,5 +55,5 @@ def test_dit_forward_matches_wan_transformer3d(official, camera):
         pred = model(torch.cat([c["x"], c["y"]], dim=1), c["t"], c["context"], c["clip_fea"],
                      c["plucker"] if camera else None)
     want = c["noise_pred" if camera else "noise_pred_no_camera"]
-    assert _close(pred, want) <= TOL
+    assert official_close(pred, want) <= TOL
     assert np.abs(c["noise_pred"] - c["noise_pred_no_camera"]).max() > 0.1  # the rays do reach the output
