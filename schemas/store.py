@@ -39,6 +39,7 @@ import fsspec
 import numpy as np
 import zarr
 from fsspec.implementations.local import LocalFileSystem
+from zarr.errors import ContainsGroupError
 
 from navcrafter.schemas.layout import COMMON_ATTRS, SCHEMA_VERSION, StepSpec, scene_group
 from navcrafter.schemas.tables import Tables, atomic_write, utcnow
@@ -174,8 +175,11 @@ class Store:
             group = self._open_root(zstore)
         else:  # the root zarr.json is written once, with its version (another process may be reading)
             self.fs.makedirs(self.root, exist_ok=True)
-            group = zarr.open_group(store=zstore, mode="a", zarr_format=3,
-                                    attributes={"navcrafter_schema_version": SCHEMA_VERSION})
+            try:
+                group = zarr.open_group(store=zstore, mode="a", zarr_format=3,
+                                        attributes={"navcrafter_schema_version": SCHEMA_VERSION})
+            except ContainsGroupError:  # another process created it since the check: open theirs
+                group = self._open_root(zstore)
         self.group = group
         self.tables = Tables(self.fs, self.root, self.local)
 

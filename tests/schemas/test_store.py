@@ -207,3 +207,25 @@ def test_compaction_races_with_writers_and_readers(tmp_path):
     rows = t.read("steps").to_pylist()
     assert sorted((r["scene_id"], r["step"]) for r in rows) == sorted((f"s{i}", f"x{j}") for i in range(3)
                                                                       for j in range(15))
+
+
+def test_a_store_another_process_creates_meanwhile_is_opened_not_a_crash(tmp_path, monkeypatch):
+    """Two runs starting on a new store at once: both see no root and create it; zarr raises ContainsGroupError in the
+    one that comes second, which then opens the other's (before: `ingest crashed: ContainsGroupError`, once in a
+    fresh-clone run of the concurrent-runs flow test)."""
+    import zarr
+    from zarr.errors import ContainsGroupError
+
+    uri = str(tmp_path / "store")
+    real_open = zarr.open_group
+    raced = []
+
+    def open_group(*args, mode=None, **kwargs):
+        if mode == "a" and not raced:  # the other process writes the root between our check and our create
+            raced.append(real_open(*args, mode=mode, **kwargs))
+            raise ContainsGroupError("A group exists in store at path ''.")
+        return real_open(*args, mode=mode, **kwargs)
+
+    monkeypatch.setattr(zarr, "open_group", open_group)
+    store = Store(uri)
+    assert raced and store.group.attrs["navcrafter_schema_version"] == raced[0].attrs["navcrafter_schema_version"]
