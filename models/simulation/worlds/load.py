@@ -34,7 +34,7 @@ import numpy as np
 import open3d as o3d
 
 from navcrafter.models.simulation.worlds import WorldError
-from navcrafter.models.simulation.worlds.world import NEUTRAL_NOTE, World, sample_surface
+from navcrafter.models.simulation.worlds.world import NEUTRAL_NOTE, World, ransac_planes
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 CLOUD_SUFFIXES = (".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".ply")
@@ -368,30 +368,15 @@ def find_up(corners: np.ndarray, seed: int = 0, hint: np.ndarray | None = None) 
     ceiling) the floor is the one nearer most of the remaining surface (furniture stands on the floor).
     ``hint`` (an RGB-D sequence's mean camera up, people hold cameras upright): the bounding plane within 25
     degrees of it, else the hint itself."""
-    rng = np.random.default_rng(seed)
-    pts = sample_surface(corners, 30000, rng)
+    pts, thr, fits, rest = ransac_planes(corners, 30000, 6, 0.05, seed)
     diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
-    thr = max(0.005 * diag, 1e-6)
-    o3d.utility.random.seed(seed)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    rest = np.ones(len(pts), dtype=bool)
     planes = []
-    for _ in range(6):
-        idx = np.flatnonzero(rest)
-        if len(idx) < 0.05 * len(pts):
-            break
-        model, inl = pcd.select_by_index(idx).segment_plane(thr, 3, 1000)
-        if len(inl) < 0.05 * len(pts):
-            break
-        n, d = np.asarray(model[:3]), float(model[3])
-        k = np.linalg.norm(n)
-        n, d = n / k, d / k
+    for n, d, count in fits:
         s = pts @ n + d
         if (s < thr).mean() > (s > -thr).mean():
             n, d, s = -n, -d, -s
         planes.append({"n": n, "d": d, "bounding": (s > -thr).mean() >= 0.95, "extent": float(np.percentile(s, 98)),
-                       "count": len(inl)})
-        rest[idx[np.asarray(inl)]] = False
+                       "count": count})
     if hint is not None:  # the cameras' up (RGB-D): the floor is a bounding plane within 25 degrees of it
         near = [p for p in planes if p["bounding"] and p["n"] @ hint > np.cos(np.deg2rad(25))]
         if near:

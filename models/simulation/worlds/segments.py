@@ -6,36 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.simulation.worlds.world import World, sample_surface
+from navcrafter.models.simulation.worlds.world import World, ransac_planes
 
 MAX_OBJECT_M = 3.0  # a patch larger than this is structure (the largest generated furniture is ~2.2 m)
 
 
 def _planes(corners: np.ndarray, seed: int = 0) -> list[tuple[np.ndarray, float, float]]:
     """Bounding RANSAC planes ``(n, d, threshold)`` of the surface (``load.find_up``'s fits)."""
-    import open3d as o3d
-
-    pts = sample_surface(corners, 20000, np.random.default_rng(seed))
-    diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
-    thr = max(0.005 * diag, 1e-6)
-    o3d.utility.random.seed(seed)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    rest = np.ones(len(pts), dtype=bool)
+    pts, thr, planes, _ = ransac_planes(corners, 20000, 8, 0.03, seed)
     out = []
-    for _ in range(8):
-        idx = np.flatnonzero(rest)
-        if len(idx) < 0.03 * len(pts):
-            break
-        model, inl = pcd.select_by_index(idx).segment_plane(thr, 3, 1000)
-        if len(inl) < 0.03 * len(pts):
-            break
-        n, d = np.asarray(model[:3]), float(model[3])
-        k = np.linalg.norm(n)
-        n, d = n / k, d / k
+    for n, d, _ in planes:
         s = pts @ n + d
         if max((s > -thr).mean(), (s < thr).mean()) >= 0.95:
             out.append((n, d, thr))
-        rest[idx[np.asarray(inl)]] = False
     return out
 
 

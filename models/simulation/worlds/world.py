@@ -133,3 +133,34 @@ def sample_surface(corners: np.ndarray, n: int, rng: np.random.Generator) -> np.
     s = np.sqrt(r1)
     w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
     return (corners[f] * w[:, :, None]).sum(1)
+
+
+def ransac_planes(corners: np.ndarray, n_points: int, max_planes: int, min_share: float, seed: int = 0
+                  ) -> tuple[np.ndarray, float, list[tuple[np.ndarray, float, int]], np.ndarray]:
+    """Planes of the surface found one after another by RANSAC (Open3D ``segment_plane``) on ``n_points`` points
+    drawn from it, each fitted to the points the earlier ones left, until ``max_planes`` or one holds fewer than
+    ``min_share`` of them: ``(points, threshold, [(unit normal n, d, inliers)], rest)`` with ``n . x + d = 0`` on
+    the plane, the threshold 0.5 % of the points' diagonal and ``rest`` the points on none of the planes
+    (``load.find_up`` and ``segments`` read them)."""
+    # deferred: open3d loads only when a scan is read or segmented
+    import open3d as o3d
+
+    pts = sample_surface(corners, n_points, np.random.default_rng(seed))
+    diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    thr = max(0.005 * diag, 1e-6)
+    o3d.utility.random.seed(seed)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    rest = np.ones(len(pts), dtype=bool)
+    planes = []
+    for _ in range(max_planes):
+        idx = np.flatnonzero(rest)
+        if len(idx) < min_share * len(pts):
+            break
+        model, inl = pcd.select_by_index(idx).segment_plane(thr, 3, 1000)
+        if len(inl) < min_share * len(pts):
+            break
+        n, d = np.asarray(model[:3]), float(model[3])
+        k = np.linalg.norm(n)
+        planes.append((n / k, d / k, len(inl)))
+        rest[idx[np.asarray(inl)]] = False
+    return pts, thr, planes, rest
