@@ -39,4 +39,9 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main(sys.argv[1:]))
+    code = main(sys.argv[1:])
+    # gloo's background threads can abort the interpreter's normal teardown ("terminate called without an active
+    # exception", exit -6) after the group was destroyed and every result written; leave without it.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

@@ -21,7 +21,7 @@ from navcrafter.models.synthesis.training import CameraTrainer, latest_checkpoin
 DROPOUT_SEED = 7  # camera dropped for samples [1, 1, 0, 0, 1, 0]: step 1 on both ranks, step 3 on one
 
 FSDP = textwrap.dedent("""
-    import json, sys
+    import json, os, sys
     from pathlib import Path
     sys.path.insert(0, {tests!r})
     import torch, torch.distributed as dist
@@ -49,7 +49,10 @@ FSDP = textwrap.dedent("""
     run("resumed", config(**fsdp), resume=out / "single-run", steps=6)  # from a single-process checkpoint
     # (with activation checkpointing, the default of real runs; the reference runs without: same numbers)
     run("dropout", config(**fsdp, camera_dropout=0.5, seed={dropout_seed}, gradient_checkpointing=True))
+    dist.barrier()  # no rank tears the group down while the other still writes
     dist.destroy_process_group()
+    sys.stdout.flush(); sys.stderr.flush()
+    os._exit(0)  # gloo's threads can abort the interpreter's normal exit ("terminate called ...")
 """)
 
 

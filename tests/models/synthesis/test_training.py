@@ -149,7 +149,10 @@ DDP = textwrap.dedent("""
     if rank == 0:
         torch.save(tr.model.control.state_dict(), sys.argv[1])
         json.dump([h["loss"] for h in st.history], open(sys.argv[1] + ".json", "w"))
+    dist.barrier()  # no rank tears the group down while the other still writes
     dist.destroy_process_group()
+    sys.stdout.flush(); sys.stderr.flush()
+    os._exit(0)  # gloo's threads can abort the interpreter's normal exit ("terminate called ...")
 """)
 
 
