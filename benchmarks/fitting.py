@@ -297,7 +297,7 @@ SPARSE_VARIANTS = ("none", "depth", "dropgaussian", "longer", "refine", "oracle_
 PAIRS = {"depth": ("none", "depth"), "dropgaussian": ("depth", "dropgaussian"), "refine": ("longer", "refine"),
          "oracle_depth": ("none", "oracle_depth"), "depth_sparse_init": ("sparse_init", "sparse_init_depth")}
 DROP_GAMMA = 0.2  # DropGaussian's paper schedule: r_t = 0.2 t / T over the whole fit
-LAMBDA_GRID = (0.03, 0.1, 0.3, 1.0)
+LAMBDA_GRID = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)  # 3 and 10: the grid went on past 1, its best before
 SPARSE_INIT_FRACTION = 0.1
 CONVERGENCE_TOL = 0.02
 VISIBILITY_TOL = 0.03
