@@ -88,3 +88,29 @@ def test_tiny_run_writes_the_table(fb, tmp_path):
     assert set(res["paired"]["3"]) == set(fb.PAIRS)
     assert res["views"]["3"]["longer"]["fits"][0]["iterations"] == 10 + 10
     assert "sparse views" in (out / "results.md").read_text()
+
+
+def test_hallucinated_training_pixels_witness_nothing(fb, monkeypatch):
+    """A test pixel counts as seen only through training pixels whose generated frame showed the truth there."""
+    import numpy as np
+
+    from navcrafter.tasks import readers
+
+    true = np.full((8, 8), 2.0)
+    hallucinated = true.copy()
+    hallucinated[:, :4] = 3.0  # the video model put the left half 1 m further away
+    shown = {0: true, 1: hallucinated}
+    monkeypatch.setattr(readers, "frame_truth", lambda scene, k, idx: (None, [shown[idx[0]]]))
+    sc = object.__new__(fb.SparseScene)
+    sc.scene, sc.refs, sc.h, sc.w = None, [(1, 0), (1, 1), (2, 0)], 8, 8
+    sc._true_depth = {0: true, 1: true}
+    sc.true_c2w = np.stack([np.eye(4)] * 3)
+    sc.K = np.stack([np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]])] * 3)
+    sc.test, sc.test_depth = np.array([2]), [true]
+    assert fb.SparseScene.shown_truthfully(sc, 0).all()
+    half = fb.SparseScene.shown_truthfully(sc, 1)
+    assert not half[:, :4].any() and half[:, 4:].all()
+    (m,) = fb.SparseScene.masks(sc, np.array([1]))
+    assert not m[:, :4].any() and m[:, 4:].all()
+    (m,) = fb.SparseScene.masks(sc, np.array([0, 1]))
+    assert m.all()
