@@ -556,6 +556,50 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
     return least_bad
 
 
+def retreat_trajectory(current: np.ndarray, centre: np.ndarray, d0: float, detector: CollisionDetector,
+                       num: int, steps: tuple[float, ...] = (0.5, 1.0, 2.0, 3.0, 4.0),
+                       target: float = 3.0) -> np.ndarray | None:
+    """The fallback when no planned path passes G: a short straight move (``num`` poses, rotations by SLERP) to
+    the position of most clearance from every observed surface among positions ``steps`` x r_safe from the current
+    camera (at most 0.3 d0) in 26 directions, towards ``o`` and away from the nearest cloud point; every end looks
+    at ``o``. Only paths that pass G whole count (the follow error included, the escape from a start too near a
+    surface forgiven). Clearance counts up to ``target`` x r_safe; among ends that reach it (or tie) the shortest move
+    wins (less drift). None when no move passes G (the caller then keeps the camera still).
+
+    Why: standing still is not safe when an earlier clip's true camera drifted next to a surface that the cloud
+    places a little further away (the demo room: 0.26 m from a true wall with r_safe 0.28 m; two static clips put
+    all 162 of their frames within r_safe). Moving to the most clearance G knows of takes the camera away from the
+    surfaces it knows, which is where such a drift came from."""
+    x0 = np.asarray(current[:3, 3], dtype=np.float64)
+    c = np.asarray(centre, dtype=np.float64)
+    grid = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
+    dirs = [g / np.linalg.norm(g) for g in grid if np.abs(g).sum() > 0]
+    if np.linalg.norm(c - x0) > 1e-9:
+        dirs.append((c - x0) / np.linalg.norm(c - x0))
+    if detector.tree is not None:
+        _, i = detector.tree.query(x0)
+        away = x0 - detector.points[i]
+        if np.linalg.norm(away) > 1e-9:
+            dirs.append(away / np.linalg.norm(away))
+    dirs_a = np.stack(dirs)
+    lengths = np.minimum(np.asarray(steps, dtype=np.float64) * detector.r_safe, 0.3 * d0)
+    ends = (x0[None, None] + lengths[None, :, None] * dirs_a[:, None]).reshape(-1, 3)
+    length = np.broadcast_to(lengths[None], (len(dirs_a), len(lengths))).reshape(-1)
+    cap = target * detector.r_safe
+    value = np.minimum(detector.clearance(ends), cap)
+    value[detector.collides(ends)] = -np.inf  # an end G rejects on its own
+    forward = current[:3, 2] - (current[:3, 2] @ WORLD_UP) * WORLD_UP
+    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    for j in np.lexsort((length, -value)):  # most clearance first, then the shortest move
+        if not np.isfinite(value[j]):
+            break
+        end = look_at_centre(ends[j], c, forward)
+        traj = interpolate_poses(current, end, num)
+        if not detector.trajectory_collides(traj):
+            return traj
+    return None
+
+
 # --------------------------------------------------------------------------------------------------
 # Planners
 # --------------------------------------------------------------------------------------------------
@@ -584,7 +628,9 @@ class PlanResult:
     chosen: int  # index into candidates, -1 when the camera stays put
     optimised: bool = False
     collision_free: bool | None = None  # None: the planner does not check
-    fallback: str = ""  # "", "next-candidate" (the best one had no safe path) or "static"
+    # "", "next-candidate" (the best one had no safe path), "shortened-<f>" (explorer), "retreat" (no candidate had a
+    # safe path: a move to the most clearance, ``retreat_trajectory``) or "static" (not even that passed G)
+    fallback: str = ""
     rounds: int = 1
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -664,9 +710,13 @@ class CollisionAwarePlanner:
                 return self._result(opt.trajectory, initial, cands_a, scores_a, collides_a, masks_a, int(i),
                                     opt.optimised, "" if rank == 0 else "next-candidate", rounds, t0, t_tree,
                                     t_score)
-        static = np.repeat(state.current[None], T, axis=0)
-        return self._result(static, first_initial if first_initial is not None else static, cands_a, scores_a,
-                            collides_a, masks_a, -1, False, "static", rounds, t0, t_tree, t_score)
+        # no candidate has a path G passes: back away to the most clearance G knows of; only if no move passes G
+        # either, the camera stays put
+        retreat = retreat_trajectory(state.current, state.centre, state.d0, detector, T)
+        final = retreat if retreat is not None else np.repeat(state.current[None], T, axis=0)
+        return self._result(final, first_initial if first_initial is not None else final, cands_a, scores_a,
+                            collides_a, masks_a, -1, False, "retreat" if retreat is not None else "static", rounds,
+                            t0, t_tree, t_score)
 
     @staticmethod
     def _result(traj, initial, cands, scores, collides, masks, chosen, optimised, fallback, rounds, t0, t_tree,

@@ -18,9 +18,10 @@ from navcrafter.models.planning.explore import (
     ExplorerPlanner,
     VoxelMap,
     anchored_pixels,
+    repairable,
     shaped_trajectory,
 )
-from navcrafter.models.planning.planners import CollisionDetector, PlanningState, SeenView
+from navcrafter.models.planning.planners import CollisionDetector, PlanningState, SeenView, retreat_trajectory
 from navcrafter.models.planning.registry import PLANNERS
 from navcrafter.schemas.config import PlanConfig
 
@@ -104,7 +105,7 @@ def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying():
         assert (scene.distance(res.trajectory[:, :3, 3]) > 0.2).all()
         assert res.scores[res.chosen] > 0
     else:
-        assert res.fallback == "static" and np.allclose(res.trajectory, state.current)
+        assert res.fallback in ("retreat", "static")
 
 
 def test_a_generated_frame_carves_free_space_only_where_it_copied_the_cloud_it_was_shown():
@@ -164,3 +165,69 @@ def test_the_paper_planner_may_also_back_away_from_a_start_too_near_a_surface():
     closer = away.copy()
     closer[1, 2, 3] = 3.9
     assert det.path_flags(closer)[0][1]
+
+
+# --------------------------------------------------------------------------------------------------
+# The fallback when no planned path passes G (planners.retreat_trajectory), and what the optimisation can repair
+# --------------------------------------------------------------------------------------------------
+def near_wall_state() -> PlanningState:
+    """``wall_state`` with the camera drifted to 0.3 m from the wall (r_safe 0.25), still looking at it."""
+    state = wall_state()
+    current = np.eye(4)
+    current[:3, 3] = [0.5, 0.0, 3.7]
+    return dataclasses.replace(state, current=current)
+
+
+def test_the_retreat_backs_away_from_the_nearest_surface_on_a_path_g_passes():
+    state = near_wall_state()
+    det = CollisionDetector(state.cloud_points, 0.25, state.views, follow_error=0.1)
+    traj = retreat_trajectory(state.current, state.centre, state.d0, det, 21)
+    assert traj is not None and traj.shape == (21, 4, 4) and np.array_equal(traj[0], state.current)
+    assert not det.trajectory_collides(traj)
+    start, end = det.clearance(traj[[0, -1], :3, 3])
+    assert end > start + 0.25 and end >= 0.5  # well away from the wall, not just over the line
+    blind = CollisionDetector(state.cloud_points, 0.25, [], follow_error=0.1)  # nothing seen free: no move passes
+    assert retreat_trajectory(state.current, state.centre, state.d0, blind, 21) is None
+
+
+@pytest.mark.parametrize("name", ["collision_aware", "explorer"])
+def test_a_planner_with_no_safe_path_retreats_instead_of_standing_next_to_the_wall(name, monkeypatch):
+    """Before: with no candidate path passing G both planners kept the camera still (the demo room: two static
+    clips 0.26 m from a wall, 162 collision frames). Here no planned path can pass: the paper planner's optimisation
+    never finds one, and every explorer path (shortened ones too) has a frame behind the wall."""
+    import navcrafter.models.planning.explore as explore_mod
+    import navcrafter.models.planning.planners as planners_mod
+
+    def fail(trajectory, detector, centre, smoothness=1.0, **_):
+        return planners_mod.OptimisationResult(trajectory, False, True)
+
+    shaped = explore_mod.shaped_trajectory
+
+    def through_wall(current, end, centre, num, shape):
+        out = shaped(current, end, centre, num, shape)
+        out[num // 2, :3, 3] = [0.0, 0.0, 4.8]
+        return out
+
+    monkeypatch.setattr(planners_mod, "optimise_trajectory", fail)
+    monkeypatch.setattr(explore_mod, "shaped_trajectory", through_wall)
+    state = near_wall_state()
+    res = PLANNERS[name](PlanConfig(explore_candidates=9)).plan(state, np.random.default_rng(0))
+    assert res.fallback == "retreat" and res.chosen == -1
+    det = CollisionDetector(state.cloud_points, 0.25, state.views)
+    start, end = det.clearance(res.trajectory[[0, -1], :3, 3])
+    assert end > start + 0.25
+
+
+def test_the_optimisation_is_not_tried_on_paths_it_cannot_repair():
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, follow_error=0.1)
+    path = np.repeat(np.eye(4)[None], 11, 0)
+    path[:, 2, 3] = np.linspace(0.0, 2.0, 11)  # towards the wall in seen free space, ending 2 m from it
+    assert repairable(det, path) and not det.trajectory_collides(path)
+    to_wall = path.copy()
+    to_wall[:, 2, 3] = np.linspace(0.0, 3.65, 11)  # ends 0.35 from the wall: past r_safe, short of r_safe + 0.1 x 3.8
+    assert det.trajectory_collides(to_wall) and not repairable(det, to_wall)
+    behind = path.copy()
+    behind[5, 2, 3] = 4.8  # one frame behind the wall: not admissible, the optimiser has no term for it
+    assert not repairable(det, behind)
