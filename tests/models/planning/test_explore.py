@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_planning import box, observe, room_state, scene_of
 
-from navcrafter.models.camera.cameras import Intrinsics, look_at
+from navcrafter.models.camera.cameras import Intrinsics, camera_directions, look_at
 from navcrafter.models.planning.explore import (
     FREE,
     OCCUPIED,
@@ -21,7 +21,13 @@ from navcrafter.models.planning.explore import (
     repairable,
     shaped_trajectory,
 )
-from navcrafter.models.planning.planners import CollisionDetector, PlanningState, SeenView, retreat_trajectory
+from navcrafter.models.planning.planners import (
+    CollisionDetector,
+    PlanningState,
+    SeenView,
+    retrace_trajectory,
+    retreat_trajectory,
+)
 from navcrafter.models.planning.registry import PLANNERS
 from navcrafter.schemas.config import PlanConfig
 
@@ -231,3 +237,107 @@ def test_the_optimisation_is_not_tried_on_paths_it_cannot_repair():
     behind = path.copy()
     behind[5, 2, 3] = 4.8  # one frame behind the wall: not admissible, the optimiser has no term for it
     assert not repairable(det, behind)
+
+
+# --------------------------------------------------------------------------------------------------
+# The numba kernels against the numpy arithmetic they replaced
+# --------------------------------------------------------------------------------------------------
+def _reference_gain(vmap: VoxelMap, poses: np.ndarray, unit: np.ndarray, dist: np.ndarray, weight: np.ndarray,
+                    per_frame: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Every sample of every ray at once (the explorer's former numpy ``_cast``), reduced per frame or over all."""
+    d_world = np.einsum("rj,fij->fri", unit, poses[:, :3, :3])
+    pts = poses[:, None, None, :3, 3] + dist[None, None, :, None] * d_world[:, :, None, :]
+    idx, st = vmap.lookup(pts)
+    occ = st == OCCUPIED
+    hit = occ.any(2)
+    first = np.where(hit, occ.argmax(2), len(dist))
+    unk = (st == UNKNOWN) & (np.arange(len(dist))[None, None, :] < first[..., None])
+    w = np.broadcast_to(weight[None], unk.shape)
+    frames = range(len(poses)) if per_frame else [slice(None)]
+    gain = []
+    for f in frames:
+        best: dict[int, float] = {}
+        for c, x in zip(idx[f][unk[f]].ravel(), w[f][unk[f]].ravel()):
+            best[int(c)] = max(best.get(int(c), 0.0), float(x))
+        gain.append(sum(best.values()))
+    return np.array(gain), hit.mean(1)
+
+
+def test_the_ray_march_and_carving_kernels_agree_with_the_numpy_arithmetic():
+    from navcrafter.models.planning.voxel_kernels import march
+
+    scene, state = room_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 24)
+    # the carving kernel: the input view's free cells are those in front of its depth, by the same projection
+    idx = np.stack(np.meshgrid(*[np.arange(24)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    centres = vmap.origin + (idx + 0.5) * vmap.voxel
+    v = state.views[0]
+    pc = centres @ v.c2w[:3, :3] - v.c2w[:3, 3] @ v.c2w[:3, :3]
+    z = pc[:, 2]
+    ok = z > 1e-6
+    u = np.floor(v.K[0, 0] * pc[:, 0] / np.where(ok, z, 1) + v.K[0, 2]).astype(int)
+    w = np.floor(v.K[1, 1] * pc[:, 1] / np.where(ok, z, 1) + v.K[1, 2]).astype(int)
+    ok &= (u >= 0) & (u < 64) & (w >= 0) & (w < 64)
+    d = np.where(ok, v.depth[np.clip(w, 0, 63), np.clip(u, 0, 63)], 0)
+    free = ok & (d > 0) & (z < d - vmap.voxel)
+    occupied = vmap.state == OCCUPIED
+    assert free.sum() > 100
+    np.testing.assert_array_equal(vmap.state == FREE, free & ~occupied)  # a cloud point's cell stays occupied
+    # the march: random poses about the room, per frame and as one union
+    rng = np.random.default_rng(3)
+    poses = np.stack([look_at(rng.uniform([-2, -1, 0.5], [2, 1, 4]), rng.uniform([-2, -1, 3], [2, 1, 7]))
+                      for _ in range(6)])
+    dirs = camera_directions(Intrinsics.from_fov(80, 8, 8).K, 8, 8).reshape(-1, 3)
+    unit = dirs / np.linalg.norm(dirs, axis=1)[:, None]
+    dist = (np.arange(40) + 0.5) * vmap.voxel
+    weight = rng.random((len(unit), len(dist)))
+    for per_frame in (True, False):
+        ref_gain, ref_hit = _reference_gain(vmap, poses, unit, dist, weight, per_frame)
+        group = np.arange(6) if per_frame else np.zeros(6, dtype=np.int64)
+        gain, hit = march(vmap.state, vmap.size, vmap.origin, float(vmap.voxel),
+                          np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3]),
+                          np.ascontiguousarray(unit), dist, weight, group, len(ref_gain))
+        assert ref_gain.sum() > 1
+        np.testing.assert_allclose(gain, ref_gain, rtol=1e-9)
+        np.testing.assert_allclose(hit, ref_hit)
+
+
+def test_the_splat_kernel_renders_the_point_renderers_depth():
+    from navcrafter.models.camera.cameras import invert_pose
+    from navcrafter.models.planning.voxel_kernels import splat_depth
+    from navcrafter.models.reconstruction.pointrender import render_points
+
+    _, state = room_state()
+    rng = np.random.default_rng(1)
+    pts = state.cloud_points[rng.permutation(len(state.cloud_points))[:3000]]
+    for c2w in (np.eye(4), look_at(np.array([0.5, -0.3, 1.0]), np.array([-1.0, 0.5, 6.0]))):
+        for size in (0.02, 0.2):
+            ref = render_points(pts, c2w, K.K, 64, 48, size)
+            d = splat_depth(pts.astype(np.float32), invert_pose(c2w).astype(np.float32), K.K.astype(np.float32),
+                            64, 48, size, 3, 1e-3)
+            assert ref.mask.mean() > 0.05
+            np.testing.assert_array_equal(d > 0, ref.mask)
+            np.testing.assert_allclose(d, ref.depth, rtol=1e-5)
+
+
+def test_the_retrace_goes_back_along_the_earlier_cameras_past_what_their_clip_put_on_the_path():
+    from test_planning import observe as observe_views
+
+    scene = scene_of(box(-3, -3, 4.0, 6, 6, 0.2))
+    path = [np.eye(4)]
+    for z in (0.8, 1.6, 2.4, 3.2, 3.7):
+        p = np.eye(4)
+        p[:3, 3] = [0.0, 0.2 * z, z]  # the earlier clip came in along this line, ending 0.3 from the wall
+        path.append(p)
+    cloud, views = observe_views(scene, path, K)
+    phantom = np.array([[0.05, 0.2 * z, z] for z in np.linspace(1.0, 3.0, 20)])  # the clip's lifting drew these
+    det = CollisionDetector(np.concatenate([cloud, phantom]), 0.25, views, follow_error=0.1)
+    current = path[-1]
+    assert det.clearance(phantom[:1])[0] < 0.1  # G sees a surface on the way back
+    traj = retrace_trajectory(current, np.array([0.0, 0.0, 3.0]), 3.0, det, 21)
+    assert traj is not None and np.array_equal(traj[0], current)
+    x = traj[:, :3, 3]
+    assert x[-1, 2] < 3.7 - 0.5 and np.all(np.diff(x[:, 2]) <= 1e-9)  # back, never forwards
+    np.testing.assert_allclose(x[:, 1], 0.2 * x[:, 2], atol=1e-9)  # on the earlier cameras' line
+    alone = CollisionDetector(cloud, 0.25, views[-1:], follow_error=0.1)  # no earlier camera to go back to
+    assert retrace_trajectory(current, np.array([0.0, 0.0, 3.0]), 3.0, alone, 21) is None
