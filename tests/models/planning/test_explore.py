@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from test_planning import box, observe, room_state, scene_of
 
-from navcrafter.models.camera.cameras import Intrinsics, camera_directions, look_at
+import navcrafter.models.planning.explore as explore_mod
+import navcrafter.models.planning.planners as planners_mod
+from navcrafter.models.camera.cameras import Intrinsics, camera_directions, invert_pose, look_at
 from navcrafter.models.planning.explore import (
     FREE,
     OCCUPIED,
@@ -29,6 +31,8 @@ from navcrafter.models.planning.planners import (
     retreat_trajectory,
 )
 from navcrafter.models.planning.registry import PLANNERS
+from navcrafter.models.planning.voxel_kernels import march, splat_depth
+from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.config import PlanConfig
 
 K = Intrinsics.from_fov(80, 64, 64)
@@ -201,8 +205,6 @@ def test_a_planner_with_no_safe_path_moves_away_instead_of_standing_next_to_the_
     """Before: with no candidate path passing G both planners kept the camera still (the demo room: two static
     clips 0.26 m from a wall, 162 collision frames). Here no planned path can pass: the paper planner's optimisation
     never finds one, and every explorer path (shortened ones too) has a frame behind the wall."""
-    import navcrafter.models.planning.explore as explore_mod
-    import navcrafter.models.planning.planners as planners_mod
 
     def fail(trajectory, detector, centre, smoothness=1.0, **_):
         return planners_mod.OptimisationResult(trajectory, False, True)
@@ -264,7 +266,6 @@ def _reference_gain(vmap: VoxelMap, poses: np.ndarray, unit: np.ndarray, dist: n
 
 
 def test_the_ray_march_and_carving_kernels_agree_with_the_numpy_arithmetic():
-    from navcrafter.models.planning.voxel_kernels import march
 
     scene, state = room_state()
     vmap = VoxelMap.build(state, state.cloud_points, 24)
@@ -303,9 +304,6 @@ def test_the_ray_march_and_carving_kernels_agree_with_the_numpy_arithmetic():
 
 
 def test_the_splat_kernel_renders_the_point_renderers_depth():
-    from navcrafter.models.camera.cameras import invert_pose
-    from navcrafter.models.planning.voxel_kernels import splat_depth
-    from navcrafter.models.reconstruction.pointrender import render_points
 
     _, state = room_state()
     rng = np.random.default_rng(1)
@@ -321,7 +319,6 @@ def test_the_splat_kernel_renders_the_point_renderers_depth():
 
 
 def test_the_retrace_goes_back_along_the_earlier_cameras_past_what_their_clip_put_on_the_path():
-    from test_planning import observe as observe_views
 
     scene = scene_of(box(-3, -3, 4.0, 6, 6, 0.2))
     path = [np.eye(4)]
@@ -329,7 +326,7 @@ def test_the_retrace_goes_back_along_the_earlier_cameras_past_what_their_clip_pu
         p = np.eye(4)
         p[:3, 3] = [0.0, 0.2 * z, z]  # the earlier clip came in along this line, ending 0.3 from the wall
         path.append(p)
-    cloud, views = observe_views(scene, path, K)
+    cloud, views = observe(scene, path, K)
     phantom = np.array([[0.05, 0.2 * z, z] for z in np.linspace(1.0, 3.0, 20)])  # the clip's lifting drew these
     det = CollisionDetector(np.concatenate([cloud, phantom]), 0.25, views, follow_error=0.1)
     current = path[-1]
