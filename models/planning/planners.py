@@ -556,6 +556,122 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
     return least_bad
 
 
+def _directions26() -> np.ndarray:
+    grid = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
+    grid = grid[np.abs(grid).sum(1) > 0]
+    return grid / np.linalg.norm(grid, axis=1)[:, None]
+
+
+def free_depth(x: np.ndarray, detector: CollisionDetector, reach: float, rings: int = 6) -> np.ndarray:
+    """Per position ``[M, 3]``: the distance (up to ``reach``) to the nearest space no earlier view saw free
+    (``detector.seen_free``), probed in 26 directions at ``rings`` distances; ``reach`` if every probe is free."""
+    radii = reach * np.arange(1, rings + 1) / rings
+    probes = x[:, None, None] + radii[None, :, None, None] * _directions26()[None, None]  # [M, rings, 26, 3]
+    free = detector.seen_free(probes.reshape(-1, 3)).reshape(len(x), rings, -1).all(2)  # [M, rings]
+    blocked = ~free
+    return np.where(blocked.any(1), radii[np.argmax(blocked, axis=1)] - reach / rings, reach)
+
+
+def retrace_trajectory(current: np.ndarray, centre: np.ndarray, d0: float, detector: CollisionDetector, num: int,
+                       length: float = 0.3) -> np.ndarray | None:
+    """Back the way the camera came: ``num`` poses along the earlier cameras' positions (the views' centres, latest
+    first, starting from the one nearest the current camera) for an arc length of ``length`` x d0 (at least
+    2 r_safe; less if the earlier path is shorter), rotations by SLERP to a pose there looking at ``o``. None if
+    the earlier cameras are within r_safe of the current one, or a pose would go below the ground plane.
+
+    The path is held neither to the clearance from the cloud nor to the seen free space: the camera passed there in
+    truth (a clip that G had passed, the explorer's through unknown space it had looked at first), and what the
+    cloud puts on that path comes from the lifted frames of the same clip (the demo room: its estimated cloud lies
+    0.03 m from the clip's estimated cameras, whose true clearance was 0.42 m)."""
+    x0 = np.asarray(current[:3, 3], dtype=np.float64)
+    cams = detector.centres[::-1]
+    if len(cams) == 0:
+        return None
+    start = int(np.argmin(np.linalg.norm(cams - x0, axis=1)))
+    poly = np.concatenate([x0[None], cams[start:]])
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    total = min(arc[-1], max(length * d0, 2 * detector.r_safe))
+    if total < detector.r_safe:
+        return None
+    s = np.linspace(0.0, total, num)
+    pos = np.stack([np.interp(s, arc, poly[:, i]) for i in range(3)], 1)
+    forward = current[:3, 2] - (current[:3, 2] @ WORLD_UP) * WORLD_UP
+    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    end = look_at_centre(pos[-1], np.asarray(centre, dtype=np.float64), forward)
+    traj = interpolate_poses(current, end, num)
+    traj[:, :3, 3] = pos
+    traj[-1] = end
+    if detector.ground is not None and (pos @ detector.ground[0] + detector.ground[1] < 0).any():
+        return None
+    return traj
+
+
+def fallback_move(current: np.ndarray, centre: np.ndarray, d0: float, detector: CollisionDetector,
+                  num: int) -> tuple[np.ndarray, str]:
+    """What a planner does when no planned path passes G: back the way the camera came (``retrace_trajectory``);
+    with no earlier path to retrace (the first clip), a retreat G passes (``retreat_trajectory``); else the camera
+    stays put. Returns the path and its name ("retrace", "retreat", "static").
+
+    Retrace first: planning fails where the last clip's drift left the camera somewhere the estimate gets wrong
+    (the demo room: 0.26 m from a ceiling nobody had seen; development street 0: 0.04 m from a surface the cloud
+    lacked, after a 13 m dolly), and the way it came is the one stretch of space it is known to have passed; a
+    retreat there chose a 0.25 m move, as the estimate showed nothing near, and 24 of the clip's 25 frames stayed
+    within r_safe."""
+    retrace = retrace_trajectory(current, centre, d0, detector, num)
+    if retrace is not None:
+        return retrace, "retrace"
+    retreat = retreat_trajectory(current, centre, d0, detector, num)
+    if retreat is not None:
+        return retreat, "retreat"
+    return np.repeat(current[None], num, axis=0), "static"
+
+
+def retreat_trajectory(current: np.ndarray, centre: np.ndarray, d0: float, detector: CollisionDetector,
+                       num: int, steps: tuple[float, ...] = (0.5, 1.0, 2.0, 3.0, 4.0),
+                       target: float = 3.0) -> np.ndarray | None:
+    """The fallback when no planned path passes G: a short straight move (``num`` poses, rotations by SLERP) to
+    the position deepest inside the space known to be safe, among positions ``steps`` x r_safe from the current
+    camera (at most 0.3 d0) in 26 directions, towards ``o`` and away from the nearest cloud point; every end looks
+    at ``o``. An end's depth is the smaller of its clearance from every observed surface and its distance to the
+    nearest space that no view saw free (probes in 26 directions out to ``target`` x r_safe): unseen space may hold
+    a surface nobody observed. Only paths that pass G whole count (the follow error included, the escape from a
+    start too near a surface forgiven). Depth counts up to ``target`` x r_safe; among ends that reach it (or tie) the
+    shortest move wins (less drift). None when no move passes G.
+
+    Why: standing still is not safe when an earlier clip's true camera drifted next to a surface (the demo room:
+    0.26 m from its ceiling, r_safe 0.28 m; two static clips put all 162 of their frames within r_safe). Maximising
+    the clearance from observed surfaces alone took that camera further up, into the ceiling no view had shown
+    (true clearance 0.01 m); counting unseen space as a possible surface takes it back into the room."""
+    x0 = np.asarray(current[:3, 3], dtype=np.float64)
+    c = np.asarray(centre, dtype=np.float64)
+    dirs = list(_directions26())
+    if np.linalg.norm(c - x0) > 1e-9:
+        dirs.append((c - x0) / np.linalg.norm(c - x0))
+    if detector.tree is not None:
+        _, i = detector.tree.query(x0)
+        away = x0 - detector.points[i]
+        if np.linalg.norm(away) > 1e-9:
+            dirs.append(away / np.linalg.norm(away))
+    dirs_a = np.stack(dirs)
+    lengths = np.minimum(np.asarray(steps, dtype=np.float64) * detector.r_safe, 0.3 * d0)
+    ends = (x0[None, None] + lengths[None, :, None] * dirs_a[:, None]).reshape(-1, 3)
+    length = np.broadcast_to(lengths[None], (len(dirs_a), len(lengths))).reshape(-1)
+    cap = target * detector.r_safe
+    value = np.minimum(detector.clearance(ends), free_depth(ends, detector, cap))
+    value[detector.collides(ends)] = -np.inf  # an end G rejects on its own
+    forward = current[:3, 2] - (current[:3, 2] @ WORLD_UP) * WORLD_UP
+    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    for j in np.lexsort((length, -value)):  # most clearance first, then the shortest move
+        if not np.isfinite(value[j]):
+            break
+        end = look_at_centre(ends[j], c, forward)
+        traj = interpolate_poses(current, end, num)
+        if not detector.trajectory_collides(traj):
+            return traj
+    return None
+
+
 # --------------------------------------------------------------------------------------------------
 # Planners
 # --------------------------------------------------------------------------------------------------
@@ -584,7 +700,9 @@ class PlanResult:
     chosen: int  # index into candidates, -1 when the camera stays put
     optimised: bool = False
     collision_free: bool | None = None  # None: the planner does not check
-    fallback: str = ""  # "", "next-candidate" (the best one had no safe path) or "static"
+    # "", "next-candidate" (the best one had no safe path), "shortened-<f>" (explorer), "retreat" (no candidate had a
+    # safe path: a move to the most clearance, ``retreat_trajectory``) or "static" (not even that passed G)
+    fallback: str = ""
     rounds: int = 1
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -664,9 +782,11 @@ class CollisionAwarePlanner:
                 return self._result(opt.trajectory, initial, cands_a, scores_a, collides_a, masks_a, int(i),
                                     opt.optimised, "" if rank == 0 else "next-candidate", rounds, t0, t_tree,
                                     t_score)
-        static = np.repeat(state.current[None], T, axis=0)
-        return self._result(static, first_initial if first_initial is not None else static, cands_a, scores_a,
-                            collides_a, masks_a, -1, False, "static", rounds, t0, t_tree, t_score)
+        # no candidate has a path G passes: move away (``fallback_move``) rather than stand where an earlier clip's
+        # drift left the camera
+        final, how = fallback_move(state.current, state.centre, state.d0, detector, T)
+        return self._result(final, first_initial if first_initial is not None else final, cands_a, scores_a,
+                            collides_a, masks_a, -1, False, how, rounds, t0, t_tree, t_score)
 
     @staticmethod
     def _result(traj, initial, cands, scores, collides, masks, chosen, optimised, fallback, rounds, t0, t_tree,

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from test_planning import box, observe, room_state, scene_of
 
-from navcrafter.models.camera.cameras import Intrinsics, look_at
+import navcrafter.models.planning.explore as explore_mod
+import navcrafter.models.planning.planners as planners_mod
+from navcrafter.models.camera.cameras import Intrinsics, camera_directions, invert_pose, look_at
 from navcrafter.models.planning.explore import (
     FREE,
     OCCUPIED,
@@ -18,10 +20,19 @@ from navcrafter.models.planning.explore import (
     ExplorerPlanner,
     VoxelMap,
     anchored_pixels,
+    repairable,
     shaped_trajectory,
 )
-from navcrafter.models.planning.planners import CollisionDetector, PlanningState, SeenView
+from navcrafter.models.planning.planners import (
+    CollisionDetector,
+    PlanningState,
+    SeenView,
+    retrace_trajectory,
+    retreat_trajectory,
+)
 from navcrafter.models.planning.registry import PLANNERS
+from navcrafter.models.planning.voxel_kernels import march, splat_depth
+from navcrafter.models.reconstruction.pointrender import render_points
 from navcrafter.schemas.config import PlanConfig
 
 K = Intrinsics.from_fov(80, 64, 64)
@@ -104,7 +115,7 @@ def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying():
         assert (scene.distance(res.trajectory[:, :3, 3]) > 0.2).all()
         assert res.scores[res.chosen] > 0
     else:
-        assert res.fallback == "static" and np.allclose(res.trajectory, state.current)
+        assert res.fallback in ("retreat", "static")
 
 
 def test_a_generated_frame_carves_free_space_only_where_it_copied_the_cloud_it_was_shown():
@@ -164,3 +175,166 @@ def test_the_paper_planner_may_also_back_away_from_a_start_too_near_a_surface():
     closer = away.copy()
     closer[1, 2, 3] = 3.9
     assert det.path_flags(closer)[0][1]
+
+
+# --------------------------------------------------------------------------------------------------
+# The fallback when no planned path passes G (planners.retreat_trajectory), and what the optimisation can repair
+# --------------------------------------------------------------------------------------------------
+def near_wall_state() -> PlanningState:
+    """``wall_state`` with the camera drifted to 0.3 m from the wall (r_safe 0.25), still looking at it."""
+    state = wall_state()
+    current = np.eye(4)
+    current[:3, 3] = [0.5, 0.0, 3.7]
+    return dataclasses.replace(state, current=current)
+
+
+def test_the_retreat_backs_away_from_the_nearest_surface_on_a_path_g_passes():
+    state = near_wall_state()
+    det = CollisionDetector(state.cloud_points, 0.25, state.views, follow_error=0.1)
+    traj = retreat_trajectory(state.current, state.centre, state.d0, det, 21)
+    assert traj is not None and traj.shape == (21, 4, 4) and np.array_equal(traj[0], state.current)
+    assert not det.trajectory_collides(traj)
+    start, end = det.clearance(traj[[0, -1], :3, 3])
+    assert end > start + 0.25 and end >= 0.5  # well away from the wall, not just over the line
+    blind = CollisionDetector(state.cloud_points, 0.25, [], follow_error=0.1)  # nothing seen free: no move passes
+    assert retreat_trajectory(state.current, state.centre, state.d0, blind, 21) is None
+
+
+@pytest.mark.parametrize("name", ["collision_aware", "explorer"])
+def test_a_planner_with_no_safe_path_moves_away_instead_of_standing_next_to_the_wall(name, monkeypatch):
+    """Before: with no candidate path passing G both planners kept the camera still (the demo room: two static
+    clips 0.26 m from a wall, 162 collision frames). Here no planned path can pass: the paper planner's optimisation
+    never finds one, and every explorer path (shortened ones too) has a frame behind the wall."""
+
+    def fail(trajectory, detector, centre, smoothness=1.0, **_):
+        return planners_mod.OptimisationResult(trajectory, False, True)
+
+    shaped = explore_mod.shaped_trajectory
+
+    def through_wall(current, end, centre, num, shape):
+        out = shaped(current, end, centre, num, shape)
+        out[num // 2, :3, 3] = [0.0, 0.0, 4.8]
+        return out
+
+    monkeypatch.setattr(planners_mod, "optimise_trajectory", fail)
+    monkeypatch.setattr(explore_mod, "shaped_trajectory", through_wall)
+    state = near_wall_state()
+    res = PLANNERS[name](PlanConfig(explore_candidates=9)).plan(state, np.random.default_rng(0))
+    assert res.fallback in ("retrace", "retreat") and res.chosen == -1  # back towards the input camera here
+    det = CollisionDetector(state.cloud_points, 0.25, state.views)
+    start, end = det.clearance(res.trajectory[[0, -1], :3, 3])
+    assert end > start + 0.25
+
+
+def test_the_optimisation_is_not_tried_on_paths_it_cannot_repair():
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, follow_error=0.1)
+    path = np.repeat(np.eye(4)[None], 11, 0)
+    path[:, 2, 3] = np.linspace(0.0, 2.0, 11)  # towards the wall in seen free space, ending 2 m from it
+    assert repairable(det, path) and not det.trajectory_collides(path)
+    to_wall = path.copy()
+    to_wall[:, 2, 3] = np.linspace(0.0, 3.65, 11)  # ends 0.35 from the wall: past r_safe, short of r_safe + 0.1 x 3.8
+    assert det.trajectory_collides(to_wall) and not repairable(det, to_wall)
+    behind = path.copy()
+    behind[5, 2, 3] = 4.8  # one frame behind the wall: not admissible, the optimiser has no term for it
+    assert not repairable(det, behind)
+
+
+# --------------------------------------------------------------------------------------------------
+# The numba kernels against the numpy arithmetic they replaced
+# --------------------------------------------------------------------------------------------------
+def _reference_gain(vmap: VoxelMap, poses: np.ndarray, unit: np.ndarray, dist: np.ndarray, weight: np.ndarray,
+                    per_frame: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Every sample of every ray at once (the explorer's former numpy ``_cast``), reduced per frame or over all."""
+    d_world = np.einsum("rj,fij->fri", unit, poses[:, :3, :3])
+    pts = poses[:, None, None, :3, 3] + dist[None, None, :, None] * d_world[:, :, None, :]
+    idx, st = vmap.lookup(pts)
+    occ = st == OCCUPIED
+    hit = occ.any(2)
+    first = np.where(hit, occ.argmax(2), len(dist))
+    unk = (st == UNKNOWN) & (np.arange(len(dist))[None, None, :] < first[..., None])
+    w = np.broadcast_to(weight[None], unk.shape)
+    frames = range(len(poses)) if per_frame else [slice(None)]
+    gain = []
+    for f in frames:
+        best: dict[int, float] = {}
+        for c, x in zip(idx[f][unk[f]].ravel(), w[f][unk[f]].ravel()):
+            best[int(c)] = max(best.get(int(c), 0.0), float(x))
+        gain.append(sum(best.values()))
+    return np.array(gain), hit.mean(1)
+
+
+def test_the_ray_march_and_carving_kernels_agree_with_the_numpy_arithmetic():
+
+    scene, state = room_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 24)
+    # the carving kernel: the input view's free cells are those in front of its depth, by the same projection
+    idx = np.stack(np.meshgrid(*[np.arange(24)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    centres = vmap.origin + (idx + 0.5) * vmap.voxel
+    v = state.views[0]
+    pc = centres @ v.c2w[:3, :3] - v.c2w[:3, 3] @ v.c2w[:3, :3]
+    z = pc[:, 2]
+    ok = z > 1e-6
+    u = np.floor(v.K[0, 0] * pc[:, 0] / np.where(ok, z, 1) + v.K[0, 2]).astype(int)
+    w = np.floor(v.K[1, 1] * pc[:, 1] / np.where(ok, z, 1) + v.K[1, 2]).astype(int)
+    ok &= (u >= 0) & (u < 64) & (w >= 0) & (w < 64)
+    d = np.where(ok, v.depth[np.clip(w, 0, 63), np.clip(u, 0, 63)], 0)
+    free = ok & (d > 0) & (z < d - vmap.voxel)
+    occupied = vmap.state == OCCUPIED
+    assert free.sum() > 100
+    np.testing.assert_array_equal(vmap.state == FREE, free & ~occupied)  # a cloud point's cell stays occupied
+    # the march: random poses about the room, per frame and as one union
+    rng = np.random.default_rng(3)
+    poses = np.stack([look_at(rng.uniform([-2, -1, 0.5], [2, 1, 4]), rng.uniform([-2, -1, 3], [2, 1, 7]))
+                      for _ in range(6)])
+    dirs = camera_directions(Intrinsics.from_fov(80, 8, 8).K, 8, 8).reshape(-1, 3)
+    unit = dirs / np.linalg.norm(dirs, axis=1)[:, None]
+    dist = (np.arange(40) + 0.5) * vmap.voxel
+    weight = rng.random((len(unit), len(dist)))
+    for per_frame in (True, False):
+        ref_gain, ref_hit = _reference_gain(vmap, poses, unit, dist, weight, per_frame)
+        group = np.arange(6) if per_frame else np.zeros(6, dtype=np.int64)
+        gain, hit = march(vmap.state, vmap.size, vmap.origin, float(vmap.voxel),
+                          np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3]),
+                          np.ascontiguousarray(unit), dist, weight, group, len(ref_gain))
+        assert ref_gain.sum() > 1
+        np.testing.assert_allclose(gain, ref_gain, rtol=1e-9)
+        np.testing.assert_allclose(hit, ref_hit)
+
+
+def test_the_splat_kernel_renders_the_point_renderers_depth():
+
+    _, state = room_state()
+    rng = np.random.default_rng(1)
+    pts = state.cloud_points[rng.permutation(len(state.cloud_points))[:3000]]
+    for c2w in (np.eye(4), look_at(np.array([0.5, -0.3, 1.0]), np.array([-1.0, 0.5, 6.0]))):
+        for size in (0.02, 0.2):
+            ref = render_points(pts, c2w, K.K, 64, 48, size)
+            d = splat_depth(pts.astype(np.float32), invert_pose(c2w).astype(np.float32), K.K.astype(np.float32),
+                            64, 48, size, 3, 1e-3)
+            assert ref.mask.mean() > 0.05
+            np.testing.assert_array_equal(d > 0, ref.mask)
+            np.testing.assert_allclose(d, ref.depth, rtol=1e-5)
+
+
+def test_the_retrace_goes_back_along_the_earlier_cameras_past_what_their_clip_put_on_the_path():
+
+    scene = scene_of(box(-3, -3, 4.0, 6, 6, 0.2))
+    path = [np.eye(4)]
+    for z in (0.8, 1.6, 2.4, 3.2, 3.7):
+        p = np.eye(4)
+        p[:3, 3] = [0.0, 0.2 * z, z]  # the earlier clip came in along this line, ending 0.3 from the wall
+        path.append(p)
+    cloud, views = observe(scene, path, K)
+    phantom = np.array([[0.05, 0.2 * z, z] for z in np.linspace(1.0, 3.0, 20)])  # the clip's lifting drew these
+    det = CollisionDetector(np.concatenate([cloud, phantom]), 0.25, views, follow_error=0.1)
+    current = path[-1]
+    assert det.clearance(phantom[:1])[0] < 0.1  # G sees a surface on the way back
+    traj = retrace_trajectory(current, np.array([0.0, 0.0, 3.0]), 3.0, det, 21)
+    assert traj is not None and np.array_equal(traj[0], current)
+    x = traj[:, :3, 3]
+    assert x[-1, 2] < 3.7 - 0.5 and np.all(np.diff(x[:, 2]) <= 1e-9)  # back, never forwards
+    np.testing.assert_allclose(x[:, 1], 0.2 * x[:, 2], atol=1e-9)  # on the earlier cameras' line
+    alone = CollisionDetector(cloud, 0.25, views[-1:], follow_error=0.1)  # no earlier camera to go back to
+    assert retrace_trajectory(current, np.array([0.0, 0.0, 3.0]), 3.0, alone, 21) is None
