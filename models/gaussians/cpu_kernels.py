@@ -380,15 +380,32 @@ def tile_bounds(means2d, radii, tile_size, tile_w, tile_h, bounds):
     return total
 
 
+def depth_keys(depths: np.ndarray) -> np.ndarray:
+    """Unsigned integer keys [C, N] whose order is the order of the float64 ``depths`` (the IEEE bits with the
+    sign bit set for positives and every bit flipped for negatives), for :func:`bin_gaussians`' radix sort."""
+    bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
+    neg = (bits >> np.uint64(63)).astype(bool)
+    return np.where(neg, ~bits, bits | np.uint64(1 << 63))
+
+
+RADIX_BITS = 11
+
+
 @_jit
-def bin_gaussians(bounds, tile_w, tile_h, offsets, gids):
-    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose square touches it, in index
-    order: ``offsets`` [C * tiles + 1], ``gids`` [n_isects]."""
+def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
+    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose square touches it, in depth order
+    (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
+    sort of each camera's visible Gaussians by ``keys`` (:func:`depth_keys`) and one pass that appends them to
+    their tiles in that order, instead of a sort per tile. Also, per (camera, Gaussian) ``idx`` in row-major
+    tile order, the list positions of its entries ``epos[goff[idx]:goff[idx + 1]]`` (for :func:`gather_slots`)."""
     n_cam, n = bounds.shape[0], bounds.shape[1]
     n_tiles = tile_w * tile_h
     counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
+    goff[0] = 0
     for c in range(n_cam):
         for g in range(n):
+            cnt = (bounds[c, g, 1] - bounds[c, g, 0]) * (bounds[c, g, 3] - bounds[c, g, 2])
+            goff[c * n + g + 1] = goff[c * n + g] + cnt
             for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
                 for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
                     counts[c * n_tiles + ty * tile_w + tx] += 1
@@ -396,30 +413,44 @@ def bin_gaussians(bounds, tile_w, tile_h, offsets, gids):
     for t in range(n_cam * n_tiles):
         offsets[t + 1] = offsets[t] + counts[t]
     fill = offsets[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    tmp = np.empty(n, dtype=np.int64)
+    n_bins = 1 << RADIX_BITS
+    hist = np.empty(n_bins, dtype=np.int64)
     for c in range(n_cam):
+        m = 0
         for g in range(n):
+            if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
+                order[m] = g
+                m += 1
+        mask = np.uint64(n_bins - 1)
+        for shift in range(0, 64, RADIX_BITS):
+            sh = np.uint64(shift)
+            hist[:] = 0
+            for i in range(m):
+                hist[(keys[c, order[i]] >> sh) & mask] += 1
+            if m == 0 or hist[(keys[c, order[0]] >> sh) & mask] == m:
+                continue  # one digit value for all: the pass would not move anything
+            acc = 0
+            for b in range(n_bins):
+                h = hist[b]
+                hist[b] = acc
+                acc += h
+            for i in range(m):
+                b = (keys[c, order[i]] >> sh) & mask
+                tmp[hist[b]] = order[i]
+                hist[b] += 1
+            order, tmp = tmp, order
+        for i in range(m):
+            g = order[i]
+            j = goff[c * n + g]
             for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
                 for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
                     t = c * n_tiles + ty * tile_w + tx
                     gids[fill[t]] = g
+                    epos[j] = fill[t]
                     fill[t] += 1
-
-
-@_pjit
-def sort_tiles(offsets, gids, depths, n_tiles):
-    """Each tile's list sorted by depth, stably (ties keep index order, as a stable global sort)."""
-    for t in numba.prange(offsets.shape[0] - 1):
-        lo, hi = offsets[t], offsets[t + 1]
-        if hi - lo < 2:
-            continue
-        c = t // n_tiles
-        seg = gids[lo:hi].copy()
-        keys = np.empty(hi - lo)
-        for k in range(hi - lo):
-            keys[k] = depths[c, seg[k]]
-        order = np.argsort(keys, kind="mergesort")
-        for k in range(hi - lo):
-            gids[lo + k] = seg[order[k]]
+                    j += 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -610,8 +641,8 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
 @_pfjit
 def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final,
                        v_render, v_alphas, pbase, pend, pix, pes, slots):
-    """Gradients of each list entry (tile, Gaussian) into the slots ``s_*`` [n_isects, ...] (a tile writes
-    only its own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
+    """Gradients of each list entry (tile, Gaussian) into the slots [n_isects, 6 + D] (a tile writes only its
+    own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
     front over the pairs forward recorded (``composite_forward``'s ``record``), so each pixel sees its
     contributions in reverse order (transmittance recovered by division from forward's final transmittance).
     Per-entry sums are float64."""
@@ -688,22 +719,25 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
 
 
 @_pjit
-def gather_slots(offsets, gids, n_tiles, n_chunks, slots, grads):
+def gather_slots(goff, epos, slots, grads):
     """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features) = the sums of the list entries' ``slots``
-    [n_isects, 6 + D] per (camera, Gaussian), in list order (deterministic for any thread count): each parallel
-    chunk (``n_chunks``: the thread count) owns a range of Gaussians and scans the list for them."""
+    [n_isects, 6 + D] per (camera, Gaussian), over its entries in row-major tile order (``goff``, ``epos`` of
+    :func:`bin_gaussians`; the order of the whole list): deterministic for any thread count. (Writing the slots
+    in this order from the compositing instead, to read them contiguously here, cost more: scattered writes.)"""
     n_s = slots.shape[1]
-    n = grads.shape[1]
-    step = (n + n_chunks - 1) // n_chunks
-    for ch in numba.prange(n_chunks):
-        g_lo, g_hi = ch * step, min((ch + 1) * step, n)
-        for t in range(offsets.shape[0] - 1):
-            c = t // n_tiles
-            for k in range(offsets[t], offsets[t + 1]):
-                g = gids[k]
-                if g >= g_lo and g < g_hi:
-                    for j in range(n_s):
-                        grads[c, g, j] += slots[k, j]
+    n_cam, n = grads.shape[0], grads.shape[1]
+    for ch in numba.prange((n_cam * n + CHUNK - 1) // CHUNK):
+        acc = np.empty(n_s)
+        for idx in range(ch * CHUNK, min((ch + 1) * CHUNK, n_cam * n)):
+            c, g = idx // n, idx % n
+            for j in range(n_s):
+                acc[j] = 0.0
+            for i in range(goff[idx], goff[idx + 1]):
+                k = epos[i]
+                for j in range(n_s):
+                    acc[j] += slots[k, j]
+            for j in range(n_s):
+                grads[c, g, j] = acc[j]
 
 
 # --------------------------------------------------------------------------------------------------

@@ -250,9 +250,9 @@ class _Composite(torch.autograd.Function):
         offsets = np.empty(n_cam * tile_w * tile_h + 1, dtype=np.int64)
         with _LOCK:
             n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
-            gids = np.empty(n_isects, dtype=np.int64)
-            K.bin_gaussians(bounds, tile_w, tile_h, offsets, gids)
-            K.sort_tiles(offsets, gids, _np(depths), tile_w * tile_h)
+            gids, epos = np.empty(n_isects, dtype=np.int64), np.empty(n_isects, dtype=np.int64)
+            goff = np.empty(n_cam * n + 1, dtype=np.int64)
+            K.bin_gaussians(bounds, K.depth_keys(depths.numpy()), tile_w, tile_h, offsets, gids, goff, epos)
             K.pack_gaussians(m2, con, opa, col, rad, width, height, rec)
             ent = np.empty((n_isects, rec.shape[2]), dtype=dt)
             cap = np.empty(n_cam * tile_w * tile_h, dtype=np.int64)
@@ -265,7 +265,7 @@ class _Composite(torch.autograd.Function):
             pes = np.empty(pbase[-1], dtype=dt)
             K.composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, render, t_final,
                                 pbase, pend, pix, pes, record)
-        ctx.arrays = (ent, bg, cst, offsets, gids, t_final, pbase, pend, pix, pes)
+        ctx.arrays = (ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes)
         ctx.shape = (n_cam, n, d)
         ctx.scalars = (width, height, tile_size, tile_w, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
@@ -277,20 +277,19 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        ent, bg, cst, offsets, gids, t_final, pbase, pend, pix, pes = ctx.arrays
+        ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes = ctx.arrays
         width, height, tile_size, tile_w, use_bg = ctx.scalars
         n_cam, n, d = ctx.shape
         dt = ent.dtype
         vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_native(v_render, dt)
         va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_native(v_alphas[..., 0], dt)
         n_isects = len(gids)
-        slots = np.empty((n_isects, 6 + d))
-        grads = np.zeros((n_cam, n, 6 + d))
+        slots = np.empty((n_isects, 6 + d), dt)  # per-entry sums (float64 in the kernel), stored in the dtype
+        grads = np.empty((n_cam, n, 6 + d))
         with _LOCK:
             K.composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, t_final, vr, va,
                                  pbase, pend, pix, pes, slots)
-            K.gather_slots(offsets, gids, tile_w * ((height + tile_size - 1) // tile_size), numba.get_num_threads(),
-                           slots, grads)
+            K.gather_slots(goff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
         v_bg = None
