@@ -461,6 +461,7 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
 # no float64 literal promotes the per-pixel arithmetic. Fast-math without ``nnan``/``ninf`` (the code compares
 # and clamps; no infinities or NaNs are assumed away); the per-tile code is the same on any thread count.
 SIGMA_MARGIN = 1e-3  # a sigma cut's margin above ln(255 o): far above float32 rounding of the row spans
+NARROW_BOX = 4  # boxes this wide (pixels) or narrower skip the row spans: testing each pixel costs less
 
 
 def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
@@ -599,9 +600,18 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
             if x0 < x1 and y0 < y1:
                 mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
                 o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
+                # the first (up to) four features as scalars: RGB and RGB + depth take the unrolled updates
+                c0 = e_[R_FEAT] if n_feat > 0 else zero
+                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                narrow = x1 - x0 <= NARROW_BOX
                 for py in range(y0, y1):
                     dy = yc[py - y_lo] - my
-                    rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
+                    if narrow:
+                        rx0, rx1 = x0, x1
+                    else:
+                        rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
                     row = (py - y_lo) * tw - x_lo
                     for px in range(rx0, rx1):
                         p = row + px
@@ -622,8 +632,18 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                             n_done += 1
                             continue
                         w = alpha * tp
-                        for f in range(n_feat):
-                            acc[p * n_feat + f] += w * e_[R_FEAT + f]
+                        if n_feat == 3:
+                            acc[p * 3] += w * c0
+                            acc[p * 3 + 1] += w * c1
+                            acc[p * 3 + 2] += w * c2
+                        elif n_feat == 4:
+                            acc[p * 4] += w * c0
+                            acc[p * 4 + 1] += w * c1
+                            acc[p * 4 + 2] += w * c2
+                            acc[p * 4 + 3] += w * c3
+                        else:
+                            for f in range(n_feat):
+                                acc[p * n_feat + f] += w * e_[R_FEAT + f]
                         T[p] = nt
                         if record:
                             pix[j] = p
@@ -677,6 +697,7 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                     vr[p * n_feat + f] = v_render[c, py, px, f]
         for k in range(hi - 1, lo - 1, -1):
             g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
+            g0 = g1 = g2 = g3 = 0.0  # the unrolled features' sums (gcol otherwise)
             for f in range(n_feat):
                 gcol[f] = 0.0
             j0 = pend[k - 1] if k > lo else pbase[t]
@@ -685,6 +706,10 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                 e_ = ent[k]
                 mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
                 o = e_[R_O]
+                c0 = e_[R_FEAT] if n_feat > 0 else zero
+                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
                 for j in range(j0, j1):
                     p = pix[j]
                     e = pes[j]
@@ -696,12 +721,30 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                     Ti = T[p] * ra
                     w = alpha * Ti
                     v_alpha = va[p] * ra
-                    for f in range(n_feat):
-                        vc = vr[p * n_feat + f]
-                        cf = e_[R_FEAT + f]
-                        gcol[f] += w * vc
-                        v_alpha += vc * (Ti * cf - behind[p * n_feat + f] * ra)
-                        behind[p * n_feat + f] += w * cf
+                    if n_feat == 3 or n_feat == 4:  # RGB, RGB + depth: unrolled
+                        b = p * n_feat
+                        vc0, vc1, vc2 = vr[b], vr[b + 1], vr[b + 2]
+                        g0 += w * vc0
+                        g1 += w * vc1
+                        g2 += w * vc2
+                        v_alpha += vc0 * (Ti * c0 - behind[b] * ra)
+                        v_alpha += vc1 * (Ti * c1 - behind[b + 1] * ra)
+                        v_alpha += vc2 * (Ti * c2 - behind[b + 2] * ra)
+                        behind[b] += w * c0
+                        behind[b + 1] += w * c1
+                        behind[b + 2] += w * c2
+                        if n_feat == 4:
+                            vc3 = vr[b + 3]
+                            g3 += w * vc3
+                            v_alpha += vc3 * (Ti * c3 - behind[b + 3] * ra)
+                            behind[b + 3] += w * c3
+                    else:
+                        for f in range(n_feat):
+                            vc = vr[p * n_feat + f]
+                            cf = e_[R_FEAT + f]
+                            gcol[f] += w * vc
+                            v_alpha += vc * (Ti * cf - behind[p * n_feat + f] * ra)
+                            behind[p * n_feat + f] += w * cf
                     T[p] = Ti
                     if raw <= alpha_clamp:
                         g_o += v_alpha * e
@@ -714,6 +757,10 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                         g_my -= v_sigma * (q1 * dx + q2 * dy)
             slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
             slots[k, 5] = g_o
+            if n_feat == 3 or n_feat == 4:
+                gcol[0], gcol[1], gcol[2] = g0, g1, g2
+                if n_feat == 4:
+                    gcol[3] = g3
             for f in range(n_feat):
                 slots[k, 6 + f] = gcol[f]
 
