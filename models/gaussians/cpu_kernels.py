@@ -228,9 +228,14 @@ def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d,
 
 @_ijit
 def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d, v_depths, v_conics,
-                      v_comps, use_comps, c, g, Sc, J, Gm, GJ, v_Sc, v_J, RV, v_means, v_cov):
+                      v_comps, use_comps, c, g, Sc, v_means, v_cov):
     """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_means[g]`` and ``v_cov`` [3, 3]
-    (the world covariance); the other arrays [3, 3] / [2, 3] / [2, 2] are scratch."""
+    (the world covariance); ``Sc`` [3, 3] is scratch. Nothing to add when every
+    output gradient of (c, g) is zero (a Gaussian culled in this camera, the common case): skipped."""
+    if (v_means2d[c, g, 0] == 0.0 and v_means2d[c, g, 1] == 0.0 and v_depths[c, g] == 0.0
+            and v_conics[c, g, 0] == 0.0 and v_conics[c, g, 1] == 0.0 and v_conics[c, g, 2] == 0.0
+            and (not use_comps or v_comps[c, g] == 0.0)):
+        return
     x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
                                                                       near, far, c, g, Sc)
     fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
@@ -268,24 +273,23 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
             m00 += f * (d0 * det - det_orig * d)
             m11 += f * (a0 * det - det_orig * a)
             m01 += 0.5 * f * (-2.0 * b0 * det + 2.0 * b0 * det_orig)
-    # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric)
-    J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2] = j00, 0.0, j02, 0.0, j11, j12
-    Gm[0, 0], Gm[0, 1], Gm[1, 0], Gm[1, 1] = m00, m01, m01, m11
-    for i in range(2):
-        for k in range(3):
-            GJ[i, k] = Gm[i, 0] * J[0, k] + Gm[i, 1] * J[1, k]
-    for i in range(3):
-        for k in range(3):
-            v_Sc[i, k] = J[0, i] * GJ[0, k] + J[1, i] * GJ[1, k]
-    for i in range(2):
-        for k in range(3):
-            v_J[i, k] = 2.0 * (GJ[i, 0] * Sc[0, k] + GJ[i, 1] * Sc[1, k] + GJ[i, 2] * Sc[2, k])
+    # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric); J = [[j00, 0, j02],
+    # [0, j11, j12]], in scalars (GJ = Gm J, v_Sc = J^T GJ; only v_J's four structural non-zeros are needed)
+    gj00, gj01, gj02 = m00 * j00, m01 * j11, m00 * j02 + m01 * j12
+    gj10, gj11, gj12 = m01 * j00, m11 * j11, m01 * j02 + m11 * j12
+    s00, s01, s02 = j00 * gj00, j00 * gj01, j00 * gj02
+    s10, s11, s12 = j11 * gj10, j11 * gj11, j11 * gj12
+    s20, s21, s22 = j02 * gj00 + j12 * gj10, j02 * gj01 + j12 * gj11, j02 * gj02 + j12 * gj12
+    vj00 = 2.0 * (gj00 * Sc[0, 0] + gj01 * Sc[1, 0] + gj02 * Sc[2, 0])
+    vj02 = 2.0 * (gj00 * Sc[0, 2] + gj01 * Sc[1, 2] + gj02 * Sc[2, 2])
+    vj11 = 2.0 * (gj10 * Sc[0, 1] + gj11 * Sc[1, 1] + gj12 * Sc[2, 1])
+    vj12 = 2.0 * (gj10 * Sc[0, 2] + gj11 * Sc[1, 2] + gj12 * Sc[2, 2])
     # J's dependence on zs, tx, ty
     zs2, zs3 = zs * zs, zs * zs * zs
-    v_zs = -fx / zs2 * v_J[0, 0] - fy / zs2 * v_J[1, 1]
-    v_tx = -fx / zs2 * v_J[0, 2]
-    v_ty = -fy / zs2 * v_J[1, 2]
-    v_zs += 2.0 * fx * tx / zs3 * v_J[0, 2] + 2.0 * fy * ty / zs3 * v_J[1, 2]
+    v_zs = -fx / zs2 * vj00 - fy / zs2 * vj11
+    v_tx = -fx / zs2 * vj02
+    v_ty = -fy / zs2 * vj12
+    v_zs += 2.0 * fx * tx / zs3 * vj02 + 2.0 * fy * ty / zs3 * vj12
     v_x, v_y = 0.0, 0.0
     if x_clamped:
         v_zs += min(max(rx, -lxn), lxp) * v_tx
@@ -303,13 +307,14 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
     v_z = v_depths[c, g] + v_zs  # depth_ok holds here
     for k in range(3):
         v_means[g, k] += viewmats[c, 0, k] * v_x + viewmats[c, 1, k] * v_y + viewmats[c, 2, k] * v_z
-    # Sc = R S R^T: dL/dS = R^T v_Sc R (as two products: RV = v_Sc R)
-    for p in range(3):
-        for k in range(3):
-            RV[p, k] = v_Sc[p, 0] * viewmats[c, 0, k] + v_Sc[p, 1] * viewmats[c, 1, k] + v_Sc[p, 2] * viewmats[c, 2, k]
-    for i in range(3):
-        for k in range(3):
-            v_cov[i, k] += viewmats[c, 0, i] * RV[0, k] + viewmats[c, 1, i] * RV[1, k] + viewmats[c, 2, i] * RV[2, k]
+    # Sc = R S R^T: dL/dS = R^T v_Sc R (as two products: column k of v_Sc R, then R^T times it)
+    for k in range(3):
+        r0k, r1k, r2k = viewmats[c, 0, k], viewmats[c, 1, k], viewmats[c, 2, k]
+        rv0 = s00 * r0k + s01 * r1k + s02 * r2k
+        rv1 = s10 * r0k + s11 * r1k + s12 * r2k
+        rv2 = s20 * r0k + s21 * r1k + s22 * r2k
+        for i in range(3):
+            v_cov[i, k] += viewmats[c, 0, i] * rv0 + viewmats[c, 1, i] * rv1 + viewmats[c, 2, i] * rv2
 
 
 @_pjit
@@ -319,8 +324,7 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
     (cameras summed in order per Gaussian)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        Sc, J, Gm, GJ = np.empty((3, 3)), np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3))
-        v_Sc, v_J, RV = np.empty((3, 3)), np.empty((2, 3)), np.empty((3, 3))
+        Sc = np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for k in range(3):
                 v_means[g, k] = 0.0
@@ -328,8 +332,7 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
                     v_covars[g, k, j] = 0.0
             for c in range(n_cam):
                 _project_grad_one(means, covars[g], viewmats, Ks, width, height, eps2d, near, far, v_means2d,
-                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, J, Gm, GJ, v_Sc, v_J, RV, v_means,
-                                  v_covars[g])
+                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_means, v_covars[g])
 
 
 @_pjit
@@ -339,8 +342,7 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
     ``v_scales`` [N, 3] (cameras summed in order per Gaussian, then through the covariance)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        Sc, J, Gm, GJ = np.empty((3, 3)), np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3))
-        v_Sc, v_J, RV = np.empty((3, 3)), np.empty((2, 3)), np.empty((3, 3))
+        Sc = np.empty((3, 3))
         R, vR, cov, v_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             _covar(quats, scales, g, R, cov)
@@ -350,8 +352,7 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
                     v_cov[k, j] = 0.0
             for c in range(n_cam):
                 _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d,
-                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, J, Gm, GJ, v_Sc, v_J, RV, v_means,
-                                  v_cov)
+                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_means, v_cov)
             _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales)
 
 

@@ -24,6 +24,7 @@ other work goes on meanwhile.
 
 from __future__ import annotations
 
+import sys
 import threading
 from typing import Literal
 
@@ -53,6 +54,39 @@ def set_threads(threads: int | None) -> int:
     else:
         numba.set_num_threads(top)
     return numba.get_num_threads()
+
+
+class _Scratch:
+    """Reused work arrays: a fresh multi-megabyte ``np.empty`` per call is fresh pages from the kernel, and
+    touching them (page faults, zeroing) cost ~5-10 ms per 100k-Gaussian render. A buffer is handed out again
+    only when nothing references it any more (no view of it is alive: no autograd context waiting for its
+    backward pass, no tensor made from it), so results never share memory; a few per name, for a forward
+    issued before the previous graph is freed."""
+
+    KEEP = 3  # buffers kept per name
+
+    def __init__(self) -> None:
+        self._bufs: dict[str, list[np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, name: str, shape, dtype) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        with self._lock:
+            bufs = self._bufs.setdefault(name, [])
+            for buf in bufs:
+                # free: referenced only by the list, this loop's variable and getrefcount's argument
+                if buf.nbytes >= need and sys.getrefcount(buf) <= 3:
+                    break
+            else:
+                buf = np.empty(max(need + need // 4, 64), dtype=np.uint8)  # headroom for the next call
+                if len(bufs) >= self.KEEP:
+                    bufs.pop(0)
+                bufs.append(buf)
+            return buf[:need].view(dtype).reshape(shape)
+
+
+_SCRATCH = _Scratch()
 
 
 def _np(t: Tensor) -> np.ndarray:
@@ -243,26 +277,29 @@ class _Composite(torch.autograd.Function):
         bg = _np_native(backgrounds, dt) if use_bg else np.zeros((n_cam, d), dt)
         cst = K.composite_constants(alpha_clamp, dt)
         rad = np.ascontiguousarray(radii.cpu().numpy())
-        bounds = np.empty((n_cam, n, 4), dtype=np.int64)
-        rec = np.empty((n_cam, n, K.R_FEAT + d), dtype=dt)
+        bounds = _SCRATCH.get("bounds", (n_cam, n, 4), np.int64)
+        rec = _SCRATCH.get("rec", (n_cam, n, K.R_FEAT + d), dt)
         render = np.empty((n_cam, height, width, d), dt)
         t_final = np.empty((n_cam, height, width), dt)
-        offsets = np.empty(n_cam * tile_w * tile_h + 1, dtype=np.int64)
+        offsets = _SCRATCH.get("offsets", n_cam * tile_w * tile_h + 1, np.int64)
         with _LOCK:
             n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
-            gids, epos = np.empty(n_isects, dtype=np.int64), np.empty(n_isects, dtype=np.int64)
-            goff = np.empty(n_cam * n + 1, dtype=np.int64)
+            gids, epos = _SCRATCH.get("gids", n_isects, np.int64), _SCRATCH.get("epos", n_isects, np.int64)
+            goff = _SCRATCH.get("goff", n_cam * n + 1, np.int64)
             K.bin_gaussians(bounds, K.depth_keys(depths.numpy()), tile_w, tile_h, offsets, gids, goff, epos)
             K.pack_gaussians(m2, con, opa, col, rad, width, height, rec)
-            ent = np.empty((n_isects, rec.shape[2]), dtype=dt)
-            cap = np.empty(n_cam * tile_w * tile_h, dtype=np.int64)
+            ent = _SCRATCH.get("ent", (n_isects, rec.shape[2]), dt)
+            cap = _SCRATCH.get("cap", n_cam * tile_w * tile_h, np.int64)
             K.gather_entries(offsets, gids, tile_w * tile_h, tile_w, tile_size, width, height, rec, ent, cap)
-            pbase = np.zeros(len(cap) + 1, dtype=np.int64)
+            pbase = _SCRATCH.get("pbase", len(cap) + 1, np.int64)
+            pbase[0] = 0
             if record:
                 np.cumsum(cap, out=pbase[1:])
-            pend = np.empty(n_isects, dtype=np.int64)
-            pix = np.empty(pbase[-1], dtype=np.int32)
-            pes = np.empty(pbase[-1], dtype=dt)
+            else:
+                pbase[1:] = 0
+            pend = _SCRATCH.get("pend", n_isects, np.int64)
+            pix = _SCRATCH.get("pix", pbase[-1], np.int32)
+            pes = _SCRATCH.get("pes", pbase[-1], dt)
             K.composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, render, t_final,
                                 pbase, pend, pix, pes, record)
         ctx.arrays = (ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes)
@@ -284,8 +321,8 @@ class _Composite(torch.autograd.Function):
         vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_native(v_render, dt)
         va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_native(v_alphas[..., 0], dt)
         n_isects = len(gids)
-        slots = np.empty((n_isects, 6 + d), dt)  # per-entry sums (float64 in the kernel), stored in the dtype
-        grads = np.empty((n_cam, n, 6 + d))
+        slots = _SCRATCH.get("slots", (n_isects, 6 + d), dt)  # per-entry sums (float64 in the kernel), in the dtype
+        grads = _SCRATCH.get("grads", (n_cam, n, 6 + d), np.float64)
         with _LOCK:
             K.composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, t_final, vr, va,
                                  pbase, pend, pix, pes, slots)
