@@ -856,6 +856,7 @@ def _unit_dir(means, campos, c, g):
 @_pjit
 def sh_forward(degree, means, campos, coeffs, rgb):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
+    (float32 or float64, read as they are; float64 arithmetic)
     along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
@@ -875,14 +876,17 @@ def sh_forward(degree, means, campos, coeffs, rgb):
 @_pjit
 def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
-    order; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``)."""
+    order, in float64, whatever the dtype of ``coeffs`` / ``v_coeffs``; the clamp passes the gradient where its
+    input is >= 0, as ``torch.clamp_min``)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
+    n_k = v_coeffs.shape[1]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db = np.empty(16), np.empty((16, 3))
+        vco = np.empty((n_k, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
-            for k in range(v_coeffs.shape[1]):
-                v_coeffs[g, k, 0] = v_coeffs[g, k, 1] = v_coeffs[g, k, 2] = 0.0
+            for k in range(n_k):
+                vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
             v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
             for c in range(n_cam):
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
@@ -896,7 +900,7 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
                         continue
                     v = v_rgb[c, g, j]
                     for k in range(nb):
-                        v_coeffs[g, k, j] += b[k] * v
+                        vco[k, j] += b[k] * v
                         vc = coeffs[g, k, j] * v
                         vd0 += db[k, 0] * vc
                         vd1 += db[k, 1] * vc
@@ -906,3 +910,5 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
                 v_means[g, 0] += (vd0 - x * dot) / nrm
                 v_means[g, 1] += (vd1 - y * dot) / nrm
                 v_means[g, 2] += (vd2 - z * dot) / nrm
+            for k in range(n_k):
+                v_coeffs[g, k, 0], v_coeffs[g, k, 1], v_coeffs[g, k, 2] = vco[k, 0], vco[k, 1], vco[k, 2]

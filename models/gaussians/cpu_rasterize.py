@@ -131,17 +131,24 @@ def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
 class _SH(torch.autograd.Function):
     @staticmethod
     def forward(ctx, degree, means, coeffs, campos):
-        m, co, cp = _np(means), _np(coeffs), _np(campos)
+        # the coefficients [N, K, 3] are read in their own dtype, not copied (the biggest input of a fit):
+        # saved for backward, so an in-place change before it is caught by autograd's version check
+        co_t = coeffs.detach().contiguous()
+        co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(coeffs)
+        m, cp = _np(means), _np(campos)
         rgb = np.empty((len(cp), len(m), 3))
         with _LOCK:
             K.sh_forward(degree, m, cp, co, rgb)
-        ctx.arrays, ctx.degree, ctx.likes = (m, co, cp, rgb), degree, (means, coeffs)
+        ctx.save_for_backward(co_t)
+        ctx.arrays, ctx.degree, ctx.likes = (m, cp, rgb), degree, (means, coeffs)
         return _out(rgb, means)
 
     @staticmethod
     def backward(ctx, v_rgb):
-        m, co, cp, rgb = ctx.arrays
-        v_m, v_co = np.empty_like(m), np.empty_like(co)
+        m, cp, rgb = ctx.arrays
+        (co_t,) = ctx.saved_tensors
+        co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(co_t)
+        v_m, v_co = np.empty_like(m), np.empty(co.shape, dtype=co.dtype)
         with _LOCK:
             K.sh_backward(ctx.degree, m, cp, co, rgb, _np(v_rgb), v_m, v_co)
         return None, _out(v_m, ctx.likes[0]), _out(v_co, ctx.likes[1]), None
