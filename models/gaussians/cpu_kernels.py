@@ -389,7 +389,7 @@ def depth_keys(depths: np.ndarray) -> np.ndarray:
     return np.where(neg, ~bits, bits | np.uint64(1 << 63))
 
 
-RADIX_BITS = 11
+RADIX_BITS = 16  # 4 passes at most; the passes over digits all keys share (exponent bits) are skipped
 
 
 @_jit
@@ -416,21 +416,24 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
     fill = offsets[:-1].copy()
     order = np.empty(n, dtype=np.int64)
     tmp = np.empty(n, dtype=np.int64)
+    okey = np.empty(n, dtype=np.uint64)  # the keys travel with the indices: each pass reads them in sequence
+    tkey = np.empty(n, dtype=np.uint64)
     n_bins = 1 << RADIX_BITS
     hist = np.empty(n_bins, dtype=np.int64)
+    mask = np.uint64(n_bins - 1)
     for c in range(n_cam):
         m = 0
         for g in range(n):
             if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
                 order[m] = g
+                okey[m] = keys[c, g]
                 m += 1
-        mask = np.uint64(n_bins - 1)
         for shift in range(0, 64, RADIX_BITS):
             sh = np.uint64(shift)
             hist[:] = 0
             for i in range(m):
-                hist[(keys[c, order[i]] >> sh) & mask] += 1
-            if m == 0 or hist[(keys[c, order[0]] >> sh) & mask] == m:
+                hist[(okey[i] >> sh) & mask] += 1
+            if m == 0 or hist[(okey[0] >> sh) & mask] == m:
                 continue  # one digit value for all: the pass would not move anything
             acc = 0
             for b in range(n_bins):
@@ -438,10 +441,12 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
                 hist[b] = acc
                 acc += h
             for i in range(m):
-                b = (keys[c, order[i]] >> sh) & mask
+                b = (okey[i] >> sh) & mask
                 tmp[hist[b]] = order[i]
+                tkey[hist[b]] = okey[i]
                 hist[b] += 1
             order, tmp = tmp, order
+            okey, tkey = tkey, okey
         for i in range(m):
             g = order[i]
             j = goff[c * n + g]
