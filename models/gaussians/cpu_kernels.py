@@ -4,12 +4,12 @@ Plain functions over NumPy arrays: ``float64`` arithmetic per Gaussian (covarian
 whatever the input dtype, and the compositing in the dtype of its inputs (see below); the autograd glue
 and the gsplat-shaped entry point are in :mod:`~navcrafter.models.gaussians.cpu_rasterize`. The maths is the
 one of :mod:`~navcrafter.models.gaussians.rasterize` (the PyTorch renderer these kernels are checked against):
-EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, per tile a
-stable depth sort, front-to-back compositing with the ``1/255`` skip and the exclusive ``T <= 1e-4`` stop.
+EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, tile lists in
+stable depth order, front-to-back compositing with the ``1/255`` skip and the exclusive ``T <= 1e-4`` stop.
 
 Every kernel is deterministic for any thread count: parallel loops write disjoint outputs (one Gaussian, one
 tile), and the per-Gaussian sums of the backward pass are taken in a fixed order (each tile writes the
-gradients of its own list entries; one serial pass adds them up by list position), so a fit gives the same
+gradients of its own list entries; a pass adds each Gaussian's up in list order), so a fit gives the same
 bits whether it runs on 1 or 16 threads, and resuming a run reproduces it exactly.
 """
 
