@@ -4,12 +4,12 @@ Plain functions over NumPy arrays: ``float64`` arithmetic per Gaussian (covarian
 whatever the input dtype, and the compositing in the dtype of its inputs (see below); the autograd glue
 and the gsplat-shaped entry point are in :mod:`~navcrafter.models.gaussians.cpu_rasterize`. The maths is the
 one of :mod:`~navcrafter.models.gaussians.rasterize` (the PyTorch renderer these kernels are checked against):
-EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, per tile a
-stable depth sort, front-to-back compositing with the ``1/255`` skip and the exclusive ``T <= 1e-4`` stop.
+EWA projection with the clamped Jacobian and ``eps2d`` dilation, gsplat's 3-sigma tile squares, tile lists in
+stable depth order, front-to-back compositing with the ``1/255`` skip and the exclusive ``T <= 1e-4`` stop.
 
 Every kernel is deterministic for any thread count: parallel loops write disjoint outputs (one Gaussian, one
 tile), and the per-Gaussian sums of the backward pass are taken in a fixed order (each tile writes the
-gradients of its own list entries; one serial pass adds them up by list position), so a fit gives the same
+gradients of its own list entries; a pass adds each Gaussian's up in list order), so a fit gives the same
 bits whether it runs on 1 or 16 threads, and resuming a run reproduces it exactly.
 """
 
@@ -31,21 +31,72 @@ CHUNK = 512  # Gaussians per parallel chunk of the per-Gaussian kernels (scratch
 ALPHA_THRESHOLD = 1.0 / 255.0
 TRANSMITTANCE_STOP = 1e-4
 
-_jit = numba.njit(cache=True, fastmath=False, nogil=True)
-_pjit = numba.njit(cache=True, fastmath=False, nogil=True, parallel=True)
+# error_model "numpy": a float division by zero gives inf / nan instead of a check and branch on every division
+# (no kernel divides by a value that can be zero: denominators are clamped, or tested first)
+_jit = numba.njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
+_pjit = numba.njit(cache=True, fastmath=False, nogil=True, parallel=True, error_model="numpy")
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}  # not nnan / ninf: the code compares and clamps
-_fjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True)
-_pfjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, parallel=True)
+_fjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, error_model="numpy")
+# helpers called per Gaussian or per pixel row: inlined into their callers (numba's own inlining; LLVM does not
+# inline across numba functions, and the calls with their array arguments cost as much as the maths)
+_ijit = numba.njit(cache=True, fastmath=False, nogil=True, error_model="numpy", inline="always")
+_ifjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, error_model="numpy", inline="always")
+_pfjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, parallel=True, error_model="numpy")
 
 
 # --------------------------------------------------------------------------------------------------
 # Covariances
 # --------------------------------------------------------------------------------------------------
-@_jit
+@_ijit
 def _rotmat(w, x, y, z, R):
     R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
     R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+
+
+@_ijit
+def _covar(quats, scales, g, R, cov):
+    """``cov`` [3, 3] = ``R diag(s)^2 R^T`` of Gaussian g's (w, x, y, z) quaternion (normalised here, as
+    ``torch.nn.functional.normalize``) and scales; ``R`` [3, 3] is scratch."""
+    nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
+    _rotmat(quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm, R)
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += R[i, k] * scales[g, k] * scales[g, k] * R[j, k]
+            cov[i, j] = acc
+
+
+@_ijit
+def _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales):
+    """Gradients of :func:`_covar` for Gaussian g from ``v_cov`` [3, 3] into ``v_quats[g]``, ``v_scales[g]``
+    (``R``, ``vR`` [3, 3] are scratch)."""
+    nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
+    w, x, y, z = quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm
+    _rotmat(w, x, y, z, R)
+    # Sigma = M M^T, M = R diag(s): v_M = (G + G^T) M
+    for j in range(3):
+        v_scales[g, j] = 0.0
+    for i in range(3):
+        for j in range(3):
+            vm = 0.0
+            for k in range(3):
+                vm += (v_cov[i, k] + v_cov[k, i]) * R[k, j] * scales[g, j]
+            vR[i, j] = vm * scales[g, j]
+            v_scales[g, j] += vm * R[i, j]
+    vw = 2 * (-z * vR[0, 1] + y * vR[0, 2] + z * vR[1, 0] - x * vR[1, 2] - y * vR[2, 0] + x * vR[2, 1])
+    vx = 2 * (y * vR[0, 1] + z * vR[0, 2] + y * vR[1, 0] - 2 * x * vR[1, 1] - w * vR[1, 2] + z * vR[2, 0]
+              + w * vR[2, 1] - 2 * x * vR[2, 2])
+    vy = 2 * (-2 * y * vR[0, 0] + x * vR[0, 1] + w * vR[0, 2] + x * vR[1, 0] + z * vR[1, 2] - w * vR[2, 0]
+              + z * vR[2, 1] - 2 * y * vR[2, 2])
+    vz = 2 * (-2 * z * vR[0, 0] - w * vR[0, 1] + x * vR[0, 2] + w * vR[1, 0] - 2 * z * vR[1, 1] + y * vR[1, 2]
+              + x * vR[2, 0] + y * vR[2, 1])
+    dot = w * vw + x * vx + y * vy + z * vz
+    v_quats[g, 0] = (vw - w * dot) / nrm
+    v_quats[g, 1] = (vx - x * dot) / nrm
+    v_quats[g, 2] = (vy - y * dot) / nrm
+    v_quats[g, 3] = (vz - z * dot) / nrm
 
 
 @_pjit
@@ -56,14 +107,7 @@ def covar_forward(quats, scales, covars):
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         R = np.empty((3, 3))  # scratch per chunk: a heap allocation per Gaussian cost more than its maths
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
-            nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
-            _rotmat(quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm, R)
-            for i in range(3):
-                for j in range(3):
-                    acc = 0.0
-                    for k in range(3):
-                        acc += R[i, k] * scales[g, k] * scales[g, k] * R[j, k]
-                    covars[g, i, j] = acc
+            _covar(quats, scales, g, R, covars[g])
 
 
 @_pjit
@@ -74,37 +118,13 @@ def covar_backward(quats, scales, v_covars, v_quats, v_scales):
         R = np.empty((3, 3))
         vR = np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
-            nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
-            w, x, y, z = quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm
-            _rotmat(w, x, y, z, R)
-            # Sigma = M M^T, M = R diag(s): v_M = (G + G^T) M
-            for j in range(3):
-                v_scales[g, j] = 0.0
-            for i in range(3):
-                for j in range(3):
-                    vm = 0.0
-                    for k in range(3):
-                        vm += (v_covars[g, i, k] + v_covars[g, k, i]) * R[k, j] * scales[g, j]
-                    vR[i, j] = vm * scales[g, j]
-                    v_scales[g, j] += vm * R[i, j]
-            vw = 2 * (-z * vR[0, 1] + y * vR[0, 2] + z * vR[1, 0] - x * vR[1, 2] - y * vR[2, 0] + x * vR[2, 1])
-            vx = 2 * (y * vR[0, 1] + z * vR[0, 2] + y * vR[1, 0] - 2 * x * vR[1, 1] - w * vR[1, 2] + z * vR[2, 0]
-                      + w * vR[2, 1] - 2 * x * vR[2, 2])
-            vy = 2 * (-2 * y * vR[0, 0] + x * vR[0, 1] + w * vR[0, 2] + x * vR[1, 0] + z * vR[1, 2] - w * vR[2, 0]
-                      + z * vR[2, 1] - 2 * y * vR[2, 2])
-            vz = 2 * (-2 * z * vR[0, 0] - w * vR[0, 1] + x * vR[0, 2] + w * vR[1, 0] - 2 * z * vR[1, 1] + y * vR[1, 2]
-                      + x * vR[2, 0] + y * vR[2, 1])
-            dot = w * vw + x * vx + y * vy + z * vz
-            v_quats[g, 0] = (vw - w * dot) / nrm
-            v_quats[g, 1] = (vx - x * dot) / nrm
-            v_quats[g, 2] = (vy - y * dot) / nrm
-            v_quats[g, 3] = (vz - z * dot) / nrm
+            _covar_grad(quats, scales, g, v_covars[g], R, vR, v_quats, v_scales)
 
 
 # --------------------------------------------------------------------------------------------------
-# Projection
+# Projection (from covariances, or fused with them: from quaternions and scales)
 # --------------------------------------------------------------------------------------------------
-@_jit
+@_ijit
 def _fov_limits(Ks, width, height, c):
     """The tangents (right, left, down, up) the Jacobian clamps the mean to: 1.3x the field of view."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
@@ -113,24 +133,25 @@ def _fov_limits(Ks, width, height, c):
             (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy)
 
 
-@_jit
-def _camera_frame(means, covars, viewmats, Ks, width, height, near, far, c, g, Sc):
-    """Gaussian g in camera c: its camera-space mean ``x, y, z``, the depth the Jacobian uses ``zs`` (1 when
-    culled by depth), ``depth_ok``, the clamped ``tx, ty`` and the Jacobian entries; writes the camera-space
-    covariance ``R S R^T`` into ``Sc`` [3, 3]. Shared by the projection and its backward pass."""
-    R = viewmats[c, :3, :3]
+@_ijit
+def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
+    """Gaussian g (world covariance ``cov`` [3, 3]) in camera c: its camera-space mean ``x, y, z``, the depth
+    the Jacobian uses ``zs`` (1 when culled by depth), ``depth_ok``, the clamped ``tx, ty`` and the Jacobian
+    entries; writes the camera-space covariance ``R S R^T`` into ``Sc`` [3, 3]. Shared by the projection and
+    its backward pass."""
     mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
-    x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + viewmats[c, 0, 3]
-    y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + viewmats[c, 1, 3]
-    z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + viewmats[c, 2, 3]
+    x = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
+    y = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
+    z = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
     depth_ok = (z > near) and (z < far)
     zs = z if depth_ok else 1.0
     for i in range(3):
+        r0, r1, r2 = viewmats[c, i, 0], viewmats[c, i, 1], viewmats[c, i, 2]
+        rc0 = r0 * cov[0, 0] + r1 * cov[1, 0] + r2 * cov[2, 0]
+        rc1 = r0 * cov[0, 1] + r1 * cov[1, 1] + r2 * cov[2, 1]
+        rc2 = r0 * cov[0, 2] + r1 * cov[1, 2] + r2 * cov[2, 2]
         for j in range(3):
-            acc = 0.0
-            for p in range(3):
-                acc += (R[i, 0] * covars[g, 0, p] + R[i, 1] * covars[g, 1, p] + R[i, 2] * covars[g, 2, p]) * R[j, p]
-            Sc[i, j] = acc
+            Sc[i, j] = rc0 * viewmats[c, j, 0] + rc1 * viewmats[c, j, 1] + rc2 * viewmats[c, j, 2]
     fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
     lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
     tx = zs * min(max(x / zs, -lxn), lxp)
@@ -138,13 +159,41 @@ def _camera_frame(means, covars, viewmats, Ks, width, height, near, far, c, g, S
     return x, y, z, zs, depth_ok, tx, ty, fx / zs, -fx * tx / (zs * zs), fy / zs, -fy * ty / (zs * zs)
 
 
-@_jit
+@_ijit
 def _cov2d(Sc, j00, j02, j11, j12):
     """Upper triangle (a, b, d) of ``J Sc J^T`` with ``J = [[j00, 0, j02], [0, j11, j12]]``."""
     a = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
     b = j00 * (j11 * Sc[0, 1] + j12 * Sc[0, 2]) + j02 * (j11 * Sc[2, 1] + j12 * Sc[2, 2])
     d = j11 * (j11 * Sc[1, 1] + j12 * Sc[2, 1]) + j12 * (j11 * Sc[1, 2] + j12 * Sc[2, 2])
     return a, b, d
+
+
+@_ijit
+def _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                 means2d, depths, conics, radii, comps):
+    """:func:`project_forward` of Gaussian g (world covariance ``cov``) into camera c."""
+    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
+                                                                      near, far, c, g, Sc)
+    depths[c, g] = z
+    a, b, d = _cov2d(Sc, j00, j02, j11, j12)
+    u = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
+    v = (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y + Ks[c, 1, 2] * zs) / zs
+    means2d[c, g, 0], means2d[c, g, 1] = u, v
+    det_orig = a * d - b * b
+    a += eps2d
+    d += eps2d
+    det = a * d - b * b
+    valid = depth_ok and det > 0
+    det_safe = det if valid else 1.0
+    conics[c, g, 0] = d / det_safe
+    conics[c, g, 1] = -b / det_safe
+    conics[c, g, 2] = a / det_safe
+    comps[c, g] = math.sqrt(max(det_orig / det_safe, 0.0))
+    bb = 0.5 * (a + d)
+    v1 = bb + math.sqrt(max(bb * bb - det_safe, 0.01))
+    radius = math.ceil(3.0 * math.sqrt(v1))
+    inside = (u + radius > 0) and (u - radius < width) and (v + radius > 0) and (v - radius < height)
+    radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
 
 
 @_pjit
@@ -154,32 +203,118 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
     [C, 3, 3]; writes ``means2d`` [C, N, 2], ``depths`` [C, N], ``conics`` [C, N, 3], ``radii`` [C, N]
     (int32, 0 = culled) and ``comps`` [C, N] (antialiasing compensation)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
-    for ch in numba.prange((n_cam * n + CHUNK - 1) // CHUNK):
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc = np.empty((3, 3))
-        for idx in range(ch * CHUNK, min((ch + 1) * CHUNK, n_cam * n)):
-            c, g = idx // n, idx % n
-            x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
-                                                                              height, near, far, c, g, Sc)
-            depths[c, g] = z
-            a, b, d = _cov2d(Sc, j00, j02, j11, j12)
-            means2d[c, g, 0] = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
-            means2d[c, g, 1] = (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y + Ks[c, 1, 2] * zs) / zs
-            det_orig = a * d - b * b
-            a += eps2d
-            d += eps2d
-            det = a * d - b * b
-            valid = depth_ok and det > 0
-            det_safe = det if valid else 1.0
-            conics[c, g, 0] = d / det_safe
-            conics[c, g, 1] = -b / det_safe
-            conics[c, g, 2] = a / det_safe
-            comps[c, g] = math.sqrt(max(det_orig / det_safe, 0.0))
-            bb = 0.5 * (a + d)
-            v1 = bb + math.sqrt(max(bb * bb - det_safe, 0.01))
-            radius = math.ceil(3.0 * math.sqrt(v1))
-            u, v = means2d[c, g, 0], means2d[c, g, 1]
-            inside = (u + radius > 0) and (u - radius < width) and (v + radius > 0) and (v - radius < height)
-            radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for c in range(n_cam):
+                _project_one(means, covars[g], viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                             means2d, depths, conics, radii, comps)
+
+
+@_pjit
+def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
+                       means2d, depths, conics, radii, comps):
+    """:func:`project_forward` with each covariance made from ``quats`` [N, 4] and ``scales`` [N, 3] on the
+    fly (:func:`covar_forward`'s), never stored."""
+    n_cam, n = viewmats.shape[0], means.shape[0]
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        Sc, R, cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            _covar(quats, scales, g, R, cov)
+            for c in range(n_cam):
+                _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                             means2d, depths, conics, radii, comps)
+
+
+@_ijit
+def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d, v_depths, v_conics,
+                      v_comps, use_comps, c, g, Sc, v_means, v_cov):
+    """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_means[g]`` and ``v_cov`` [3, 3]
+    (the world covariance); ``Sc`` [3, 3] is scratch. Nothing to add when every
+    output gradient of (c, g) is zero (a Gaussian culled in this camera, the common case): skipped."""
+    if (v_means2d[c, g, 0] == 0.0 and v_means2d[c, g, 1] == 0.0 and v_depths[c, g] == 0.0
+            and v_conics[c, g, 0] == 0.0 and v_conics[c, g, 1] == 0.0 and v_conics[c, g, 2] == 0.0
+            and (not use_comps or v_comps[c, g] == 0.0)):
+        return
+    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
+                                                                      near, far, c, g, Sc)
+    fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+    lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+    rx, ry = x / zs, y / zs
+    x_clamped = rx < -lxn or rx > lxp
+    y_clamped = ry < -lyn or ry > lyp
+    a0, b0, d0 = _cov2d(Sc, j00, j02, j11, j12)
+    a, d = a0 + eps2d, d0 + eps2d
+    det = a * d - b0 * b0
+    valid = depth_ok and det > 0
+    if not valid:
+        # culled: conics are constants (det_safe = 1 branch) and never rasterized; only depth flows
+        v_z = v_depths[c, g]
+        for k in range(3):
+            v_means[g, k] += viewmats[c, 2, k] * v_z
+        return
+    # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+    q00, q01, q11 = d / det, -b0 / det, a / det
+    g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
+    # Q G Q (symmetric 2x2)
+    t00 = q00 * g00 + q01 * g01
+    t01 = q00 * g01 + q01 * g11
+    t10 = q01 * g00 + q11 * g01
+    t11 = q01 * g01 + q11 * g11
+    m00 = -(t00 * q00 + t01 * q01)
+    m01 = -(t00 * q01 + t01 * q11)
+    m11 = -(t10 * q01 + t11 * q11)
+    if use_comps:
+        det_orig = a0 * d0 - b0 * b0
+        ratio = det_orig / det
+        if ratio > 0:
+            comp = math.sqrt(ratio)
+            f = 0.5 / comp * v_comps[c, g] / (det * det)
+            m00 += f * (d0 * det - det_orig * d)
+            m11 += f * (a0 * det - det_orig * a)
+            m01 += 0.5 * f * (-2.0 * b0 * det + 2.0 * b0 * det_orig)
+    # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric); J = [[j00, 0, j02],
+    # [0, j11, j12]], in scalars (GJ = Gm J, v_Sc = J^T GJ; only v_J's four structural non-zeros are needed)
+    gj00, gj01, gj02 = m00 * j00, m01 * j11, m00 * j02 + m01 * j12
+    gj10, gj11, gj12 = m01 * j00, m11 * j11, m01 * j02 + m11 * j12
+    s00, s01, s02 = j00 * gj00, j00 * gj01, j00 * gj02
+    s10, s11, s12 = j11 * gj10, j11 * gj11, j11 * gj12
+    s20, s21, s22 = j02 * gj00 + j12 * gj10, j02 * gj01 + j12 * gj11, j02 * gj02 + j12 * gj12
+    vj00 = 2.0 * (gj00 * Sc[0, 0] + gj01 * Sc[1, 0] + gj02 * Sc[2, 0])
+    vj02 = 2.0 * (gj00 * Sc[0, 2] + gj01 * Sc[1, 2] + gj02 * Sc[2, 2])
+    vj11 = 2.0 * (gj10 * Sc[0, 1] + gj11 * Sc[1, 1] + gj12 * Sc[2, 1])
+    vj12 = 2.0 * (gj10 * Sc[0, 2] + gj11 * Sc[1, 2] + gj12 * Sc[2, 2])
+    # J's dependence on zs, tx, ty
+    zs2, zs3 = zs * zs, zs * zs * zs
+    v_zs = -fx / zs2 * vj00 - fy / zs2 * vj11
+    v_tx = -fx / zs2 * vj02
+    v_ty = -fy / zs2 * vj12
+    v_zs += 2.0 * fx * tx / zs3 * vj02 + 2.0 * fy * ty / zs3 * vj12
+    v_x, v_y = 0.0, 0.0
+    if x_clamped:
+        v_zs += min(max(rx, -lxn), lxp) * v_tx
+    else:
+        v_x += v_tx
+    if y_clamped:
+        v_zs += min(max(ry, -lyn), lyp) * v_ty
+    else:
+        v_y += v_ty
+    # means2d = (K[:2] @ (x, y, zs)) / zs
+    vu, vv = v_means2d[c, g, 0], v_means2d[c, g, 1]
+    v_x += (Ks[c, 0, 0] * vu + Ks[c, 1, 0] * vv) / zs
+    v_y += (Ks[c, 0, 1] * vu + Ks[c, 1, 1] * vv) / zs
+    v_zs += -(vu * (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y) + vv * (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y)) / zs2
+    v_z = v_depths[c, g] + v_zs  # depth_ok holds here
+    for k in range(3):
+        v_means[g, k] += viewmats[c, 0, k] * v_x + viewmats[c, 1, k] * v_y + viewmats[c, 2, k] * v_z
+    # Sc = R S R^T: dL/dS = R^T v_Sc R (as two products: column k of v_Sc R, then R^T times it)
+    for k in range(3):
+        r0k, r1k, r2k = viewmats[c, 0, k], viewmats[c, 1, k], viewmats[c, 2, k]
+        rv0 = s00 * r0k + s01 * r1k + s02 * r2k
+        rv1 = s10 * r0k + s11 * r1k + s12 * r2k
+        rv2 = s20 * r0k + s21 * r1k + s22 * r2k
+        for i in range(3):
+            v_cov[i, k] += viewmats[c, 0, i] * rv0 + viewmats[c, 1, i] * rv1 + viewmats[c, 2, i] * rv2
 
 
 @_pjit
@@ -189,95 +324,36 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
     (cameras summed in order per Gaussian)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        Sc, J, Gm, GJ = np.empty((3, 3)), np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3))
-        v_Sc, v_J = np.empty((3, 3)), np.empty((2, 3))
+        Sc = np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for k in range(3):
                 v_means[g, k] = 0.0
                 for j in range(3):
                     v_covars[g, k, j] = 0.0
             for c in range(n_cam):
-                R = viewmats[c, :3, :3]
-                x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, covars, viewmats, Ks, width,
-                                                                                  height, near, far, c, g, Sc)
-                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-                lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
-                rx, ry = x / zs, y / zs
-                x_clamped = rx < -lxn or rx > lxp
-                y_clamped = ry < -lyn or ry > lyp
-                a0, b0, d0 = _cov2d(Sc, j00, j02, j11, j12)
-                a, d = a0 + eps2d, d0 + eps2d
-                det = a * d - b0 * b0
-                valid = depth_ok and det > 0
-                if not valid:
-                    # culled: conics are constants (det_safe = 1 branch) and never rasterized; only depth flows
-                    v_z = v_depths[c, g]
-                    for k in range(3):
-                        v_means[g, k] += R[2, k] * v_z
-                    continue
-                # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
-                q00, q01, q11 = d / det, -b0 / det, a / det
-                g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
-                # Q G Q (symmetric 2x2)
-                t00 = q00 * g00 + q01 * g01
-                t01 = q00 * g01 + q01 * g11
-                t10 = q01 * g00 + q11 * g01
-                t11 = q01 * g01 + q11 * g11
-                m00 = -(t00 * q00 + t01 * q01)
-                m01 = -(t00 * q01 + t01 * q11)
-                m11 = -(t10 * q01 + t11 * q11)
-                if use_comps:
-                    det_orig = a0 * d0 - b0 * b0
-                    ratio = det_orig / det
-                    if ratio > 0:
-                        comp = math.sqrt(ratio)
-                        f = 0.5 / comp * v_comps[c, g] / (det * det)
-                        m00 += f * (d0 * det - det_orig * d)
-                        m11 += f * (a0 * det - det_orig * a)
-                        m01 += 0.5 * f * (-2.0 * b0 * det + 2.0 * b0 * det_orig)
-                # cov2d = J Sc J^T: dL/dSc = J^T Gm J, dL/dJ = 2 Gm J Sc (Gm, Sc symmetric)
-                J[0, 0], J[0, 2], J[1, 1], J[1, 2] = j00, j02, j11, j12
-                Gm[0, 0], Gm[0, 1], Gm[1, 0], Gm[1, 1] = m00, m01, m01, m11
-                for i in range(2):
-                    for k in range(3):
-                        GJ[i, k] = Gm[i, 0] * J[0, k] + Gm[i, 1] * J[1, k]
-                for i in range(3):
-                    for k in range(3):
-                        v_Sc[i, k] = J[0, i] * GJ[0, k] + J[1, i] * GJ[1, k]
-                for i in range(2):
-                    for k in range(3):
-                        v_J[i, k] = 2.0 * (GJ[i, 0] * Sc[0, k] + GJ[i, 1] * Sc[1, k] + GJ[i, 2] * Sc[2, k])
-                # J's dependence on zs, tx, ty
-                zs2, zs3 = zs * zs, zs * zs * zs
-                v_zs = -fx / zs2 * v_J[0, 0] - fy / zs2 * v_J[1, 1]
-                v_tx = -fx / zs2 * v_J[0, 2]
-                v_ty = -fy / zs2 * v_J[1, 2]
-                v_zs += 2.0 * fx * tx / zs3 * v_J[0, 2] + 2.0 * fy * ty / zs3 * v_J[1, 2]
-                v_x, v_y = 0.0, 0.0
-                if x_clamped:
-                    v_zs += min(max(rx, -lxn), lxp) * v_tx
-                else:
-                    v_x += v_tx
-                if y_clamped:
-                    v_zs += min(max(ry, -lyn), lyp) * v_ty
-                else:
-                    v_y += v_ty
-                # means2d = (K[:2] @ (x, y, zs)) / zs
-                vu, vv = v_means2d[c, g, 0], v_means2d[c, g, 1]
-                v_x += (Ks[c, 0, 0] * vu + Ks[c, 1, 0] * vv) / zs
-                v_y += (Ks[c, 0, 1] * vu + Ks[c, 1, 1] * vv) / zs
-                v_zs += -(vu * (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y) + vv * (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y)) / zs2
-                v_z = v_depths[c, g] + v_zs  # depth_ok holds here
-                for k in range(3):
-                    v_means[g, k] += R[0, k] * v_x + R[1, k] * v_y + R[2, k] * v_z
-                # Sc = R S R^T: dL/dS = R^T v_Sc R
-                for i in range(3):
-                    for k in range(3):
-                        s = 0.0
-                        for p in range(3):
-                            for q in range(3):
-                                s += R[p, i] * v_Sc[p, q] * R[q, k]
-                        v_covars[g, i, k] += s
+                _project_grad_one(means, covars[g], viewmats, Ks, width, height, eps2d, near, far, v_means2d,
+                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_means, v_covars[g])
+
+
+@_pjit
+def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, near, far,
+                        v_means2d, v_depths, v_conics, v_comps, use_comps, v_means, v_quats, v_scales):
+    """Gradients of :func:`project_qs_forward`'s outputs into ``v_means`` [N, 3], ``v_quats`` [N, 4] and
+    ``v_scales`` [N, 3] (cameras summed in order per Gaussian, then through the covariance)."""
+    n_cam, n = viewmats.shape[0], means.shape[0]
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        Sc = np.empty((3, 3))
+        R, vR, cov, v_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            _covar(quats, scales, g, R, cov)
+            for k in range(3):
+                v_means[g, k] = 0.0
+                for j in range(3):
+                    v_cov[k, j] = 0.0
+            for c in range(n_cam):
+                _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d,
+                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_means, v_cov)
+            _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -305,15 +381,32 @@ def tile_bounds(means2d, radii, tile_size, tile_w, tile_h, bounds):
     return total
 
 
+def depth_keys(depths: np.ndarray) -> np.ndarray:
+    """Unsigned integer keys [C, N] whose order is the order of the float64 ``depths`` (the IEEE bits with the
+    sign bit set for positives and every bit flipped for negatives), for :func:`bin_gaussians`' radix sort."""
+    bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
+    neg = (bits >> np.uint64(63)).astype(bool)
+    return np.where(neg, ~bits, bits | np.uint64(1 << 63))
+
+
+RADIX_BITS = 16  # 4 passes at most; the passes over digits all keys share (exponent bits) are skipped
+
+
 @_jit
-def bin_gaussians(bounds, tile_w, tile_h, offsets, gids):
-    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose square touches it, in index
-    order: ``offsets`` [C * tiles + 1], ``gids`` [n_isects]."""
+def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
+    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose square touches it, in depth order
+    (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
+    sort of each camera's visible Gaussians by ``keys`` (:func:`depth_keys`) and one pass that appends them to
+    their tiles in that order, instead of a sort per tile. Also, per (camera, Gaussian) ``idx`` in row-major
+    tile order, the list positions of its entries ``epos[goff[idx]:goff[idx + 1]]`` (for :func:`gather_slots`)."""
     n_cam, n = bounds.shape[0], bounds.shape[1]
     n_tiles = tile_w * tile_h
     counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
+    goff[0] = 0
     for c in range(n_cam):
         for g in range(n):
+            cnt = (bounds[c, g, 1] - bounds[c, g, 0]) * (bounds[c, g, 3] - bounds[c, g, 2])
+            goff[c * n + g + 1] = goff[c * n + g] + cnt
             for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
                 for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
                     counts[c * n_tiles + ty * tile_w + tx] += 1
@@ -321,30 +414,49 @@ def bin_gaussians(bounds, tile_w, tile_h, offsets, gids):
     for t in range(n_cam * n_tiles):
         offsets[t + 1] = offsets[t] + counts[t]
     fill = offsets[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    tmp = np.empty(n, dtype=np.int64)
+    okey = np.empty(n, dtype=np.uint64)  # the keys travel with the indices: each pass reads them in sequence
+    tkey = np.empty(n, dtype=np.uint64)
+    n_bins = 1 << RADIX_BITS
+    hist = np.empty(n_bins, dtype=np.int64)
+    mask = np.uint64(n_bins - 1)
     for c in range(n_cam):
+        m = 0
         for g in range(n):
+            if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
+                order[m] = g
+                okey[m] = keys[c, g]
+                m += 1
+        for shift in range(0, 64, RADIX_BITS):
+            sh = np.uint64(shift)
+            hist[:] = 0
+            for i in range(m):
+                hist[(okey[i] >> sh) & mask] += 1
+            if m == 0 or hist[(okey[0] >> sh) & mask] == m:
+                continue  # one digit value for all: the pass would not move anything
+            acc = 0
+            for b in range(n_bins):
+                h = hist[b]
+                hist[b] = acc
+                acc += h
+            for i in range(m):
+                b = (okey[i] >> sh) & mask
+                tmp[hist[b]] = order[i]
+                tkey[hist[b]] = okey[i]
+                hist[b] += 1
+            order, tmp = tmp, order
+            okey, tkey = tkey, okey
+        for i in range(m):
+            g = order[i]
+            j = goff[c * n + g]
             for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
                 for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
                     t = c * n_tiles + ty * tile_w + tx
                     gids[fill[t]] = g
+                    epos[j] = fill[t]
                     fill[t] += 1
-
-
-@_pjit
-def sort_tiles(offsets, gids, depths, n_tiles):
-    """Each tile's list sorted by depth, stably (ties keep index order, as a stable global sort)."""
-    for t in numba.prange(offsets.shape[0] - 1):
-        lo, hi = offsets[t], offsets[t + 1]
-        if hi - lo < 2:
-            continue
-        c = t // n_tiles
-        seg = gids[lo:hi].copy()
-        keys = np.empty(hi - lo)
-        for k in range(hi - lo):
-            keys[k] = depths[c, seg[k]]
-        order = np.argsort(keys, kind="mergesort")
-        for k in range(hi - lo):
-            gids[lo + k] = seg[order[k]]
+                    j += 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -355,6 +467,7 @@ def sort_tiles(offsets, gids, depths, n_tiles):
 # no float64 literal promotes the per-pixel arithmetic. Fast-math without ``nnan``/``ninf`` (the code compares
 # and clamps; no infinities or NaNs are assumed away); the per-tile code is the same on any thread count.
 SIGMA_MARGIN = 1e-3  # a sigma cut's margin above ln(255 o): far above float32 rounding of the row spans
+NARROW_BOX = 4  # boxes this wide (pixels) or narrower skip the row spans: testing each pixel costs less
 
 
 def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
@@ -403,18 +516,25 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, width, height, rec
 
 
 @_pjit
-def gather_entries(offsets, gids, n_tiles, rec, ent):
-    """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel)."""
+def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec, ent, cap):
+    """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); ``cap``
+    [C * tiles] = per tile the pixels of its entries' boxes within it (the most pairs compositing can keep)."""
     n_rec = rec.shape[2]
     for t in numba.prange(offsets.shape[0] - 1):
-        c = t // n_tiles
+        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
+        area = 0
         for k in range(offsets[t], offsets[t + 1]):
             g = gids[k]
             for j in range(n_rec):
                 ent[k, j] = rec[c, g, j]
+            x0, x1 = max(int(rec[c, g, R_X0]), x_lo), min(int(rec[c, g, R_X1]), x_hi)
+            y0, y1 = max(int(rec[c, g, R_Y0]), y_lo), min(int(rec[c, g, R_Y1]), y_hi)
+            if x0 < x1 and y0 < y1:
+                area += (x1 - x0) * (y1 - y0)
+        cap[t] = area
 
 
-@_jit
+@_ijit
 def _tile(t, n_tiles, tile_w, tile_size, width, height):
     """Camera and pixel bounds ``[x_lo, x_hi) x [y_lo, y_hi)`` of tile ``t`` (``camera * n_tiles + row *
     tile_w + col``)."""
@@ -423,7 +543,7 @@ def _tile(t, n_tiles, tile_w, tile_size, width, height):
     return c, x_lo, min(x_lo + tile_size, width), y_lo, min(y_lo + tile_size, height)
 
 
-@_fjit
+@_ifjit
 def _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1):
     """The columns ``[rx0, rx1)`` of ``[x0, x1)`` in one pixel row (offset ``dy`` from the mean) where ``sigma``
     can be <= ``cut``: the roots of ``q0/2 dx^2 + q1 dy dx + q2/2 dy^2 - cut``. ``cut`` carries its own margin
@@ -441,14 +561,19 @@ def _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1):
 
 
 @_pfjit
-def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, render, t_final, last):
-    """Front-to-back compositing: ``render`` [C, H, W, D], ``t_final`` [C, H, W] (final transmittance),
-    ``last`` [C, H, W] (one past the list position of the pixel's last contribution).
+def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, render, t_final,
+                      pbase, pend, pix, pes, record):
+    """Front-to-back compositing: ``render`` [C, H, W, D], ``t_final`` [C, H, W] (final transmittance).
 
     Per tile, Gaussian-major: the tile's list is walked once in depth order and each entry visits only the
     pixels of its alpha box, row by row within the row's span of its ellipse, so the work is the candidate
     pairs, not pixels x list length; each pixel still sees its Gaussians front to back with the same arithmetic
-    as a per-pixel loop. The tile's state (transmittance, accumulated features) lives in contiguous arrays."""
+    as a per-pixel loop. The tile's state (transmittance, accumulated features) lives in contiguous arrays.
+
+    With ``record``, the pairs that contributed are kept for the backward pass, which then replays only them
+    (no spans, cut tests or ``exp`` again): per pair its pixel in the tile ``pix`` and ``exp(-sigma)`` ``pes``,
+    from the tile's slot ``pbase[t]`` (its capacity: :func:`gather_entries`' box areas) on, and per list entry
+    the end of its pairs ``pend`` [n_isects] (written whether or not recording)."""
     alpha_clamp, athr, tstop, half, one, zero, two = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
     n_cam = render.shape[0]
     n_feat = render.shape[3]
@@ -462,7 +587,6 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
         T = np.ones(n_px, cst.dtype)
         acc = np.zeros(n_px * n_feat, cst.dtype)
         done = np.zeros(n_px, dtype=np.bool_)
-        end = np.full(n_px, lo, dtype=np.int64)
         xc = np.empty(tw, cst.dtype)
         for i in range(tw):
             xc[i] = x_lo + i + 0.5
@@ -470,60 +594,85 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
         for i in range(y_hi - y_lo):
             yc[i] = y_lo + i + 0.5
         n_done = 0
+        j = pbase[t]
         for k in range(lo, hi):
             if n_done == n_px:
+                for kk in range(k, hi):
+                    pend[kk] = j
                 break
             e_ = ent[k]
             x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
             y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
-            if x0 >= x1 or y0 >= y1:
-                continue
-            mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
-            o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
-            for py in range(y0, y1):
-                dy = yc[py - y_lo] - my
-                rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
-                row = (py - y_lo) * tw - x_lo
-                for px in range(rx0, rx1):
-                    p = row + px
-                    if done[p]:
-                        continue
-                    dx = xc[px - x_lo] - mx
-                    sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
-                    if sigma < zero or sigma > cut:
-                        continue
-                    alpha = min(alpha_clamp, o * math.exp(-sigma))
-                    if alpha < athr:
-                        continue
-                    tp = T[p]
-                    nt = tp * (one - alpha)
-                    if nt <= tstop:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    w = alpha * tp
-                    for f in range(n_feat):
-                        acc[p * n_feat + f] += w * e_[R_FEAT + f]
-                    T[p] = nt
-                    end[p] = k + 1
+            if x0 < x1 and y0 < y1:
+                mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
+                o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
+                # the first (up to) four features as scalars: RGB and RGB + depth take the unrolled updates
+                c0 = e_[R_FEAT] if n_feat > 0 else zero
+                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                narrow = x1 - x0 <= NARROW_BOX
+                for py in range(y0, y1):
+                    dy = yc[py - y_lo] - my
+                    if narrow:
+                        rx0, rx1 = x0, x1
+                    else:
+                        rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
+                    row = (py - y_lo) * tw - x_lo
+                    for px in range(rx0, rx1):
+                        p = row + px
+                        if done[p]:
+                            continue
+                        dx = xc[px - x_lo] - mx
+                        sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+                        if sigma < zero or sigma > cut:
+                            continue
+                        e = math.exp(-sigma)
+                        alpha = min(alpha_clamp, o * e)
+                        if alpha < athr:
+                            continue
+                        tp = T[p]
+                        nt = tp * (one - alpha)
+                        if nt <= tstop:
+                            done[p] = True
+                            n_done += 1
+                            continue
+                        w = alpha * tp
+                        if n_feat == 3:
+                            acc[p * 3] += w * c0
+                            acc[p * 3 + 1] += w * c1
+                            acc[p * 3 + 2] += w * c2
+                        elif n_feat == 4:
+                            acc[p * 4] += w * c0
+                            acc[p * 4 + 1] += w * c1
+                            acc[p * 4 + 2] += w * c2
+                            acc[p * 4 + 3] += w * c3
+                        else:
+                            for f in range(n_feat):
+                                acc[p * n_feat + f] += w * e_[R_FEAT + f]
+                        T[p] = nt
+                        if record:
+                            pix[j] = p
+                            pes[j] = e
+                            j += 1
+            pend[k] = j
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
                 p = (py - y_lo) * tw + (px - x_lo)
                 for f in range(n_feat):
                     render[c, py, px, f] = acc[p * n_feat + f] + (T[p] * backgrounds[c, f] if use_bg else zero)
                 t_final[c, py, px] = T[p]
-                last[c, py, px] = end[p]
 
 
 @_pfjit
-def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final, last,
-                       v_render, v_alphas, slots):
-    """Gradients of each list entry (tile, Gaussian) into the slots ``s_*`` [n_isects, ...] (a tile writes
-    only its own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
-    front, so each pixel sees its contributions in reverse order (transmittance recovered by division from
-    forward's final transmittance; forward's last index skips the pairs behind a pixel's stop). Per-entry sums
-    are float64."""
-    alpha_clamp, athr, half, one, zero, two = cst[0], cst[1], cst[3], cst[4], cst[5], cst[6]
+def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final,
+                       v_render, v_alphas, pbase, pend, pix, pes, slots):
+    """Gradients of each list entry (tile, Gaussian) into the slots [n_isects, 6 + D] (a tile writes only its
+    own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
+    front over the pairs forward recorded (``composite_forward``'s ``record``), so each pixel sees its
+    contributions in reverse order (transmittance recovered by division from forward's final transmittance).
+    Per-entry sums are float64."""
+    alpha_clamp, half, one, zero = cst[0], cst[3], cst[4], cst[5]
     n_cam = v_render.shape[0]
     n_feat = v_render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
@@ -535,7 +684,6 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
         n_px = tw * (y_hi - y_lo)
         T = np.empty(n_px, cst.dtype)
         va = np.empty(n_px, cst.dtype)
-        lastl = np.empty(n_px, np.int64)
         behind = np.empty(n_px * n_feat, cst.dtype)
         vr = np.empty(n_px * n_feat, cst.dtype)
         gcol = np.empty(n_feat)
@@ -550,80 +698,99 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                 p = (py - y_lo) * tw + (px - x_lo)
                 T[p] = t_final[c, py, px]
                 va[p] = v_alphas[c, py, px] * t_final[c, py, px]
-                lastl[p] = last[c, py, px]
                 for f in range(n_feat):
                     behind[p * n_feat + f] = T[p] * backgrounds[c, f] if use_bg else zero
                     vr[p * n_feat + f] = v_render[c, py, px, f]
         for k in range(hi - 1, lo - 1, -1):
-            e_ = ent[k]
             g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
+            g0 = g1 = g2 = g3 = 0.0  # the unrolled features' sums (gcol otherwise)
             for f in range(n_feat):
                 gcol[f] = 0.0
-            x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
-            y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
-            if x0 < x1 and y0 < y1:
+            j0 = pend[k - 1] if k > lo else pbase[t]
+            j1 = pend[k]
+            if j1 > j0:
+                e_ = ent[k]
                 mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
-                o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
-                for py in range(y0, y1):
-                    dy = yc[py - y_lo] - my
-                    rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
-                    row = (py - y_lo) * tw - x_lo
-                    for px in range(rx0, rx1):
-                        p = row + px
-                        if k >= lastl[p]:
-                            continue
-                        dx = xc[px - x_lo] - mx
-                        sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
-                        if sigma < zero or sigma > cut:
-                            continue
-                        e = math.exp(-sigma)
-                        raw = o * e
-                        alpha = min(alpha_clamp, raw)
-                        if alpha < athr:
-                            continue
-                        ra = one / (one - alpha)
-                        Ti = T[p] * ra
-                        w = alpha * Ti
-                        v_alpha = va[p] * ra
+                o = e_[R_O]
+                c0 = e_[R_FEAT] if n_feat > 0 else zero
+                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                for j in range(j0, j1):
+                    p = pix[j]
+                    e = pes[j]
+                    dx = xc[p % tw] - mx
+                    dy = yc[p // tw] - my
+                    raw = o * e
+                    alpha = min(alpha_clamp, raw)
+                    ra = one / (one - alpha)
+                    Ti = T[p] * ra
+                    w = alpha * Ti
+                    v_alpha = va[p] * ra
+                    if n_feat == 3 or n_feat == 4:  # RGB, RGB + depth: unrolled
+                        b = p * n_feat
+                        vc0, vc1, vc2 = vr[b], vr[b + 1], vr[b + 2]
+                        g0 += w * vc0
+                        g1 += w * vc1
+                        g2 += w * vc2
+                        v_alpha += vc0 * (Ti * c0 - behind[b] * ra)
+                        v_alpha += vc1 * (Ti * c1 - behind[b + 1] * ra)
+                        v_alpha += vc2 * (Ti * c2 - behind[b + 2] * ra)
+                        behind[b] += w * c0
+                        behind[b + 1] += w * c1
+                        behind[b + 2] += w * c2
+                        if n_feat == 4:
+                            vc3 = vr[b + 3]
+                            g3 += w * vc3
+                            v_alpha += vc3 * (Ti * c3 - behind[b + 3] * ra)
+                            behind[b + 3] += w * c3
+                    else:
                         for f in range(n_feat):
                             vc = vr[p * n_feat + f]
                             cf = e_[R_FEAT + f]
                             gcol[f] += w * vc
                             v_alpha += vc * (Ti * cf - behind[p * n_feat + f] * ra)
                             behind[p * n_feat + f] += w * cf
-                        T[p] = Ti
-                        if raw <= alpha_clamp:
-                            g_o += v_alpha * e
-                            v_sigma = -v_alpha * alpha
-                            hv = half * v_sigma
-                            g_q0 += hv * dx * dx
-                            g_q1 += v_sigma * dx * dy
-                            g_q2 += hv * dy * dy
-                            g_mx -= v_sigma * (q0 * dx + q1 * dy)
-                            g_my -= v_sigma * (q1 * dx + q2 * dy)
+                    T[p] = Ti
+                    if raw <= alpha_clamp:
+                        g_o += v_alpha * e
+                        v_sigma = -v_alpha * alpha
+                        hv = half * v_sigma
+                        g_q0 += hv * dx * dx
+                        g_q1 += v_sigma * dx * dy
+                        g_q2 += hv * dy * dy
+                        g_mx -= v_sigma * (q0 * dx + q1 * dy)
+                        g_my -= v_sigma * (q1 * dx + q2 * dy)
             slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
             slots[k, 5] = g_o
+            if n_feat == 3 or n_feat == 4:
+                gcol[0], gcol[1], gcol[2] = g0, g1, g2
+                if n_feat == 4:
+                    gcol[3] = g3
             for f in range(n_feat):
                 slots[k, 6 + f] = gcol[f]
 
 
 @_pjit
-def gather_slots(offsets, gids, n_tiles, n_chunks, slots, grads):
+def gather_slots(goff, epos, slots, grads):
     """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features) = the sums of the list entries' ``slots``
-    [n_isects, 6 + D] per (camera, Gaussian), in list order (deterministic for any thread count): each parallel
-    chunk (``n_chunks``: the thread count) owns a range of Gaussians and scans the list for them."""
+    [n_isects, 6 + D] per (camera, Gaussian), over its entries in row-major tile order (``goff``, ``epos`` of
+    :func:`bin_gaussians`; the order of the whole list): deterministic for any thread count. (Writing the slots
+    in this order from the compositing instead, to read them contiguously here, cost more: scattered writes.)"""
     n_s = slots.shape[1]
-    n = grads.shape[1]
-    step = (n + n_chunks - 1) // n_chunks
-    for ch in numba.prange(n_chunks):
-        g_lo, g_hi = ch * step, min((ch + 1) * step, n)
-        for t in range(offsets.shape[0] - 1):
-            c = t // n_tiles
-            for k in range(offsets[t], offsets[t + 1]):
-                g = gids[k]
-                if g >= g_lo and g < g_hi:
-                    for j in range(n_s):
-                        grads[c, g, j] += slots[k, j]
+    n_cam, n = grads.shape[0], grads.shape[1]
+    for ch in numba.prange((n_cam * n + CHUNK - 1) // CHUNK):
+        acc = np.empty(n_s)
+        for idx in range(ch * CHUNK, min((ch + 1) * CHUNK, n_cam * n)):
+            c, g = idx // n, idx % n
+            for j in range(n_s):
+                acc[j] = 0.0
+            for i in range(goff[idx], goff[idx + 1]):
+                k = epos[i]
+                for j in range(n_s):
+                    acc[j] += slots[k, j]
+            for j in range(n_s):
+                grads[c, g, j] = acc[j]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -636,7 +803,7 @@ _C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325
        1.445305721320277, -0.5900435899266435)
 
 
-@_jit
+@_ijit
 def _sh_basis(degree, x, y, z, b, db):
     """The ``(degree + 1)^2`` basis values at the unit direction (x, y, z) into ``b`` [16] and, when ``db`` has
     rows, their derivatives into ``db`` [16, 3] (sh.py's ``sh_basis`` term by term)."""
@@ -684,7 +851,7 @@ def _sh_basis(degree, x, y, z, b, db):
             db[15, 0], db[15, 1] = _C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * _C3[6] * x * y
 
 
-@_jit
+@_ijit
 def _unit_dir(means, campos, c, g):
     dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
     nrm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # torch.nn.functional.normalize's eps
@@ -694,6 +861,7 @@ def _unit_dir(means, campos, c, g):
 @_pjit
 def sh_forward(degree, means, campos, coeffs, rgb):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
+    (float32 or float64, read as they are; float64 arithmetic)
     along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
@@ -713,14 +881,17 @@ def sh_forward(degree, means, campos, coeffs, rgb):
 @_pjit
 def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
-    order; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``)."""
+    order, in float64, whatever the dtype of ``coeffs`` / ``v_coeffs``; the clamp passes the gradient where its
+    input is >= 0, as ``torch.clamp_min``)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
+    n_k = v_coeffs.shape[1]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db = np.empty(16), np.empty((16, 3))
+        vco = np.empty((n_k, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
-            for k in range(v_coeffs.shape[1]):
-                v_coeffs[g, k, 0] = v_coeffs[g, k, 1] = v_coeffs[g, k, 2] = 0.0
+            for k in range(n_k):
+                vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
             v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
             for c in range(n_cam):
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
@@ -734,7 +905,7 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
                         continue
                     v = v_rgb[c, g, j]
                     for k in range(nb):
-                        v_coeffs[g, k, j] += b[k] * v
+                        vco[k, j] += b[k] * v
                         vc = coeffs[g, k, j] * v
                         vd0 += db[k, 0] * vc
                         vd1 += db[k, 1] * vc
@@ -744,3 +915,5 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
                 v_means[g, 0] += (vd0 - x * dot) / nrm
                 v_means[g, 1] += (vd1 - y * dot) / nrm
                 v_means[g, 2] += (vd2 - z * dot) / nrm
+            for k in range(n_k):
+                v_coeffs[g, k, 0], v_coeffs[g, k, 1], v_coeffs[g, k, 2] = vco[k, 0], vco[k, 1], vco[k, 2]

@@ -24,6 +24,7 @@ other work goes on meanwhile.
 
 from __future__ import annotations
 
+import sys
 import threading
 from typing import Literal
 
@@ -36,7 +37,6 @@ from navcrafter.models.gaussians import cpu_kernels as K
 from navcrafter.models.gaussians.rasterize import (
     DEFAULT_ALPHA_CLAMP,
     RenderMode,
-    _check_inputs,
     render_gaussians,
 )
 from navcrafter.models.gaussians.rasterize import resolve_colors as torch_resolve_colors
@@ -54,6 +54,39 @@ def set_threads(threads: int | None) -> int:
     else:
         numba.set_num_threads(top)
     return numba.get_num_threads()
+
+
+class _Scratch:
+    """Reused work arrays: a fresh multi-megabyte ``np.empty`` per call is fresh pages from the kernel, and
+    touching them (page faults, zeroing) cost ~5-10 ms per 100k-Gaussian render. A buffer is handed out again
+    only when nothing references it any more (no view of it is alive: no autograd context waiting for its
+    backward pass, no tensor made from it), so results never share memory; a few per name, for a forward
+    issued before the previous graph is freed."""
+
+    KEEP = 3  # buffers kept per name
+
+    def __init__(self) -> None:
+        self._bufs: dict[str, list[np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, name: str, shape, dtype) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        with self._lock:
+            bufs = self._bufs.setdefault(name, [])
+            for buf in bufs:
+                # free: referenced only by the list, this loop's variable and getrefcount's argument
+                if buf.nbytes >= need and sys.getrefcount(buf) <= 3:
+                    break
+            else:
+                buf = np.empty(max(need + need // 4, 64), dtype=np.uint8)  # headroom for the next call
+                if len(bufs) >= self.KEEP:
+                    bufs.pop(0)
+                bufs.append(buf)
+            return buf[:need].view(dtype).reshape(shape)
+
+
+_SCRATCH = _Scratch()
 
 
 def _np(t: Tensor) -> np.ndarray:
@@ -98,17 +131,24 @@ def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
 class _SH(torch.autograd.Function):
     @staticmethod
     def forward(ctx, degree, means, coeffs, campos):
-        m, co, cp = _np(means), _np(coeffs), _np(campos)
+        # the coefficients [N, K, 3] are read in their own dtype, not copied (the biggest input of a fit):
+        # saved for backward, so an in-place change before it is caught by autograd's version check
+        co_t = coeffs.detach().contiguous()
+        co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(coeffs)
+        m, cp = _np(means), _np(campos)
         rgb = np.empty((len(cp), len(m), 3))
         with _LOCK:
             K.sh_forward(degree, m, cp, co, rgb)
-        ctx.arrays, ctx.degree, ctx.likes = (m, co, cp, rgb), degree, (means, coeffs)
+        ctx.save_for_backward(co_t)
+        ctx.arrays, ctx.degree, ctx.likes = (m, cp, rgb), degree, (means, coeffs)
         return _out(rgb, means)
 
     @staticmethod
     def backward(ctx, v_rgb):
-        m, co, cp, rgb = ctx.arrays
-        v_m, v_co = np.empty_like(m), np.empty_like(co)
+        m, cp, rgb = ctx.arrays
+        (co_t,) = ctx.saved_tensors
+        co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(co_t)
+        v_m, v_co = np.empty_like(m), np.empty(co.shape, dtype=co.dtype)
         with _LOCK:
             K.sh_backward(ctx.degree, m, cp, co, rgb, _np(v_rgb), v_m, v_co)
         return None, _out(v_m, ctx.likes[0]), _out(v_co, ctx.likes[1]), None
@@ -176,10 +216,64 @@ def project_gaussians(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tenso
             "compensations": comps if calc_compensations else None}
 
 
+class _ProjectQS(torch.autograd.Function):
+    """:class:`_Project` with the covariances made from quaternions and scales inside the kernels (never
+    stored, no [N, 3, 3] tensors crossing into PyTorch and back)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmats, Ks, width, height, eps2d, near, far, radius_clip):
+        m, q, sc, vm, k = _np(means), _np(quats), _np(scales), _np(viewmats), _np(Ks)
+        n_cam, n = vm.shape[0], m.shape[0]
+        means2d, depths = np.empty((n_cam, n, 2)), np.empty((n_cam, n))
+        conics, comps = np.empty((n_cam, n, 3)), np.empty((n_cam, n))
+        radii = np.empty((n_cam, n), dtype=np.int32)
+        with _LOCK:
+            K.project_qs_forward(m, q, sc, vm, k, width, height, eps2d, near, far, radius_clip,
+                                 means2d, depths, conics, radii, comps)
+        ctx.arrays = (m, q, sc, vm, k)
+        ctx.scalars = (width, height, eps2d, near, far)
+        ctx.likes = (means, quats, scales)
+        radii_t = torch.from_numpy(radii).to(means.device)
+        ctx.mark_non_differentiable(radii_t)
+        return _out(means2d, means), _out(depths, means), _out(conics, means), _out(comps, means), radii_t
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_depths, v_conics, v_comps, _v_radii):
+        m, q, sc, vm, k = ctx.arrays
+        n_cam, n = vm.shape[0], m.shape[0]
+
+        def grad(v, shape):
+            return np.zeros(shape) if v is None else _np(v)
+
+        v_means, v_quats, v_scales = np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3))
+        with _LOCK:
+            K.project_qs_backward(m, q, sc, vm, k, *ctx.scalars, grad(v_means2d, (n_cam, n, 2)),
+                                  grad(v_depths, (n_cam, n)), grad(v_conics, (n_cam, n, 3)),
+                                  grad(v_comps, (n_cam, n)), v_comps is not None, v_means, v_quats, v_scales)
+        lm, lq, ls = ctx.likes
+        return (_out(v_means, lm), _out(v_quats, lq), _out(v_scales, ls), None, None, None, None, None, None, None,
+                None)
+
+
+def project_gaussians_qs(means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int,
+                         height: int, *, eps2d: float = 0.3, near_plane: float = 0.01, far_plane: float = 1e10,
+                         radius_clip: float = 0.0, calc_compensations: bool = False) -> dict[str, Tensor | None]:
+    """:func:`project_gaussians` of the covariances of ``quats`` and ``scales`` (fused: equal to
+    ``project_gaussians(means, quat_scale_to_covar(quats, scales), ...)`` up to rounding)."""
+    if viewmats.requires_grad or Ks.requires_grad:
+        raise ValueError("the compiled CPU rasterizer does not differentiate viewmats or Ks; render with "
+                         "backend='torch' (navcrafter's PyTorch rasterizer) to optimise cameras")
+    means2d, depths, conics, comps, radii = _ProjectQS.apply(means, quats, scales, viewmats, Ks, int(width),
+                                                             int(height), float(eps2d), float(near_plane),
+                                                             float(far_plane), float(radius_clip))
+    return {"radii": radii, "means2d": means2d, "depths": depths, "conics": conics,
+            "compensations": comps if calc_compensations else None}
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size,
-                alpha_clamp, info):
+                alpha_clamp, record, info):
         n_cam, n = radii.shape
         d = colors.shape[-1]
         tile_w, tile_h = -(-width // tile_size), -(-height // tile_size)
@@ -190,22 +284,32 @@ class _Composite(torch.autograd.Function):
         bg = _np_native(backgrounds, dt) if use_bg else np.zeros((n_cam, d), dt)
         cst = K.composite_constants(alpha_clamp, dt)
         rad = np.ascontiguousarray(radii.cpu().numpy())
-        bounds = np.empty((n_cam, n, 4), dtype=np.int64)
-        rec = np.empty((n_cam, n, K.R_FEAT + d), dtype=dt)
+        bounds = _SCRATCH.get("bounds", (n_cam, n, 4), np.int64)
+        rec = _SCRATCH.get("rec", (n_cam, n, K.R_FEAT + d), dt)
         render = np.empty((n_cam, height, width, d), dt)
         t_final = np.empty((n_cam, height, width), dt)
-        last = np.empty((n_cam, height, width), dtype=np.int64)
-        offsets = np.empty(n_cam * tile_w * tile_h + 1, dtype=np.int64)
+        offsets = _SCRATCH.get("offsets", n_cam * tile_w * tile_h + 1, np.int64)
         with _LOCK:
             n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
-            gids = np.empty(n_isects, dtype=np.int64)
-            K.bin_gaussians(bounds, tile_w, tile_h, offsets, gids)
-            K.sort_tiles(offsets, gids, _np(depths), tile_w * tile_h)
+            gids, epos = _SCRATCH.get("gids", n_isects, np.int64), _SCRATCH.get("epos", n_isects, np.int64)
+            goff = _SCRATCH.get("goff", n_cam * n + 1, np.int64)
+            K.bin_gaussians(bounds, K.depth_keys(depths.numpy()), tile_w, tile_h, offsets, gids, goff, epos)
             K.pack_gaussians(m2, con, opa, col, rad, width, height, rec)
-            ent = np.empty((n_isects, rec.shape[2]), dtype=dt)
-            K.gather_entries(offsets, gids, tile_w * tile_h, rec, ent)
-            K.composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, render, t_final, last)
-        ctx.arrays = (ent, bg, cst, offsets, gids, t_final, last)
+            ent = _SCRATCH.get("ent", (n_isects, rec.shape[2]), dt)
+            cap = _SCRATCH.get("cap", n_cam * tile_w * tile_h, np.int64)
+            K.gather_entries(offsets, gids, tile_w * tile_h, tile_w, tile_size, width, height, rec, ent, cap)
+            pbase = _SCRATCH.get("pbase", len(cap) + 1, np.int64)
+            pbase[0] = 0
+            if record:
+                np.cumsum(cap, out=pbase[1:])
+            else:
+                pbase[1:] = 0
+            pend = _SCRATCH.get("pend", n_isects, np.int64)
+            pix = _SCRATCH.get("pix", pbase[-1], np.int32)
+            pes = _SCRATCH.get("pes", pbase[-1], dt)
+            K.composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, render, t_final,
+                                pbase, pend, pix, pes, record)
+        ctx.arrays = (ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes)
         ctx.shape = (n_cam, n, d)
         ctx.scalars = (width, height, tile_size, tile_w, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
@@ -217,27 +321,26 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        ent, bg, cst, offsets, gids, t_final, last = ctx.arrays
+        ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes = ctx.arrays
         width, height, tile_size, tile_w, use_bg = ctx.scalars
         n_cam, n, d = ctx.shape
         dt = ent.dtype
         vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_native(v_render, dt)
         va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_native(v_alphas[..., 0], dt)
         n_isects = len(gids)
-        slots = np.empty((n_isects, 6 + d))
-        grads = np.zeros((n_cam, n, 6 + d))
+        slots = _SCRATCH.get("slots", (n_isects, 6 + d), dt)  # per-entry sums (float64 in the kernel), in the dtype
+        grads = _SCRATCH.get("grads", (n_cam, n, 6 + d), np.float64)
         with _LOCK:
-            K.composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, t_final, last, vr, va,
-                                 slots)
-            K.gather_slots(offsets, gids, tile_w * ((height + tile_size - 1) // tile_size), numba.get_num_threads(),
-                           slots, grads)
+            K.composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, t_final, vr, va,
+                                 pbase, pend, pix, pes, slots)
+            K.gather_slots(goff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
         v_bg = None
         if use_bg and ctx.needs_input_grad[4]:
             v_bg = _out(np.einsum("chw,chwd->cd", t_final.astype(np.float64), vr.astype(np.float64)), l_bg)
         return (_out(v_m2, l_m2), _out(v_con, l_con), _out(v_col, l_col), _out(v_opa, l_opa), v_bg,
-                None, None, None, None, None, None, None)
+                None, None, None, None, None, None, None, None)
 
 
 def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, radii: Tensor,
@@ -246,8 +349,10 @@ def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opaciti
                         ) -> tuple[Tensor, Tensor, dict]:
     """:func:`~navcrafter.models.gaussians.rasterize.rasterize_to_pixels` on the compiled kernels."""
     info: dict = {}
+    # forward keeps the contributing pairs for the backward pass only when one can follow
+    record = torch.is_grad_enabled() and any(x.requires_grad for x in (means2d, conics, colors, opacities))
     render, alphas = _Composite.apply(means2d, conics, colors, opacities, backgrounds, radii, depths.detach(),
-                                      int(width), int(height), int(tile_size), float(alpha_clamp), info)
+                                      int(width), int(height), int(tile_size), float(alpha_clamp), record, info)
     return render, alphas, info
 
 
@@ -280,11 +385,8 @@ def rasterization(
     if means.device.type != "cpu":
         raise ValueError(f"the compiled CPU rasterizer needs CPU tensors, got {means.device}; use backend 'gsplat' "
                          "or 'torch' on CUDA")
-    if covars is None:
-        _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, render_mode, covars)
-        covars = quat_scale_to_covar(quats, scales)  # compiled; render_gaussians would use PyTorch's
     return render_gaussians(project_gaussians, rasterize_to_pixels, means, quats, scales, opacities, colors, viewmats,
                             Ks, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
                             eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
-                            alpha_clamp=alpha_clamp, colors_fn=resolve_colors)
+                            alpha_clamp=alpha_clamp, colors_fn=resolve_colors, project_qs=project_gaussians_qs)

@@ -424,11 +424,13 @@ def rasterization(
 
 def render_gaussians(project, composite, means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
                      near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
-                     rasterize_mode, covars, alpha_clamp, colors_fn=None) -> tuple[Tensor, Tensor, dict]:
+                     rasterize_mode, covars, alpha_clamp, colors_fn=None,
+                     project_qs=None) -> tuple[Tensor, Tensor, dict]:
     """:func:`rasterization`'s body over a pair of kernels: ``project`` (:func:`project_gaussians`'s contract)
     and ``composite`` (:func:`rasterize_to_pixels`'s), and optionally ``colors_fn`` (:func:`resolve_colors`'s;
     the default); the compiled CPU kernels (``models.gaussians.cpu_rasterize``) plug in here, so the render
-    modes, SH and checks are written once."""
+    modes, SH and checks are written once. ``project_qs``, if given, projects from ``quats`` and ``scales``
+    directly when no ``covars`` are given (``project``'s contract with the two in place of ``covars``)."""
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, render_mode, covars)
     if rasterize_mode not in ("classic", "antialiased"):
         raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
@@ -437,21 +439,14 @@ def render_gaussians(project, composite, means, quats, scales, opacities, colors
     if not 0.0 < alpha_clamp < 1.0:
         raise ValueError(f"alpha_clamp must be in (0, 1), got {alpha_clamp}")
     n_cam = viewmats.shape[0]
-    if covars is None:
-        covars = quat_scale_to_covar(quats, scales)
-    proj = project(
-        means,
-        covars,
-        viewmats,
-        Ks,
-        width,
-        height,
-        eps2d=eps2d,
-        near_plane=near_plane,
-        far_plane=far_plane,
-        radius_clip=radius_clip,
-        calc_compensations=rasterize_mode == "antialiased",
-    )
+    kw = {"eps2d": eps2d, "near_plane": near_plane, "far_plane": far_plane, "radius_clip": radius_clip,
+          "calc_compensations": rasterize_mode == "antialiased"}
+    if covars is None and project_qs is not None:
+        proj = project_qs(means, quats, scales, viewmats, Ks, width, height, **kw)
+    else:
+        if covars is None:
+            covars = quat_scale_to_covar(quats, scales)
+        proj = project(means, covars, viewmats, Ks, width, height, **kw)
     opac = opacities[None, :].expand(n_cam, -1)
     if proj["compensations"] is not None:
         opac = opac * proj["compensations"]

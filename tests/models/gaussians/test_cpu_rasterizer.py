@@ -449,3 +449,32 @@ def test_dispatch_auto_on_cpu_is_the_compiled_renderer():
         resolve_backend("cpu", "cuda:0")
     with pytest.raises(TypeError, match="absgrad"):
         rasterize(*params, viewmats, Ks, W, H, sh_degree=1, backend="cpu", absgrad=True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_interleaved_graphs_do_not_share_work_arrays(dtype):
+    """The kernels reuse work arrays between calls (``cpu_rasterize._Scratch``) only when nothing holds them:
+    two graphs rendered before either backward pass (and a third render in between) give the gradients and
+    images of renders made one at a time; results never share memory with a later call."""
+    viewmats, Ks = cameras(dtype, n=2)
+    a_in = scene_inputs(n=80, seed=3, dtype=dtype, n_cam=2, sh_degree=2)
+    b_in = scene_inputs(n=50, seed=4, dtype=dtype, n_cam=2)
+    alone = [run_with_grads(cpu_rasterization, x, viewmats, Ks, sh_degree=sh) for x, sh in ((a_in, 2), (b_in, None))]
+
+    def start(inputs, sh):
+        leaves = {k: v.detach().clone().requires_grad_() for k, v in inputs.items()}
+        bg = leaves.pop("backgrounds")
+        img, alpha, _ = cpu_rasterization(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
+                                          leaves["colors"], viewmats, Ks, W, H, backgrounds=bg, sh_degree=sh)
+        return leaves, img, alpha
+
+    runs = [start(a_in, 2), start(b_in, None)]
+    with torch.no_grad():
+        start(b_in, None)
+    for (leaves, img, alpha), ref in zip(runs, alone):
+        w, wa = loss_weights(img.shape, 0, img.dtype), loss_weights(alpha.shape, 1, img.dtype)
+        ((img * w).sum() + (alpha * wa).sum()).backward()
+        assert torch.equal(img.detach(), ref[0]) and torch.equal(alpha.detach(), ref[1])
+        for k, g in ref[3].items():
+            if k != "backgrounds":
+                assert torch.equal(leaves[k].grad, g), k
