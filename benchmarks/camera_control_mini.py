@@ -55,9 +55,9 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 13 min at load ~18
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not run yet (sized for
-                                                                                           # <= 60 min, idle cores)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # not run (load 13-18)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # 42 min at load 5-18
+                                                      # (results: benchmarks/results/camera-control-mini/full)
     # a GPU session, Wan2.1-1.3B width (not run on the CPU):
     python benchmarks/camera_control_mini.py --out DIR --device cuda --heads 12 --head-dim 128 --layers 30 \
         --ffn 8960 --adapter-channels 64 --resolution 64 --frames 17 --autoencoder exact --threads 8
