@@ -55,7 +55,7 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # not run (load 13-18)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 6.6 min at load ~7
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # 42 min at load 5-18
                                                       # (results: benchmarks/results/camera-control-mini/full)
     # a GPU session, Wan2.1-1.3B width (not run on the CPU):
