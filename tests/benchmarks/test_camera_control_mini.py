@@ -90,3 +90,22 @@ def test_pose_errors_per_frame_and_bad_input(mini):
         mini.pose_errors_per_frame(est, req[:2])
     with pytest.raises(ValueError, match="unknown path family"):
         mini.family_pose("zoom", 1.0, np.eye(4), 1.0)
+
+
+def test_cosine_trainer_warms_up_then_decays_to_zero_without_touching_the_product(mini):
+    import argparse
+
+    from navcrafter.models.synthesis.camcontrol import build_camera_wan
+    from navcrafter.models.synthesis.training import CameraTrainer
+
+    args = argparse.Namespace(heads=2, head_dim=8, layers=1, ffn=16, adapter_channels=4, reference_frames=1)
+    base, control = mini.model_configs(args, 4)
+    model = build_camera_wan(base, control, seed=0)
+    cfg = mini.training_config(stage="control", steps=100, lr=1e-3, seed=0, frames=5, resolution=16, warmup=10)
+    tr = mini.cosine_trainer(model, [{}], cfg)
+    assert tr.lr_at(0) == pytest.approx(1e-4)  # warmup: (0 + 1) / 10 of the peak
+    assert tr.lr_at(50) == pytest.approx(0.5e-3)  # half way down the cosine
+    assert tr.lr_at(100) == pytest.approx(0.0, abs=1e-12)
+    assert CameraTrainer(model, [{}], cfg).lr_at(100) == pytest.approx(1e-3)  # the product's schedule: constant
+    assert control.num_reference_frames == 1
+    assert mini.turn_frames(9) == [0, 2, 4, 6, 8] and mini.turn_frames(17) == [0, 4, 8, 12, 16]
