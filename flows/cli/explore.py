@@ -105,7 +105,8 @@ def explore(
     from navcrafter.flows.tools.report import EXPORT_FILES, SUMMARY_COLUMNS, summary_header, summary_rows
 
     table = Table(title="navcrafter run summary")
-    columns = (*SUMMARY_COLUMNS[:4], "median dist.", "cover.", "noise", "F", "coll.", "3DGS", "sec", "error")
+    columns = (*SUMMARY_COLUMNS[:4], "median dist.", "seen", "cover.", "cov. 5cm", "noise", "F", "coll.", "3DGS", "sec",
+               "error")
     for col in columns:
         table.add_column(col, overflow="fold")
     for row in summary_rows(results):

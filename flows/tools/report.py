@@ -128,8 +128,8 @@ def _fmt(v: float | None, unit: str = "", digits: int = 3) -> str:
     return "" if v is None else f"{v:.{digits}f}{unit}"
 
 
-SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "coverage",
-                   "noise ratio", "F-score", "collisions", "3DGS PSNR", "seconds", "outputs / error")
+SUMMARY_COLUMNS = ("image", "scene", "status", "points", "median dist. to true surface", "seen", "coverage",
+                   "coverage 5 cm", "noise ratio", "F-score", "collisions", "3DGS PSNR", "seconds", "outputs / error")
 _TEXT_COLUMNS = {"image", "scene", "status", "outputs / error"}
 EXPORT_FILES = "cloud.ply, video.mp4, trajectory.json, trajectory.parquet"
 
@@ -142,7 +142,8 @@ def summary_rows(results: list[SceneResult]) -> list[tuple[str, ...]]:
         note = r.outputs if r.status == "done" else (r.error or "")
         rows.append((PurePath(r.sources[0]).name, r.scene_id[:12] if r.scene_id else "-", r.status,
                      str(int(m["n_points"])) if "n_points" in m else "", _fmt(m.get("cloud_median_dist_m"), " m", 4),
-                     _fmt(m.get("coverage")), _fmt(m.get("noise_ratio")), _fmt(m.get("fscore")),
+                     _fmt(m.get("seen")), _fmt(m.get("coverage")), _fmt(m.get("coverage_at_0.05")),
+                     _fmt(m.get("noise_ratio")), _fmt(m.get("fscore")),
                      str(int(m["collisions"])) if "collisions" in m else "", _fmt(m.get("gs_psnr"), " dB", 2),
                      f"{r.seconds:.1f}", note or ""))
     return rows

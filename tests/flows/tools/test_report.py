@@ -26,3 +26,15 @@ def test_scene_summary_reads_steps_timings_and_the_final_gaussians(tmp_path):
     r = scene_result(scene, ["x.png"], cfg, "failed", metrics={"n_points": 5.0})
     assert (r.step, r.seconds, r.label) == (None, 0.0, SIM_LABEL)
     assert r.metrics == {"n_points": 5.0, "gs_psnr": 0.0, "gs_gaussians": 20.0}
+
+
+def test_summary_rows_show_what_was_seen_and_the_5cm_coverage():
+    from navcrafter.flows.tools.report import SUMMARY_COLUMNS, SceneResult, summary_rows
+
+    r = SceneResult("abc", ["photos/room-0.png"], "done",
+                    metrics={"seen": 0.381, "coverage": 0.25, "coverage_at_0.05": 0.412, "collisions": 6})
+    (row,) = summary_rows([r])
+    assert len(row) == len(SUMMARY_COLUMNS)
+    cell = dict(zip(SUMMARY_COLUMNS, row))
+    assert cell["seen"] == "0.381" and cell["coverage 5 cm"] == "0.412" and cell["coverage"] == "0.250"
+    assert cell["collisions"] == "6"
