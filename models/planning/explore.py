@@ -54,6 +54,7 @@ from navcrafter.models.planning.planners import (
     estimate_ground,
     fallback_move,
     forgive_escape,
+    level_forward,
     look_at_centre,
     optimise_trajectory,
     planning_cloud,
@@ -344,8 +345,7 @@ class ExplorerPlanner:
         ok &= ~occluded & ~np.where(idx >= 0, vmap.occluded[np.maximum(idx, 0)], False)
         ok &= vmap.reach(pos) <= det.max_reach
         pos = pos[ok]
-        forward = state.current[:3, 2] - (state.current[:3, 2] @ WORLD_UP) * WORLD_UP
-        forward = forward / max(np.linalg.norm(forward), 1e-9)
+        forward = level_forward(state.current)
         yaws = (0.0, cfg.explore_yaw_deg, -cfg.explore_yaw_deg) if cfg.explore_yaw_deg > 0 else (0.0,)
         ends = [_end_pose(p, state.centre, y, forward) for p in pos for y in yaws]
         # pre-score every end on its last frame alone; the best go on as trajectories of every shape

@@ -88,6 +88,13 @@ class SearchSpace:
     elevation_deg: tuple[float, float] = (-30.0, 30.0)
 
 
+def level_forward(pose: np.ndarray) -> np.ndarray:
+    """The camera's viewing axis with its vertical part removed, unit length (the "forward" that
+    ``look_at_centre`` keeps when the axis is vertical)."""
+    forward = pose[:3, 2] - (pose[:3, 2] @ WORLD_UP) * WORLD_UP
+    return forward / max(np.linalg.norm(forward), 1e-9)
+
+
 def search_space(cfg: PlanConfig) -> SearchSpace:
     """The search space S of a run's planning config."""
     return SearchSpace(cfg.radius_range, cfg.azimuth_range_deg, cfg.elevation_range_deg)
@@ -168,8 +175,7 @@ def repair_candidate(candidate: np.ndarray, current: np.ndarray, centre: np.ndar
         return None
     tries = tries[free]
     best = tries[int(np.argmin(np.linalg.norm(tries - candidate[:3, 3], axis=1)))]
-    forward = candidate[:3, 2] - (candidate[:3, 2] @ WORLD_UP) * WORLD_UP
-    return look_at_centre(best, c, forward / max(np.linalg.norm(forward), 1e-9))
+    return look_at_centre(best, c, level_forward(candidate))
 
 
 def _halton(n: int, base: int) -> np.ndarray:
@@ -432,8 +438,7 @@ def spherical_interpolate(current: np.ndarray, target: np.ndarray, num: int, cen
 
 def poses_looking_at(positions: np.ndarray, centre: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """Poses at ``positions`` looking at ``centre``; the first and last are ``start`` and ``end`` exactly."""
-    forward = end[:3, 2] - (end[:3, 2] @ WORLD_UP) * WORLD_UP
-    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    forward = level_forward(end)
     out = np.stack([look_at_centre(p, centre, forward) for p in positions])
     out[0], out[-1] = start, end
     return out
@@ -596,8 +601,7 @@ def retrace_trajectory(current: np.ndarray, centre: np.ndarray, d0: float, detec
         return None
     s = np.linspace(0.0, total, num)
     pos = np.stack([np.interp(s, arc, poly[:, i]) for i in range(3)], 1)
-    forward = current[:3, 2] - (current[:3, 2] @ WORLD_UP) * WORLD_UP
-    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    forward = level_forward(current)
     end = look_at_centre(pos[-1], np.asarray(centre, dtype=np.float64), forward)
     traj = interpolate_poses(current, end, num)
     traj[:, :3, 3] = pos
@@ -660,8 +664,7 @@ def retreat_trajectory(current: np.ndarray, centre: np.ndarray, d0: float, detec
     cap = target * detector.r_safe
     value = np.minimum(detector.clearance(ends), free_depth(ends, detector, cap))
     value[detector.collides(ends)] = -np.inf  # an end G rejects on its own
-    forward = current[:3, 2] - (current[:3, 2] @ WORLD_UP) * WORLD_UP
-    forward = forward / max(np.linalg.norm(forward), 1e-9)
+    forward = level_forward(current)
     for j in np.lexsort((length, -value)):  # most clearance first, then the shortest move
         if not np.isfinite(value[j]):
             break
@@ -700,8 +703,8 @@ class PlanResult:
     chosen: int  # index into candidates, -1 when the camera stays put
     optimised: bool = False
     collision_free: bool | None = None  # None: the planner does not check
-    # "", "next-candidate" (the best one had no safe path), "shortened-<f>" (explorer), "retreat" (no candidate had a
-    # safe path: a move to the most clearance, ``retreat_trajectory``) or "static" (not even that passed G)
+    # "", "next-candidate" (the best one had no safe path), "shortened-<f>" (explorer), or, when no candidate had a
+    # safe path, ``fallback_move``'s "retrace", "retreat" or "static"
     fallback: str = ""
     rounds: int = 1
     timings: dict[str, float] = field(default_factory=dict)
