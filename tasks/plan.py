@@ -1,10 +1,11 @@
 """Plan: the camera trajectory of iteration k (strategies in ``plan.strategy``).
 
-* ``collision_aware`` (default) and ``viewcrafter`` (baseline) run the planners of
-  ``navcrafter.models.planning.planners`` on the state read from the store: the current pose (the last pose of
-  the previous iteration), the scene centre ``o``, the cloud after iteration k-1, and every earlier
-  camera with its depth (the input view and the lifted views), which bounds the seen free space.
-  The step stores the candidates, their scores, collision flags and visibility masks, the trajectory
+* ``explorer`` (default: ``models.planning.explore``), ``collision_aware`` (the paper's Algorithm 1),
+  ``viewcrafter`` and ``viewcrafter_nbv`` (baselines) run the planners of ``navcrafter.models.planning`` on the
+  state read from the store: the current pose (the last pose of the previous iteration), the scene centre ``o``,
+  the cloud after iteration k-1, and every earlier camera with its depth (the input view and the lifted views),
+  which bounds the seen free space. The step stores the candidates (the explorer: its scored trajectories' end
+  poses), their scores, collision flags and visibility masks (not the explorer's), the trajectory
   before and after collision optimisation, and a top-down plot (``topdown.png``).
 * ``orbit`` (the foundation's simple planner, ``models.planning.orbit``) does not look at obstacles.
 """

@@ -38,6 +38,8 @@ def configs(model_dir: Path) -> dict[str, RunConfig]:
     return {
         "paper": RunConfig.load(),
         "paper+fit+refine": RunConfig.load(overrides=BOTH),
+        # Algorithm 1, the default until the explorer replaced it: its stores keep their keys when it is chosen
+        "paper-collision-aware": RunConfig.load(overrides={"plan.strategy": "collision_aware"}),
         "tiny": RunConfig.load(preset="tiny"),
         "tiny+fit": RunConfig.load(preset="tiny", overrides={"fit.enabled": True}),
         "tiny-orbit-seed7": RunConfig.load(preset="tiny", overrides={"plan.strategy": "orbit", "seed": 7}),
