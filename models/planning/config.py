@@ -110,6 +110,9 @@ class PlanConfig(_Section):
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
         "model invented may hide an object it drew elsewhere or not at all) or 'all' (every pixel, as the input "
         "photo's).")
+    explore_sky: Literal["free", "unknown"] = Field(
+        "free", description="explorer: what the input photo's pixels of no depth (sky: the geometry found no "
+        "surface on their ray) tell: 'free' (free space without end along the ray) or 'unknown'.")
     explore_anchor_tolerance: float = Field(
         0.08, gt=0, description="explorer: relative depth agreement for a generated pixel to count as anchored (the "
         "geometry model's per-clip depth error of 3-5 %, VGGT / MoGe / DUSt3R, plus the cloud's voxel size).")
@@ -123,7 +126,7 @@ class PlanConfig(_Section):
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
                                                 "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
-                                                "explore_reach": 1.0}
+                                                "explore_reach": 1.0, "explore_sky": "free"}
 
     @field_validator("trajectory")
     @classmethod

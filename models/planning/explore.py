@@ -33,7 +33,7 @@ optimisation (with their end poses), then the next ones; with no safe path the c
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.special import erf
@@ -51,6 +51,7 @@ from navcrafter.models.planning.planners import (
     CollisionDetector,
     PlanningState,
     PlanResult,
+    SeenView,
     estimate_ground,
     fallback_move,
     forgive_escape,
@@ -136,6 +137,14 @@ class ExplorerDetector(CollisionDetector):
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
 
+    def start_radius(self) -> float:
+        """How far from the clip's start its first frames may stand outside the seen free space: 2 r_safe, or one
+        map cell (3 d0 / ``explore_voxels``) where that is more. The start camera stands at the apex of its own
+        view, so any sideways or rising move leaves the space it saw; a street's clip moves ~0.5 m a frame (d0 is
+        ~10 m), more than 2 r_safe (development street 0: every trajectory's second frame fell outside, and the
+        first clip retreated by 1 unit instead of exploring)."""
+        return max(2 * self.r_safe, self.vmap.voxel)
+
     def _above_ground(self, x: np.ndarray) -> np.ndarray:
         if self.ground is None:
             return np.ones(len(x), dtype=bool)
@@ -163,7 +172,7 @@ class ExplorerDetector(CollisionDetector):
         start = x[0]
         fixed = int(np.ceil(self.prefix * len(x)))
         # the prefix: seen free, or next to where the camera stands (the clip's first frames barely move)
-        unseen = ~(free | (np.linalg.norm(x - start, axis=1) < 2 * self.r_safe))
+        unseen = ~(free | (np.linalg.norm(x - start, axis=1) < self.start_radius()))
         ok_ground = self._above_ground(x)
         reach = self.vmap.reach(x)
         for t in np.flatnonzero(unseen):
@@ -185,6 +194,18 @@ class ExplorerDetector(CollisionDetector):
     def trajectory_collides(self, trajectory: np.ndarray) -> bool:
         near, unseen, _ = self.path_flags(trajectory, first_only=True)
         return bool((near | unseen).any())
+
+
+def open_sky(views: list[SeenView]) -> list[SeenView]:
+    """The views with every pixel of no depth (0: the geometry found no surface, i.e. sky) of an *observation* (a view
+    without ``anchored`` pixels: the input photo) seeing free space without end (depth +inf): its ray met nothing.
+    A generated frame's empty pixels stay unknown (the video model may have drawn sky where a building stands)."""
+    out = []
+    for v in views:
+        if v.anchored is None and (v.depth <= 0).any():
+            v = SeenView(v.c2w, v.K, np.where(v.depth > 0, v.depth, np.inf), None)
+        out.append(v)
+    return out
 
 
 def repairable(det: ExplorerDetector, trajectory: np.ndarray) -> bool:
@@ -316,6 +337,9 @@ class ExplorerPlanner:
     """The safe explorer (module docstring)."""
 
     name = "explorer"
+    # trajectories G checks, best first, before the shortened ones: every one scored (it was 20; on development
+    # street 0 the 21 best all rose out of the input view's frustum, and the camera retreated though safe ones scored)
+    max_checked = 60
 
     def __init__(self, config: PlanConfig) -> None:
         self.config = config
@@ -325,10 +349,12 @@ class ExplorerPlanner:
         t0 = time.perf_counter()
         points = planning_cloud(state, cfg.safe_radius)
         ground = estimate_ground(points, state.current[:3, 3], rng, tolerance=cfg.safe_radius / 4)
-        vmap = VoxelMap.build(state, points, cfg.explore_voxels)
+        seen = replace(state, views=open_sky(state.views)) if cfg.explore_sky == "free" else state
+        vmap = VoxelMap.build(seen, points, cfg.explore_voxels)
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
                                follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix,
                                reach=cfg.explore_reach)
+        det.views = seen.views  # seen free space (``_visibility``); the surfaces G keeps are the views' depth maps
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S
@@ -384,7 +410,7 @@ class ExplorerPlanner:
                     fallback = "" if rank == 0 else "next-candidate"
                     collides[i] = False
                     break
-            if checked >= 20:
+            if checked >= self.max_checked:
                 break
         if final is None:  # none passes whole: the best ones cut short (a smaller step the same way), same length
             for i in order[:10]:

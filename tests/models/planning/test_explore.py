@@ -20,6 +20,7 @@ from navcrafter.models.planning.explore import (
     ExplorerPlanner,
     VoxelMap,
     anchored_pixels,
+    open_sky,
     repairable,
     shaped_trajectory,
 )
@@ -101,6 +102,40 @@ def test_unknown_space_is_entered_only_after_the_clip_looked_at_it_and_never_beh
     behind[6:, :3, 3] = [0.0, 0.0, 4.8]
     near_b, unseen_b, _ = det.path_flags(behind)
     assert (near_b | unseen_b)[6:].all()
+
+
+def test_the_input_photos_sky_is_free_space_a_generated_frames_is_not():
+    state = wall_state()
+    photo = state.views[0]
+    depth = photo.depth.copy()
+    depth[: depth.shape[0] // 2] = 0.0  # the upper half shows sky: no surface on those rays
+    sky_photo = SeenView(photo.c2w, photo.K, depth)
+    generated = SeenView(photo.c2w, photo.K, depth, anchored=np.ones(depth.shape, bool))
+    up_ahead = np.array([[0.0, -2.0, 6.0], [0.0, -1.0, 2.5]])  # above the axis (OpenCV: -y is up), in the sky's rays
+    for views, expect in (([sky_photo], FREE), ([generated], UNKNOWN)):
+        opened = open_sky(views)
+        vmap = VoxelMap.build(dataclasses.replace(state, views=opened), state.cloud_points, 48)
+        assert (vmap.lookup(up_ahead)[1] == expect).all()
+        det = CollisionDetector(state.cloud_points, 0.25, views, thin=False)
+        det.views = opened
+        assert det._visibility(up_ahead)[0].tolist() == [expect == FREE] * 2
+    assert open_sky([generated])[0] is generated and np.isinf(open_sky([sky_photo])[0].depth[0, 0])
+    assert (open_sky([sky_photo])[0].depth[-1] == depth[-1]).all()  # the wall's depth unchanged
+
+
+def test_the_clips_first_frames_may_stand_within_one_map_cell_of_the_start():
+    """A street's clip moves ~0.5 m a frame, more than 2 r_safe: its first frames, beside the input camera and so
+    outside its frustum, are admitted within one cell of the voxel map (d0 / 16 by default)."""
+    state = wall_state()
+    aside = np.repeat(np.eye(4)[None], 10, 0)
+    aside[1:, :3, 3] = np.linspace(0.0, 0.8, 10)[1:, None] * np.array([-1.0, 0.0, 0.0])  # straight left
+    flags = {}
+    for cells in (48, 8):  # cells of 0.19 and 1.1 scene units (2 r_safe = 0.5)
+        vmap = VoxelMap.build(state, state.cloud_points, cells)
+        det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=1.0, reach=1.0)
+        flags[cells] = det.path_flags(aside)[1]
+    assert flags[48][-1] and not flags[48][1]  # 0.8 beyond 2 r_safe: refused; 0.09 from the start: admitted
+    assert not flags[8].any()  # all within one 1.1-unit cell of the start
 
 
 def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying():
