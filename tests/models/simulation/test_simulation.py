@@ -66,6 +66,32 @@ def test_sky_and_miss_pixels():
     assert r.rgb.mean() > 100  # sky colour, not black
 
 
+def test_texture_noise_is_the_numpy_lattice_noise_bit_for_bit():
+    """The numba noise (``textures.fbm``) computes what the numpy form it replaced computed, to the bit: the demo's
+    frames (and every cache key downstream of them) stay as they were."""
+    from navcrafter.models.simulation.textures import _hash2, fbm, value_noise
+
+    def noise(x, y, seed):
+        ix, iy = np.floor(x), np.floor(y)
+        fx, fy = x - ix, y - iy
+        sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+        a, b = _hash2(ix, iy, seed), _hash2(ix + 1, iy, seed)
+        c, d = _hash2(ix, iy + 1, seed), _hash2(ix + 1, iy + 1, seed)
+        return (a * (1 - sx) + b * sx) * (1 - sy) + (c * (1 - sx) + d * sx) * sy
+
+    rng = np.random.default_rng(0)
+    for spread in (1.0, 40.0, 1e4):
+        x, y = rng.normal(0, spread, (2, 50, 40))
+        for seed in (0, 11, (1 << 30) + 400):
+            np.testing.assert_array_equal(value_noise(x, y, seed), noise(x, y, seed))
+            for octaves in (4, 5):
+                total, amp, norm, freq = np.zeros_like(x), 1.0, 0.0, 1.0
+                for o in range(octaves):
+                    total += amp * noise(x * freq, y * freq, seed + 97 * o)
+                    norm, amp, freq = norm + amp, amp * 0.5, freq * 2.03
+                np.testing.assert_array_equal(fbm(x, y, seed, octaves), total / norm)
+
+
 @pytest.mark.parametrize("supersample", [1, 2])
 def test_batched_render_equals_frame_by_frame(supersample):
     """``render_many`` (one cast for many frames, or only some pixels) gives each pixel exactly what ``render`` of
