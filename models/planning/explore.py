@@ -42,7 +42,6 @@ from navcrafter.models.camera.cameras import (
     axis_angle_to_matrix,
     camera_directions,
     interpolate_poses,
-    invert_pose,
     look_at,
 )
 from navcrafter.models.planning.config import PlanConfig
@@ -62,7 +61,8 @@ from navcrafter.models.planning.planners import (
     search_space,
     space_positions,
 )
-from navcrafter.models.planning.voxel_kernels import FREE, OCCUPIED, UNKNOWN, carve, march, splat_depth
+from navcrafter.models.planning.voxel_kernels import FREE, OCCUPIED, UNKNOWN, carve, march
+from navcrafter.models.reconstruction.pointrender import render_points
 
 SHAPES = ("arc", "dolly", "orbit")
 
@@ -233,10 +233,7 @@ def anchored_pixels(depth: np.ndarray, c2w: np.ndarray, K: np.ndarray, prior_poi
     H, W = depth.shape
     if len(prior_points) == 0:
         return np.zeros((H, W), dtype=bool)
-    # render_points' depth (its z-buffer in a numba loop: the torch renderer took 0.1-0.3 s a frame here)
-    dc = splat_depth(np.ascontiguousarray(prior_points, dtype=np.float32),
-                     invert_pose(np.asarray(c2w, dtype=np.float64)).astype(np.float32),
-                     np.asarray(K, dtype=np.float32), H, W, float(point_size), 3, 1e-3).astype(np.float64)
+    dc = render_points(prior_points, c2w, K, H, W, float(point_size)).depth.astype(np.float64)
     d = np.asarray(depth, dtype=np.float64)
     return (d > 0) & (dc > 0) & (np.abs(d - dc) <= rel_tol * dc)
 

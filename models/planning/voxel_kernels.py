@@ -86,35 +86,3 @@ def march(state: np.ndarray, size: int, origin: np.ndarray, voxel: float, rot: n
                         gain[g] += w - best[c]
                         best[c] = w
     return gain, hit / max(Rn, 1)
-
-
-@_jit
-def splat_depth(points: np.ndarray, w2c: np.ndarray, K: np.ndarray, height: int, width: int, point_size: float,
-                max_radius: int, near: float) -> np.ndarray:
-    """The z-buffer of ``reconstruction.pointrender.render_points`` without colours (its depth; > 0 = its mask): each
-    point (world, float32 arithmetic as there) splatted as a square of (2r+1)^2 pixels, r = ceil(fx point_size / 2z
-    - 1/2) clamped to [0, max_radius], every pixel keeping the nearest depth. A loop over the points instead of
-    torch scatters and pools: the explorer renders the cloud into every lifted frame of every earlier clip
-    (``explore.anchored_pixels``) on each planning call."""
-    best = np.full((height, width), np.inf, dtype=np.float32)
-    R = np.float32(max_radius)
-    for n in range(points.shape[0]):
-        p0, p1, p2 = np.float32(points[n, 0]), np.float32(points[n, 1]), np.float32(points[n, 2])
-        x = w2c[0, 0] * p0 + w2c[0, 1] * p1 + w2c[0, 2] * p2 + w2c[0, 3]
-        y = w2c[1, 0] * p0 + w2c[1, 1] * p1 + w2c[1, 2] * p2 + w2c[1, 3]
-        z = w2c[2, 0] * p0 + w2c[2, 1] * p1 + w2c[2, 2] * p2 + w2c[2, 3]
-        if not z > near:
-            continue
-        u = (K[0, 0] * x + K[0, 1] * y) / z + K[0, 2]
-        v = K[1, 1] * y / z + K[1, 2]
-        ix = math.floor(u)
-        iy = math.floor(v)
-        if ix < -max_radius or ix >= width + max_radius or iy < -max_radius or iy >= height + max_radius:
-            continue
-        r = int(min(max(math.ceil(K[0, 0] * np.float32(point_size) / (np.float32(2.0) * z) - np.float32(0.5)),
-                        np.float32(0.0)), R))
-        for a in range(max(iy - r, 0), min(iy + r + 1, height)):
-            for b in range(max(ix - r, 0), min(ix + r + 1, width)):
-                if z < best[a, b]:
-                    best[a, b] = z
-    return np.where(np.isfinite(best), best, np.float32(0.0))

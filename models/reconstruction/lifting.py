@@ -113,7 +113,7 @@ class _Target:
         self.tree = cKDTree(self.points)
 
     def match(self, pts: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
-        d, idx = self.tree.query(pts, k=1, distance_upper_bound=max_distance)
+        d, idx = self.tree.query(pts, k=1, distance_upper_bound=max_distance, workers=-1)  # per point: same result
         ok = np.isfinite(d)
         return ok, idx[ok]
 

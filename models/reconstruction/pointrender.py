@@ -1,29 +1,27 @@
-"""A vectorised, z-buffered point-cloud renderer (CPU, torch).
+"""A z-buffered point-cloud renderer (CPU: torch for the projection, a numba loop for the z-buffer).
 
 Each point is splatted as a square of ``(2r+1)^2`` pixels, where ``r`` follows from its world-space
 size and its depth (``r = ceil(f * point_size / (2 z) - 1/2)``, at most ``max_radius``), so a fused
 cloud renders without gaps between neighbouring points; every pixel shows the nearest point whose
-splat covers it.
+splat covers it. Ties between points at the same depth go to the lowest point index, so renders are
+deterministic.
 
-How: points are grouped by splat radius. Within a group, a scatter-min puts the nearest point's
-depth on its centre pixel; a min-pool with a ``(2r+1)^2`` window then gives every pixel the nearest
-depth among the group's splats covering it (exactly the square-splat z-buffer), and the groups are
-combined by a per-pixel minimum. Ties between points at the same depth go to the lowest point
-index, so renders are deterministic. Cost: one scatter over all points plus a few image-sized
-pooling passes, whatever the splat sizes.
+How: the points are projected in torch (float32, vectorised), then one numba loop writes each point's square into
+the z-buffer (a pixel keeps the nearest depth). It replaced torch scatters and a min-pool per splat radius (0.1-0.3 s
+a 256^2 frame of a demo cloud; the fit renders the cloud into every training frame without lifted depth): the same
+depths and masks to the bit (the same float32 projections, and a minimum is exact); a colour differs only where two
+points tie exactly in depth (the pooling kept the first centre of its window, this the lowest point index).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from navcrafter.models.camera.cameras import invert_pose
-
-_BIG = torch.iinfo(torch.int64).max
 
 
 @dataclass
@@ -53,33 +51,31 @@ def render_points(points: np.ndarray | torch.Tensor, c2w: np.ndarray, K: np.ndar
     inside = (ix >= 0) & (ix < Wp) & (iy >= 0) & (iy < Hp)
     ix, iy, z, ids = ix[inside], iy[inside], z[inside], ids[inside]
     radius = torch.clamp(torch.ceil(Kt[0, 0] * point_size / (2 * z) - 0.5), 0, R).to(torch.int64)
-    pix = iy * Wp + ix
-
-    best_z = torch.full((height, width), float("inf"))
-    best_id = torch.full((height, width), _BIG, dtype=torch.int64)
-    for r in torch.unique(radius).tolist():
-        sel = radius == r
-        p, zz, ii = pix[sel], z[sel], ids[sel]
-        zc = torch.full((Hp * Wp,), float("inf")).scatter_reduce(0, p, zz, reduce="amin")
-        win = zz <= zc[p]  # nearest point(s) of each centre pixel; the lowest index among ties
-        ic = torch.full((Hp * Wp,), _BIG, dtype=torch.int64).scatter_reduce(0, p[win], ii[win], reduce="amin")
-        if r == 0:
-            zr, ir = zc.reshape(Hp, Wp), ic.reshape(Hp, Wp)
-        else:
-            neg, where = F.max_pool2d(-zc.reshape(1, 1, Hp, Wp), 2 * r + 1, stride=1, padding=r,
-                                      return_indices=True)
-            zr = -neg[0, 0]
-            ir = ic[where[0, 0].reshape(-1)].reshape(Hp, Wp)
-        zr, ir = zr[R:R + height, R:R + width], ir[R:R + height, R:R + width]
-        better = (zr < best_z) | ((zr == best_z) & (ir < best_id))
-        best_z = torch.where(better, zr, best_z)
-        best_id = torch.where(better, ir, best_id)
-    hit = torch.isfinite(best_z)
-    depth = torch.where(hit, best_z, torch.zeros(())).numpy().astype(np.float32)
+    best_z, best_id = _zbuffer(iy.numpy(), ix.numpy(), z.numpy(), radius.numpy(), ids.numpy(), height, width, R)
+    hit = np.isfinite(best_z)
+    depth = np.where(hit, best_z, np.float32(0.0)).astype(np.float32)
     out_color = None
     if colors is not None:
         col = np.zeros((height, width, 3), dtype=np.uint8)
-        h = hit.numpy()
-        col[h] = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)[best_id.numpy()[h]]
+        col[hit] = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)[best_id[hit]]
         out_color = col
-    return PointRender(depth, hit.numpy(), out_color)
+    return PointRender(depth, hit, out_color)
+
+
+@numba.njit(cache=True, nogil=True)
+def _zbuffer(iy: np.ndarray, ix: np.ndarray, z: np.ndarray, radius: np.ndarray, ids: np.ndarray, height: int,
+             width: int, pad: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest depth ``[H, W]`` (inf where none) and its point id of the square splats of points at padded pixel
+    ``(iy, ix)`` (``pad`` pixels each side), depth ``z``, radius ``radius``; ``ids`` ascending, so a strict
+    comparison leaves a tie to the lowest id."""
+    best_z = np.full((height, width), np.inf, dtype=np.float32)
+    best_id = np.zeros((height, width), dtype=np.int64)
+    for n in range(z.shape[0]):
+        r, zz = radius[n], z[n]
+        y, x = iy[n] - pad, ix[n] - pad
+        for a in range(max(y - r, 0), min(y + r + 1, height)):
+            for b in range(max(x - r, 0), min(x + r + 1, width)):
+                if zz < best_z[a, b]:
+                    best_z[a, b] = zz
+                    best_id[a, b] = ids[n]
+    return best_z, best_id

@@ -60,7 +60,7 @@ from navcrafter.models.roles import (
     SynthesisRequest,
 )
 from navcrafter.models.simulation.config import SimulationConfig
-from navcrafter.models.simulation.render import render
+from navcrafter.models.simulation.render import render, render_many
 from navcrafter.models.simulation.scenes import GENERATOR_VERSION, KINDS, SceneObject, SimScene, generate_scene
 from navcrafter.models.simulation.textures import Material
 from navcrafter.models.simulation.worlds.patches import variant_world
@@ -365,12 +365,8 @@ class SimulationSynthesizer(_SimulationRole):
         T = len(req)
         if not cfg.honest:
             true_c2w = req.copy()
-            frames = np.empty((T, H, W, 3), dtype=np.uint8)
-            depth = np.empty((T, H, W), dtype=np.float32)
-            for i, c2w in enumerate(truth.gt_pose(true_c2w)):
-                r = render(truth.scene, c2w, K, supersample=cfg.supersample)
-                frames[i], depth[i] = r.rgb, r.depth * truth._scale()
-            return SimulatedClip(frames, true_c2w, depth, np.ones(T, dtype=np.float32))
+            r = render_many(truth.scene, truth.gt_pose(true_c2w), K, supersample=cfg.supersample)
+            return SimulatedClip(r.rgb, true_c2w, r.depth * truth._scale(), np.ones(T, dtype=np.float32))
         rng = _rng(request.seed)
         start = start if start is not None else ClipStart(req[0])
         true_c2w = _drifted(np.asarray(start.c2w, dtype=np.float64) @ (invert_pose(req[0]) @ req), cfg, rng)
@@ -390,22 +386,27 @@ class SimulationSynthesizer(_SimulationRole):
         clear = truth.scene.distance(poses_gt[1:, :3, 3])
         rc, _ = truth.scene.raycasting()
         inside = rc.compute_occupancy(o3d.core.Tensor(poses_gt[1:, :3, 3].astype(np.float32))).numpy() > 0
-        for i in range(1, T):
-            r = render(truth.scene, poses_gt[i], K, supersample=cfg.supersample)
-            rgb, d = r.rgb.astype(np.float64), r.depth.astype(np.float64)
-            true_px = np.ones((H, W), dtype=bool)
-            if variant is not None:
-                true_px = ~r.hit | anchored(tree, r.depth, r.hit, poses_gt[i], K, cfg, rng, field)
-                if not true_px.all():
-                    v = render(variant, poses_gt[i], K, supersample=cfg.supersample)
-                    rgb[~true_px] = v.rgb[~true_px]
-                    d[~true_px] = v.depth[~true_px]
-            severity = 1.0 if inside[i - 1] else closeup_severity(r.depth, r.hit, clear[i - 1], cfg)
+        # every frame's true view in one batched cast; where the clip hallucinates, the variant's view of those
+        # pixels only (each pixel is rendered on its own: the same values as whole-frame renders)
+        r = render_many(truth.scene, poses_gt[1:], K, supersample=cfg.supersample)
+        true_px = np.ones((T - 1, H, W), dtype=bool)
+        if variant is not None:
+            true_px = ~r.hit | anchored(tree, r.depth, r.hit, poses_gt[1:], K, cfg, rng, field)
+            if not true_px.all():
+                v = render_many(variant, poses_gt[1:], K, supersample=cfg.supersample, pixels=~true_px)
+        for i in range(1, T):  # the per-frame random draws, in their order
+            j = i - 1
+            rgb, d = r.rgb[j].astype(np.float64), r.depth[j].astype(np.float64)
+            fake = ~true_px[j]
+            if fake.any():
+                rgb[fake] = v.rgb[j][fake]
+                d[fake] = v.depth[j][fake]
+            severity = 1.0 if inside[j] else closeup_severity(r.depth[j], r.hit[j], clear[j], cfg)
             if severity > 0:
                 rgb, d = _corrupt(rgb, d, severity, rng)
             frames[i] = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
             depth[i] = d * w
-            quality[i] = float(true_px.mean()) * (1.0 - severity)
+            quality[i] = float(true_px[j].mean()) * (1.0 - severity)
         return SimulatedClip(frames, true_c2w, depth, quality)
 
 
@@ -468,13 +469,17 @@ def anchored(tree, depth: np.ndarray, hit: np.ndarray, c2w_gt: np.ndarray, K: In
     """Pixels that show the truth: with ``cfg.anchor_falloff_m`` > 0 (soft anchoring), a pixel whose true surface
     point lies d from the cloud (ground-truth frame) does with probability exp(-d / falloff), decided by ``field``
     at that point (the clip's, so the decision holds in every frame; None: a fresh one from ``rng``), so unanchored
-    content comes in patches; with 0, those within ``anchor_tolerance_m`` (hard)."""
+    content comes in patches; with 0, those within ``anchor_tolerance_m`` (hard). ``depth``, ``hit`` ``[H, W]``
+    at ``c2w_gt [4, 4]``, or ``[T, H, W]`` at ``[T, 4, 4]``: a clip's frames in one query."""
     out = np.zeros(hit.shape, dtype=bool)
     if tree is None or not hit.any():
         return out
     soft = cfg.anchor_falloff_m > 0
     bound = 10 * cfg.anchor_falloff_m if soft else cfg.anchor_tolerance_m
-    pts, _ = unproject_depth(depth.astype(np.float64), c2w_gt, K.K, mask=hit)
+    H, W = hit.shape[-2:]
+    poses = np.asarray(c2w_gt).reshape(-1, 4, 4)
+    pts = np.concatenate([unproject_depth(dd.astype(np.float64), c, K.K, mask=m)[0] for dd, m, c in
+                          zip(depth.reshape(-1, H, W), hit.reshape(-1, H, W), poses, strict=True)])
     d, _ = tree.query(pts, k=1, distance_upper_bound=bound, workers=-1)
     if not soft:
         out[hit] = np.isfinite(d)
@@ -708,7 +713,8 @@ class SimulationRefiner(_SimulationRole):
             seen = ~r_true.hit | anchored(self._tree, r_true.depth, r_true.hit, gt_pose, K, cfg, rng)
             if not seen.all():
                 variant = variant_of(self.truth.scene, int(rng.integers(1 << 31)), cfg)
-                v = render(variant, gt_pose, K, supersample=max(2, cfg.supersample)).rgb
+                v = render_many(variant, gt_pose[None], K, supersample=max(2, cfg.supersample),
+                                pixels=~seen[None]).rgb[0]  # only the unseen pixels are used
                 truth = np.where(seen[..., None], truth, v)
         r, t = rendered.astype(np.float64) / 255.0, truth.astype(np.float64) / 255.0
         out = r + cfg.refine_strength * (t - r)

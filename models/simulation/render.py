@@ -34,9 +34,10 @@ def _cast(scene: SimScene, origins: np.ndarray, dirs: np.ndarray) -> dict[str, n
     return {k: v.numpy() for k, v in ans.items()}
 
 
-def _shade(scene: SimScene, origins: np.ndarray, dirs: np.ndarray, shadows: bool) -> np.ndarray:
-    """Linear-light colour ``[N, 3]`` for flat ray arrays."""
-    ans = _cast(scene, origins, dirs)
+def _shade(scene: SimScene, origins: np.ndarray, dirs: np.ndarray, shadows: bool,
+           ans: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """Linear-light colour ``[N, 3]`` for flat ray arrays (``ans``: their cast, when already made)."""
+    ans = _cast(scene, origins, dirs) if ans is None else ans
     if hasattr(scene, "shade_hits"):  # a world from a scan: its own colour (models/simulation/worlds)
         return scene.shade_hits(ans, origins, dirs)
     t = ans["t_hit"]
@@ -85,26 +86,61 @@ def render(scene: SimScene, c2w: np.ndarray, intrinsics: Intrinsics, supersample
 
     ``colour=False`` skips shading (``rgb`` is all zeros): depth, normals and hits only.
     """
+    r = render_many(scene, np.asarray(c2w)[None], intrinsics, supersample, shadows, colour)
+    return Render(rgb=r.rgb[0], depth=r.depth[0], normal=r.normal[0], hit=r.hit[0])
+
+
+def render_many(scene: SimScene, c2w: np.ndarray, intrinsics: Intrinsics, supersample: int = 1,
+                shadows: bool = True, colour: bool = True, pixels: np.ndarray | None = None,
+                max_rays: int = 1 << 21) -> Render:
+    """``render`` from every pose of ``c2w [T, 4, 4]`` at once: a ``Render`` of ``[T, H, W, ...]`` arrays.
+
+    The rays of many frames go to Open3D in one cast (at most ``max_rays`` rays a cast, frames whole, to bound
+    memory), and are shaded together. ``pixels [T, H, W]`` (bool): render only these pixels (the rest come out
+    as misses: black, depth 0); each pixel's values are those of the full render (every ray is cast and shaded
+    on its own).
+    """
     H, W = intrinsics.height, intrinsics.width
-    o, d = world_rays(c2w, intrinsics.K, H, W)
-    ans = _cast(scene, o, d)
-    t = ans["t_hit"].reshape(H, W)
-    hit = np.isfinite(t)
-    depth = np.where(hit, t, 0.0).astype(np.float32)  # directions have camera z = 1: t is z-depth
-    normal = ans["primitive_normals"].reshape(H, W, 3).astype(np.float32)
-    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
-    normal *= np.where((normal * d).sum(-1, keepdims=True) > 0, -1.0, 1.0).astype(np.float32)
-    normal[~hit] = 0.0
-    if not colour:
-        col = np.zeros((H, W, 3))
-    elif supersample > 1:
-        Ks = intrinsics.resize(W * supersample, H * supersample)
-        os_, ds = world_rays(c2w, Ks.K, Ks.height, Ks.width)
-        col = _shade(scene, os_.reshape(-1, 3), ds.reshape(-1, 3), shadows)
-        col = col.reshape(H, supersample, W, supersample, 3).mean(axis=(1, 3))
-    else:
-        col = _shade(scene, o.reshape(-1, 3), d.reshape(-1, 3), shadows).reshape(H, W, 3)
-    rgb = (np.clip(col, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    c2w = np.asarray(c2w)
+    T = len(c2w)
+    ss = max(int(supersample), 1)
+    rgb = np.zeros((T, H, W, 3), dtype=np.uint8)
+    depth = np.zeros((T, H, W), dtype=np.float32)
+    normal = np.zeros((T, H, W, 3), dtype=np.float32)
+    hit = np.zeros((T, H, W), dtype=bool)
+    Ks = intrinsics.resize(W * ss, H * ss) if ss > 1 else intrinsics
+    step = max(1, max_rays // (H * W * ss * ss))
+    for a in range(0, T, step):
+        b = min(a + step, T)
+        rays = [world_rays(c2w[i], intrinsics.K, H, W) for i in range(a, b)]
+        o = np.stack([r[0] for r in rays]).reshape(-1, 3)
+        d = np.stack([r[1] for r in rays]).reshape(-1, 3)
+        sel = slice(None) if pixels is None else np.flatnonzero(pixels[a:b])
+        o, d = o[sel], d[sel]
+        ans = _cast(scene, o, d)
+        t = ans["t_hit"]
+        h = np.isfinite(t)
+        n = ans["primitive_normals"].astype(np.float32)
+        n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+        n *= np.where((n * d).sum(-1, keepdims=True) > 0, -1.0, 1.0).astype(np.float32)
+        n[~h] = 0.0
+        hit[a:b].reshape(-1)[sel] = h
+        depth[a:b].reshape(-1)[sel] = np.where(h, t, 0.0).astype(np.float32)  # dirs have camera z = 1: t is z
+        normal[a:b].reshape(-1, 3)[sel] = n
+        if not colour:
+            continue
+        if ss > 1:
+            sub = [world_rays(c2w[i], Ks.K, Ks.height, Ks.width) for i in range(a, b)]
+            so = np.stack([r[0] for r in sub])  # [n, H ss, W ss, 3]
+            sd = np.stack([r[1] for r in sub])
+            want = np.ones(so.shape[:3], dtype=bool) if pixels is None else \
+                np.repeat(np.repeat(pixels[a:b], ss, axis=1), ss, axis=2)
+            col = np.zeros(so.shape)
+            col[want] = _shade(scene, so[want], sd[want], shadows)
+            col = np.stack([c.reshape(H, ss, W, ss, 3).mean(axis=(1, 3)) for c in col]).reshape(-1, 3)[sel]
+        else:
+            col = _shade(scene, o, d, shadows, ans)
+        rgb[a:b].reshape(-1, 3)[sel] = (np.clip(col, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     return Render(rgb=rgb, depth=depth, normal=normal, hit=hit)
 
 

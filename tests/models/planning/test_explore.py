@@ -11,7 +11,7 @@ from test_planning import box, observe, room_state, scene_of
 
 import navcrafter.models.planning.explore as explore_mod
 import navcrafter.models.planning.planners as planners_mod
-from navcrafter.models.camera.cameras import Intrinsics, camera_directions, invert_pose, look_at
+from navcrafter.models.camera.cameras import Intrinsics, camera_directions, look_at
 from navcrafter.models.planning.explore import (
     FREE,
     OCCUPIED,
@@ -32,8 +32,7 @@ from navcrafter.models.planning.planners import (
     retreat_trajectory,
 )
 from navcrafter.models.planning.registry import PLANNERS
-from navcrafter.models.planning.voxel_kernels import march, splat_depth
-from navcrafter.models.reconstruction.pointrender import render_points
+from navcrafter.models.planning.voxel_kernels import march
 from navcrafter.schemas.config import PlanConfig
 
 K = Intrinsics.from_fov(80, 64, 64)
@@ -336,21 +335,6 @@ def test_the_ray_march_and_carving_kernels_agree_with_the_numpy_arithmetic():
         assert ref_gain.sum() > 1
         np.testing.assert_allclose(gain, ref_gain, rtol=1e-9)
         np.testing.assert_allclose(hit, ref_hit)
-
-
-def test_the_splat_kernel_renders_the_point_renderers_depth():
-
-    _, state = room_state()
-    rng = np.random.default_rng(1)
-    pts = state.cloud_points[rng.permutation(len(state.cloud_points))[:3000]]
-    for c2w in (np.eye(4), look_at(np.array([0.5, -0.3, 1.0]), np.array([-1.0, 0.5, 6.0]))):
-        for size in (0.02, 0.2):
-            ref = render_points(pts, c2w, K.K, 64, 48, size)
-            d = splat_depth(pts.astype(np.float32), invert_pose(c2w).astype(np.float32), K.K.astype(np.float32),
-                            64, 48, size, 3, 1e-3)
-            assert ref.mask.mean() > 0.05
-            np.testing.assert_array_equal(d > 0, ref.mask)
-            np.testing.assert_allclose(d, ref.depth, rtol=1e-5)
 
 
 def test_the_retrace_goes_back_along_the_earlier_cameras_past_what_their_clip_put_on_the_path():

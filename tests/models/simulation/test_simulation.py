@@ -11,6 +11,7 @@ import pytest
 
 from navcrafter.models.camera.cameras import (
     Intrinsics,
+    axis_angle_to_matrix,
     invert_pose,
     look_at,
     make_pose,
@@ -63,6 +64,55 @@ def test_sky_and_miss_pixels():
     r = render(scene, look_at(np.zeros(3), np.array([0.0, 0.0, -1.0]), up=np.array([0.0, -1.0, 0.0])), K)
     assert not r.hit.any() and (r.depth == 0).all()
     assert r.rgb.mean() > 100  # sky colour, not black
+
+
+def test_texture_noise_is_the_numpy_lattice_noise_bit_for_bit():
+    """The numba noise (``textures.fbm``) computes what the numpy form it replaced computed, to the bit: the demo's
+    frames (and every cache key downstream of them) stay as they were."""
+    from navcrafter.models.simulation.textures import _hash2, fbm, value_noise
+
+    def noise(x, y, seed):
+        ix, iy = np.floor(x), np.floor(y)
+        fx, fy = x - ix, y - iy
+        sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+        a, b = _hash2(ix, iy, seed), _hash2(ix + 1, iy, seed)
+        c, d = _hash2(ix, iy + 1, seed), _hash2(ix + 1, iy + 1, seed)
+        return (a * (1 - sx) + b * sx) * (1 - sy) + (c * (1 - sx) + d * sx) * sy
+
+    rng = np.random.default_rng(0)
+    for spread in (1.0, 40.0, 1e4):
+        x, y = rng.normal(0, spread, (2, 50, 40))
+        for seed in (0, 11, (1 << 30) + 400):
+            np.testing.assert_array_equal(value_noise(x, y, seed), noise(x, y, seed))
+            for octaves in (4, 5):
+                total, amp, norm, freq = np.zeros_like(x), 1.0, 0.0, 1.0
+                for o in range(octaves):
+                    total += amp * noise(x * freq, y * freq, seed + 97 * o)
+                    norm, amp, freq = norm + amp, amp * 0.5, freq * 2.03
+                np.testing.assert_array_equal(fbm(x, y, seed, octaves), total / norm)
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_batched_render_equals_frame_by_frame(supersample):
+    """``render_many`` (one cast for many frames, or only some pixels) gives each pixel exactly what ``render`` of
+    its frame gives: the synthesizer batches a clip's renders on it and its clips must not change."""
+    from navcrafter.models.simulation.render import render_many
+
+    scene = generate_scene("room", 1)
+    K = Intrinsics.from_fov(70, 40, 24)
+    poses = np.stack([scene.camera_c2w @ make_pose(axis_angle_to_matrix([0, 1.0, 0], a), np.array([0.1 * a, 0, 0]))
+                      for a in (0.0, 0.3, -0.4)])
+    one = [render(scene, c, K, supersample=supersample) for c in poses]
+    many = render_many(scene, poses, K, supersample=supersample, max_rays=2 * 40 * 24 * supersample**2)
+    for name in ("rgb", "depth", "normal", "hit"):
+        np.testing.assert_array_equal(getattr(many, name), np.stack([getattr(r, name) for r in one]))
+    pixels = np.random.default_rng(0).random((3, 24, 40)) < 0.3
+    part = render_many(scene, poses, K, supersample=supersample, pixels=pixels)
+    for name in ("rgb", "depth", "normal", "hit"):
+        got, want = getattr(part, name), getattr(many, name)
+        np.testing.assert_array_equal(got[pixels], want[pixels])
+        assert not got[~pixels].any()  # the rest are left empty
+    assert part.hit[pixels].mean() > 0.5
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -365,6 +415,16 @@ def test_soft_anchoring_falls_off_with_distance_from_the_cloud():
     hard = cfg.model_copy(update={"anchor_falloff_m": 0.0})
     assert anchored(cKDTree(pts + [0, 0, 0.04]), r.depth, r.hit, np.eye(4), K, hard, rng).all()
     assert not anchored(cKDTree(pts + [0, 0, 0.06]), r.depth, r.hit, np.eye(4), K, hard, rng).any()
+    # a clip's frames in one query: what each frame gets alone, with the clip's field
+    from navcrafter.models.simulation.backend import AnchorField
+
+    field, tree = AnchorField.draw(rng), cKDTree(pts + [0, 0, 0.05])
+    c2w = np.stack([np.eye(4), make_pose(np.eye(3), np.array([0.2, 0.1, 0.5]))])
+    rs = [render(scene, c, K, colour=False) for c in c2w]
+    both = anchored(tree, np.stack([x.depth for x in rs]), np.stack([x.hit for x in rs]), c2w, K, cfg, rng, field)
+    for i, x in enumerate(rs):
+        np.testing.assert_array_equal(both[i], anchored(tree, x.depth, x.hit, c2w[i], K, cfg, rng, field))
+    assert 0.1 < both.mean() < 0.9
 
 
 def test_closeup_corruption_follows_how_much_of_the_frame_a_near_surface_fills():
