@@ -47,14 +47,14 @@ _pfjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, parallel=True, e
 # --------------------------------------------------------------------------------------------------
 # Covariances
 # --------------------------------------------------------------------------------------------------
-@_ijit
+@_ifjit
 def _rotmat(w, x, y, z, R):
     R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
     R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
 
 
-@_ijit
+@_ifjit
 def _covar(quats, scales, g, R, cov):
     """``cov`` [3, 3] = ``R diag(s)^2 R^T`` of Gaussian g's (w, x, y, z) quaternion (normalised here, as
     ``torch.nn.functional.normalize``) and scales; ``R`` [3, 3] is scratch."""
@@ -67,7 +67,7 @@ def _covar(quats, scales, g, R, cov):
             cov[i, j] = R[i, 0] * s0 * s0 * R[j, 0] + R[i, 1] * s1 * s1 * R[j, 1] + R[i, 2] * s2 * s2 * R[j, 2]
 
 
-@_ijit
+@_ifjit
 def _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales):
     """Gradients of :func:`_covar` for Gaussian g from ``v_cov`` [3, 3] into ``v_quats[g]``, ``v_scales[g]``
     (``R``, ``vR`` [3, 3] are scratch; float64 sums, written once in the outputs' dtype)."""
@@ -104,7 +104,7 @@ def _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales):
     v_quats[g, 3] = (vz - z * dot) / nrm
 
 
-@_pjit
+@_pfjit
 def covar_forward(quats, scales, covars):
     """``covars`` [N, 3, 3] = ``R diag(s)^2 R^T`` of (w, x, y, z) ``quats`` [N, 4] (normalised here, as
     ``torch.nn.functional.normalize``) and ``scales`` [N, 3]."""
@@ -115,7 +115,7 @@ def covar_forward(quats, scales, covars):
             _covar(quats, scales, g, R, covars[g])
 
 
-@_pjit
+@_pfjit
 def covar_backward(quats, scales, v_covars, v_quats, v_scales):
     """Gradients of :func:`covar_forward` into ``v_quats`` [N, 4] and ``v_scales`` [N, 3]."""
     n = quats.shape[0]
@@ -129,7 +129,7 @@ def covar_backward(quats, scales, v_covars, v_quats, v_scales):
 # --------------------------------------------------------------------------------------------------
 # Projection (from covariances, or fused with them: from quaternions and scales)
 # --------------------------------------------------------------------------------------------------
-@_ijit
+@_ifjit
 def _fov_limits(Ks, width, height, c):
     """The tangents (right, left, down, up) the Jacobian clamps the mean to: 1.3x the field of view."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
@@ -138,7 +138,7 @@ def _fov_limits(Ks, width, height, c):
             (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy)
 
 
-@_ijit
+@_ifjit
 def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
     """Gaussian g (world covariance ``cov`` [3, 3]) in camera c: its camera-space mean ``x, y, z``, the depth
     the Jacobian uses ``zs`` (1 when culled by depth), ``depth_ok``, the clamped ``tx, ty`` and the Jacobian
@@ -164,7 +164,7 @@ def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
     return x, y, z, zs, depth_ok, tx, ty, fx / zs, -fx * tx / (zs * zs), fy / zs, -fy * ty / (zs * zs)
 
 
-@_ijit
+@_ifjit
 def _cov2d(Sc, j00, j02, j11, j12):
     """Upper triangle (a, b, d) of ``J Sc J^T`` with ``J = [[j00, 0, j02], [0, j11, j12]]``."""
     a = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
@@ -173,7 +173,7 @@ def _cov2d(Sc, j00, j02, j11, j12):
     return a, b, d
 
 
-@_ijit
+@_ifjit
 def _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                  means2d, depths, conics, radii, comps):
     """:func:`project_forward` of Gaussian g (world covariance ``cov``) into camera c."""
@@ -201,7 +201,7 @@ def _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radi
     radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
 
 
-@_pjit
+@_pfjit
 def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
                     means2d, depths, conics, radii, comps):
     """EWA projection of ``means`` [N, 3], ``covars`` [N, 3, 3] into ``viewmats`` [C, 4, 4] / ``Ks``
@@ -219,7 +219,7 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
                              means2d, depths, conics, radii, comps)
 
 
-@_pjit
+@_pfjit
 def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
                        means2d, depths, conics, radii, comps):
     """:func:`project_forward` with each covariance made from ``quats`` [N, 4] and ``scales`` [N, 3] on the
@@ -234,7 +234,7 @@ def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d,
                              means2d, depths, conics, radii, comps)
 
 
-@_ijit
+@_ifjit
 def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d, v_depths, v_conics,
                       v_comps, use_comps, c, g, Sc, v_mean, v_cov):
     """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_mean`` [3] and ``v_cov`` [3, 3]
@@ -325,7 +325,7 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
             v_cov[i, k] += viewmats[c, 0, i] * rv0 + viewmats[c, 1, i] * rv1 + viewmats[c, 2, i] * rv2
 
 
-@_pjit
+@_pfjit
 def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, far,
                      v_means2d, v_depths, v_conics, v_comps, use_comps, v_means, v_covars):
     """Gradients of :func:`project_forward`'s outputs into ``v_means`` [N, 3] and ``v_covars`` [N, 3, 3]
@@ -348,7 +348,7 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
                     v_covars[g, k, j] = v_cov[k, j]
 
 
-@_pjit
+@_pfjit
 def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, near, far,
                         v_means2d, v_depths, v_conics, v_comps, use_comps, v_means, v_quats, v_scales):
     """Gradients of :func:`project_qs_forward`'s outputs into ``v_means`` [N, 3], ``v_quats`` [N, 4] and
@@ -518,7 +518,7 @@ def composite_tile_size(width: int, height: int) -> int:
     return 64 if width * height >= 256 * 256 else 32
 
 
-@_pjit
+@_pfjit
 def pack_gaussians(means2d, conics, opacities, colors, radii, bounds, tile_size, ctile, width, height, rec,
                    cbounds):
     """Per (camera, Gaussian), computed once per call instead of once per list entry, into ``rec`` [C, N,
@@ -864,7 +864,7 @@ _C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325
        1.445305721320277, -0.5900435899266435)
 
 
-@_ijit
+@_ifjit
 def _sh_basis(degree, x, y, z, b, db):
     """The ``(degree + 1)^2`` basis values at the unit direction (x, y, z) into ``b`` [16] and, when ``db`` has
     rows, their derivatives into ``db`` [16, 3] (sh.py's ``sh_basis`` term by term)."""
@@ -912,7 +912,7 @@ def _sh_basis(degree, x, y, z, b, db):
             db[15, 0], db[15, 1] = _C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * _C3[6] * x * y
 
 
-@_ijit
+@_ifjit
 def _unit_dir(means, campos, c, g):
     dx, dy, dz = (float(means[g, 0]) - campos[c, 0], float(means[g, 1]) - campos[c, 1],
                   float(means[g, 2]) - campos[c, 2])
@@ -920,7 +920,7 @@ def _unit_dir(means, campos, c, g):
     return dx / nrm, dy / nrm, dz / nrm, nrm
 
 
-@_pjit
+@_pfjit
 def sh_forward(degree, means, campos, coeffs, rgb):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
     (float32 or float64, read as they are; float64 arithmetic)
@@ -940,7 +940,7 @@ def sh_forward(degree, means, campos, coeffs, rgb):
                     rgb[c, g, j] = max(acc + 0.5, 0.0)
 
 
-@_pjit
+@_pfjit
 def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
     order, in float64, whatever the dtype of ``coeffs`` / ``v_coeffs``; the clamp passes the gradient where its
