@@ -139,7 +139,17 @@ def _fov_limits(Ks, width, height, c):
 
 
 @_ifjit
-def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
+def _camera_limits(Ks, width, height):
+    """:func:`_fov_limits` of every camera [C, 4], computed once per call (six divisions each, per Gaussian
+    otherwise)."""
+    lims = np.empty((Ks.shape[0], 4))
+    for c in range(Ks.shape[0]):
+        lims[c, 0], lims[c, 1], lims[c, 2], lims[c, 3] = _fov_limits(Ks, width, height, c)
+    return lims
+
+
+@_ifjit
+def _camera_frame(means, cov, viewmats, Ks, lims, near, far, c, g, Sc):
     """Gaussian g (world covariance ``cov`` [3, 3]) in camera c: its camera-space mean ``x, y, z``, the depth
     the Jacobian uses ``zs`` (1 when culled by depth), ``depth_ok``, the clamped ``tx, ty`` and the Jacobian
     entries; writes the camera-space covariance ``R S R^T`` into ``Sc`` [3, 3]. Shared by the projection and
@@ -158,7 +168,7 @@ def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
         for j in range(3):
             Sc[i, j] = rc0 * viewmats[c, j, 0] + rc1 * viewmats[c, j, 1] + rc2 * viewmats[c, j, 2]
     fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-    lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+    lxp, lxn, lyp, lyn = lims[c, 0], lims[c, 1], lims[c, 2], lims[c, 3]
     tx = zs * min(max(x / zs, -lxn), lxp)
     ty = zs * min(max(y / zs, -lyn), lyp)
     return x, y, z, zs, depth_ok, tx, ty, fx / zs, -fx * tx / (zs * zs), fy / zs, -fy * ty / (zs * zs)
@@ -174,11 +184,11 @@ def _cov2d(Sc, j00, j02, j11, j12):
 
 
 @_ifjit
-def _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+def _project_one(means, cov, viewmats, Ks, lims, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                  means2d, depths, conics, radii, comps):
     """:func:`project_forward` of Gaussian g (world covariance ``cov``) into camera c."""
-    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
-                                                                      near, far, c, g, Sc)
+    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, lims, near, far,
+                                                                      c, g, Sc)
     depths[c, g] = z
     a, b, d = _cov2d(Sc, j00, j02, j11, j12)
     u = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
@@ -208,6 +218,7 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
     [C, 3, 3]; writes ``means2d`` [C, N, 2], ``depths`` [C, N], ``conics`` [C, N, 3], ``radii`` [C, N]
     (int32, 0 = culled) and ``comps`` [C, N] (antialiasing compensation)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc, cov = np.empty((3, 3)), np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
@@ -215,7 +226,7 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
                 for j in range(3):
                     cov[k, j] = covars[g, k, j]
             for c in range(n_cam):
-                _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                _project_one(means, cov, viewmats, Ks, lims, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                              means2d, depths, conics, radii, comps)
 
 
@@ -225,17 +236,18 @@ def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d,
     """:func:`project_forward` with each covariance made from ``quats`` [N, 4] and ``scales`` [N, 3] on the
     fly (:func:`covar_forward`'s), never stored."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc, R, cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             _covar(quats, scales, g, R, cov)
             for c in range(n_cam):
-                _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                _project_one(means, cov, viewmats, Ks, lims, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                              means2d, depths, conics, radii, comps)
 
 
 @_ifjit
-def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d, v_depths, v_conics,
+def _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d, v_depths, v_conics,
                       v_comps, use_comps, c, g, Sc, v_mean, v_cov):
     """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_mean`` [3] and ``v_cov`` [3, 3]
     (the world covariance); ``Sc`` [3, 3] is scratch. Nothing to add when every
@@ -244,10 +256,10 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
             and v_conics[c, g, 0] == 0.0 and v_conics[c, g, 1] == 0.0 and v_conics[c, g, 2] == 0.0
             and (not use_comps or v_comps[c, g] == 0.0)):
         return
-    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
-                                                                      near, far, c, g, Sc)
+    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, lims, near, far,
+                                                                      c, g, Sc)
     fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-    lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+    lxp, lxn, lyp, lyn = lims[c, 0], lims[c, 1], lims[c, 2], lims[c, 3]
     rx, ry = x / zs, y / zs
     x_clamped = rx < -lxn or rx > lxp
     y_clamped = ry < -lyn or ry > lyp
@@ -331,6 +343,7 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
     """Gradients of :func:`project_forward`'s outputs into ``v_means`` [N, 3] and ``v_covars`` [N, 3, 3]
     (cameras summed in order per Gaussian)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc, cov, v_cov, v_mean = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
@@ -340,7 +353,7 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
                     v_cov[k, j] = 0.0
                     cov[k, j] = covars[g, k, j]
             for c in range(n_cam):
-                _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d,
+                _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d,
                                   v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_mean, v_cov)
             for k in range(3):
                 v_means[g, k] = v_mean[k]
@@ -354,6 +367,7 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
     """Gradients of :func:`project_qs_forward`'s outputs into ``v_means`` [N, 3], ``v_quats`` [N, 4] and
     ``v_scales`` [N, 3] (cameras summed in order per Gaussian, then through the covariance)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc = np.empty((3, 3))
         R, vR, cov, v_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
@@ -365,7 +379,7 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
                 for j in range(3):
                     v_cov[k, j] = 0.0
             for c in range(n_cam):
-                _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d,
+                _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d,
                                   v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_mean, v_cov)
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = v_mean[0], v_mean[1], v_mean[2]
             _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales)
@@ -940,16 +954,43 @@ def sh_forward(degree, means, campos, coeffs, rgb):
                     rgb[c, g, j] = max(acc + 0.5, 0.0)
 
 
+@_ifjit
+def _sh_dir_grad(degree, x, y, z, w):
+    """``sum_k w[k] dY_k / d(x, y, z)`` at the direction (x, y, z): :func:`_sh_basis`' derivatives contracted
+    with the weights ``w`` [16] (each basis function's coefficient gradient), without the [16, 3] table."""
+    g0 = g1 = g2 = 0.0
+    if degree >= 1:
+        g0 -= _C1 * w[3]
+        g1 -= _C1 * w[1]
+        g2 += _C1 * w[2]
+    if degree >= 2:
+        g0 += _C2[0] * y * w[4] - 2.0 * _C2[2] * x * w[6] + _C2[3] * z * w[7] + 2.0 * _C2[4] * x * w[8]
+        g1 += _C2[0] * x * w[4] + _C2[1] * z * w[5] - 2.0 * _C2[2] * y * w[6] - 2.0 * _C2[4] * y * w[8]
+        g2 += _C2[1] * y * w[5] + 4.0 * _C2[2] * z * w[6] + _C2[3] * x * w[7]
+    if degree >= 3:
+        xx, yy, zz = x * x, y * y, z * z
+        g0 += (_C3[0] * 6.0 * x * y * w[9] + _C3[1] * y * z * w[10] - 2.0 * _C3[2] * x * y * w[11]
+               - 6.0 * _C3[3] * x * z * w[12] + _C3[4] * (4.0 * zz - 3.0 * xx - yy) * w[13]
+               + 2.0 * _C3[5] * x * z * w[14] + _C3[6] * (3.0 * xx - 3.0 * yy) * w[15])
+        g1 += (_C3[0] * (3.0 * xx - 3.0 * yy) * w[9] + _C3[1] * x * z * w[10]
+               + _C3[2] * (4.0 * zz - xx - 3.0 * yy) * w[11] - 6.0 * _C3[3] * y * z * w[12]
+               - 2.0 * _C3[4] * x * y * w[13] - 2.0 * _C3[5] * y * z * w[14] - 6.0 * _C3[6] * x * y * w[15])
+        g2 += (_C3[1] * x * y * w[10] + 8.0 * _C3[2] * y * z * w[11] + _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w[12]
+               + 8.0 * _C3[4] * x * z * w[13] + _C3[5] * (xx - yy) * w[14])
+    return g0, g1, g2
+
+
 @_pfjit
 def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
     order, in float64, whatever the dtype of ``coeffs`` / ``v_coeffs``; the clamp passes the gradient where its
-    input is >= 0, as ``torch.clamp_min``)."""
+    input is >= 0, as ``torch.clamp_min``). The direction's gradient contracts the basis derivatives with each
+    basis function's coefficient gradient (:func:`_sh_dir_grad`) instead of a [16, 3] table per pair."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     n_k = v_coeffs.shape[1]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        b, db = np.empty(16), np.empty((16, 3))
+        b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
         vco = np.empty((n_k, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for k in range(n_k):
@@ -958,20 +999,20 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
             for c in range(n_cam):
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
-                vd0 = vd1 = vd2 = 0.0
-                for j in range(3):
-                    acc = 0.0
-                    for k in range(nb):
-                        acc += b[k] * coeffs[g, k, j]
-                    if acc + 0.5 < 0.0:
-                        continue
-                    v = v_rgb[c, g, j]
-                    for k in range(nb):
-                        vco[k, j] += b[k] * v
-                        vc = coeffs[g, k, j] * v
-                        vd0 += db[k, 0] * vc
-                        vd1 += db[k, 1] * vc
-                        vd2 += db[k, 2] * vc
+                a0 = a1 = a2 = 0.0
+                for k in range(nb):
+                    a0 += b[k] * coeffs[g, k, 0]
+                    a1 += b[k] * coeffs[g, k, 1]
+                    a2 += b[k] * coeffs[g, k, 2]
+                v0 = float(v_rgb[c, g, 0]) if not a0 + 0.5 < 0.0 else 0.0
+                v1 = float(v_rgb[c, g, 1]) if not a1 + 0.5 < 0.0 else 0.0
+                v2 = float(v_rgb[c, g, 2]) if not a2 + 0.5 < 0.0 else 0.0
+                for k in range(nb):
+                    vco[k, 0] += b[k] * v0
+                    vco[k, 1] += b[k] * v1
+                    vco[k, 2] += b[k] * v2
+                    w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
+                vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
                 vm0 += (vd0 - x * dot) / nrm
