@@ -584,7 +584,9 @@ def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec
     """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); ``cap``
     [C * tiles] = per tile the pixels of its entries' boxes within it (the most pairs compositing can keep)."""
     n_rec = rec.shape[2]
-    for t in numba.prange(offsets.shape[0] - 1):
+    n_all = offsets.shape[0] - 1
+    for it in numba.prange(n_all):
+        t = _interleave(it, n_all)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         area = 0
         for k in range(offsets[t], offsets[t + 1]):
@@ -596,6 +598,16 @@ def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec
             if x0 < x1 and y0 < y1:
                 area += (x1 - x0) * (y1 - y0)
         cap[t] = area
+
+
+@_ijit
+def _interleave(i, n):
+    """The tile of parallel iteration ``i`` of ``n``: the even tiles first, then the odd ones. numba's pool gives
+    each thread one contiguous range of iterations, so each thread gets every other tile of the whole image
+    instead of its top or bottom half (a scene's sky and ground cost differently); which thread renders a tile
+    never changes its result."""
+    half = (n + 1) // 2
+    return 2 * i if i < half else 2 * (i - half) + 1
 
 
 @_ijit
@@ -643,7 +655,8 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
     n_feat = render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
-    for t in numba.prange(n_cam * n_tiles):
+    for it in numba.prange(n_cam * n_tiles):
+        t = _interleave(it, n_cam * n_tiles)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
         tw = x_hi - x_lo
@@ -741,7 +754,8 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
     n_feat = v_render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
-    for t in numba.prange(n_cam * n_tiles):
+    for it in numba.prange(n_cam * n_tiles):
+        t = _interleave(it, n_cam * n_tiles)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
         tw = x_hi - x_lo
