@@ -47,44 +47,49 @@ _pfjit = numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, parallel=True, e
 # --------------------------------------------------------------------------------------------------
 # Covariances
 # --------------------------------------------------------------------------------------------------
-@_ijit
+@_ifjit
 def _rotmat(w, x, y, z, R):
     R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
     R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
 
 
-@_ijit
+@_ifjit
 def _covar(quats, scales, g, R, cov):
     """``cov`` [3, 3] = ``R diag(s)^2 R^T`` of Gaussian g's (w, x, y, z) quaternion (normalised here, as
     ``torch.nn.functional.normalize``) and scales; ``R`` [3, 3] is scratch."""
-    nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
-    _rotmat(quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm, R)
+    qw, qx, qy, qz = float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+    nrm = max(math.sqrt(qw ** 2 + qx ** 2 + qy ** 2 + qz ** 2), 1e-12)
+    _rotmat(qw / nrm, qx / nrm, qy / nrm, qz / nrm, R)
+    s0, s1, s2 = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
     for i in range(3):
         for j in range(3):
-            acc = 0.0
-            for k in range(3):
-                acc += R[i, k] * scales[g, k] * scales[g, k] * R[j, k]
-            cov[i, j] = acc
+            cov[i, j] = R[i, 0] * s0 * s0 * R[j, 0] + R[i, 1] * s1 * s1 * R[j, 1] + R[i, 2] * s2 * s2 * R[j, 2]
 
 
-@_ijit
+@_ifjit
 def _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales):
     """Gradients of :func:`_covar` for Gaussian g from ``v_cov`` [3, 3] into ``v_quats[g]``, ``v_scales[g]``
-    (``R``, ``vR`` [3, 3] are scratch)."""
-    nrm = max(math.sqrt(quats[g, 0] ** 2 + quats[g, 1] ** 2 + quats[g, 2] ** 2 + quats[g, 3] ** 2), 1e-12)
-    w, x, y, z = quats[g, 0] / nrm, quats[g, 1] / nrm, quats[g, 2] / nrm, quats[g, 3] / nrm
+    (``R``, ``vR`` [3, 3] are scratch; float64 sums, written once in the outputs' dtype)."""
+    qw, qx, qy, qz = float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+    nrm = max(math.sqrt(qw ** 2 + qx ** 2 + qy ** 2 + qz ** 2), 1e-12)
+    w, x, y, z = qw / nrm, qx / nrm, qy / nrm, qz / nrm
     _rotmat(w, x, y, z, R)
+    sc = (float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2]))
     # Sigma = M M^T, M = R diag(s): v_M = (G + G^T) M
-    for j in range(3):
-        v_scales[g, j] = 0.0
+    vs0 = vs1 = vs2 = 0.0
     for i in range(3):
         for j in range(3):
-            vm = 0.0
-            for k in range(3):
-                vm += (v_cov[i, k] + v_cov[k, i]) * R[k, j] * scales[g, j]
-            vR[i, j] = vm * scales[g, j]
-            v_scales[g, j] += vm * R[i, j]
+            vm = ((v_cov[i, 0] + v_cov[0, i]) * R[0, j] + (v_cov[i, 1] + v_cov[1, i]) * R[1, j]
+                  + (v_cov[i, 2] + v_cov[2, i]) * R[2, j]) * sc[j]
+            vR[i, j] = vm * sc[j]
+            if j == 0:
+                vs0 += vm * R[i, j]
+            elif j == 1:
+                vs1 += vm * R[i, j]
+            else:
+                vs2 += vm * R[i, j]
+    v_scales[g, 0], v_scales[g, 1], v_scales[g, 2] = vs0, vs1, vs2
     vw = 2 * (-z * vR[0, 1] + y * vR[0, 2] + z * vR[1, 0] - x * vR[1, 2] - y * vR[2, 0] + x * vR[2, 1])
     vx = 2 * (y * vR[0, 1] + z * vR[0, 2] + y * vR[1, 0] - 2 * x * vR[1, 1] - w * vR[1, 2] + z * vR[2, 0]
               + w * vR[2, 1] - 2 * x * vR[2, 2])
@@ -99,7 +104,7 @@ def _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales):
     v_quats[g, 3] = (vz - z * dot) / nrm
 
 
-@_pjit
+@_pfjit
 def covar_forward(quats, scales, covars):
     """``covars`` [N, 3, 3] = ``R diag(s)^2 R^T`` of (w, x, y, z) ``quats`` [N, 4] (normalised here, as
     ``torch.nn.functional.normalize``) and ``scales`` [N, 3]."""
@@ -110,7 +115,7 @@ def covar_forward(quats, scales, covars):
             _covar(quats, scales, g, R, covars[g])
 
 
-@_pjit
+@_pfjit
 def covar_backward(quats, scales, v_covars, v_quats, v_scales):
     """Gradients of :func:`covar_forward` into ``v_quats`` [N, 4] and ``v_scales`` [N, 3]."""
     n = quats.shape[0]
@@ -124,7 +129,7 @@ def covar_backward(quats, scales, v_covars, v_quats, v_scales):
 # --------------------------------------------------------------------------------------------------
 # Projection (from covariances, or fused with them: from quaternions and scales)
 # --------------------------------------------------------------------------------------------------
-@_ijit
+@_ifjit
 def _fov_limits(Ks, width, height, c):
     """The tangents (right, left, down, up) the Jacobian clamps the mean to: 1.3x the field of view."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
@@ -133,13 +138,23 @@ def _fov_limits(Ks, width, height, c):
             (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy)
 
 
-@_ijit
-def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
+@_ifjit
+def _camera_limits(Ks, width, height):
+    """:func:`_fov_limits` of every camera [C, 4], computed once per call (six divisions each, per Gaussian
+    otherwise)."""
+    lims = np.empty((Ks.shape[0], 4))
+    for c in range(Ks.shape[0]):
+        lims[c, 0], lims[c, 1], lims[c, 2], lims[c, 3] = _fov_limits(Ks, width, height, c)
+    return lims
+
+
+@_ifjit
+def _camera_frame(means, cov, viewmats, Ks, lims, near, far, c, g, Sc):
     """Gaussian g (world covariance ``cov`` [3, 3]) in camera c: its camera-space mean ``x, y, z``, the depth
     the Jacobian uses ``zs`` (1 when culled by depth), ``depth_ok``, the clamped ``tx, ty`` and the Jacobian
     entries; writes the camera-space covariance ``R S R^T`` into ``Sc`` [3, 3]. Shared by the projection and
     its backward pass."""
-    mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
+    mx, my, mz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
     x = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
     y = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
     z = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
@@ -153,13 +168,13 @@ def _camera_frame(means, cov, viewmats, Ks, width, height, near, far, c, g, Sc):
         for j in range(3):
             Sc[i, j] = rc0 * viewmats[c, j, 0] + rc1 * viewmats[c, j, 1] + rc2 * viewmats[c, j, 2]
     fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-    lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+    lxp, lxn, lyp, lyn = lims[c, 0], lims[c, 1], lims[c, 2], lims[c, 3]
     tx = zs * min(max(x / zs, -lxn), lxp)
     ty = zs * min(max(y / zs, -lyn), lyp)
     return x, y, z, zs, depth_ok, tx, ty, fx / zs, -fx * tx / (zs * zs), fy / zs, -fy * ty / (zs * zs)
 
 
-@_ijit
+@_ifjit
 def _cov2d(Sc, j00, j02, j11, j12):
     """Upper triangle (a, b, d) of ``J Sc J^T`` with ``J = [[j00, 0, j02], [0, j11, j12]]``."""
     a = j00 * (j00 * Sc[0, 0] + j02 * Sc[2, 0]) + j02 * (j00 * Sc[0, 2] + j02 * Sc[2, 2])
@@ -168,12 +183,12 @@ def _cov2d(Sc, j00, j02, j11, j12):
     return a, b, d
 
 
-@_ijit
-def _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+@_ifjit
+def _project_one(means, cov, viewmats, Ks, lims, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                  means2d, depths, conics, radii, comps):
     """:func:`project_forward` of Gaussian g (world covariance ``cov``) into camera c."""
-    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
-                                                                      near, far, c, g, Sc)
+    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, lims, near, far,
+                                                                      c, g, Sc)
     depths[c, g] = z
     a, b, d = _cov2d(Sc, j00, j02, j11, j12)
     u = (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y + Ks[c, 0, 2] * zs) / zs
@@ -196,50 +211,55 @@ def _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radi
     radii[c, g] = np.int32(radius) if (valid and inside and radius > radius_clip) else 0
 
 
-@_pjit
+@_pfjit
 def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
                     means2d, depths, conics, radii, comps):
     """EWA projection of ``means`` [N, 3], ``covars`` [N, 3, 3] into ``viewmats`` [C, 4, 4] / ``Ks``
     [C, 3, 3]; writes ``means2d`` [C, N, 2], ``depths`` [C, N], ``conics`` [C, N, 3], ``radii`` [C, N]
     (int32, 0 = culled) and ``comps`` [C, N] (antialiasing compensation)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        Sc = np.empty((3, 3))
+        Sc, cov = np.empty((3, 3)), np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for k in range(3):
+                for j in range(3):
+                    cov[k, j] = covars[g, k, j]
             for c in range(n_cam):
-                _project_one(means, covars[g], viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                _project_one(means, cov, viewmats, Ks, lims, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                              means2d, depths, conics, radii, comps)
 
 
-@_pjit
+@_pfjit
 def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d, near, far, radius_clip,
                        means2d, depths, conics, radii, comps):
     """:func:`project_forward` with each covariance made from ``quats`` [N, 4] and ``scales`` [N, 3] on the
     fly (:func:`covar_forward`'s), never stored."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc, R, cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             _covar(quats, scales, g, R, cov)
             for c in range(n_cam):
-                _project_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, radius_clip, c, g, Sc,
+                _project_one(means, cov, viewmats, Ks, lims, width, height, eps2d, near, far, radius_clip, c, g, Sc,
                              means2d, depths, conics, radii, comps)
 
 
-@_ijit
-def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d, v_depths, v_conics,
-                      v_comps, use_comps, c, g, Sc, v_means, v_cov):
-    """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_means[g]`` and ``v_cov`` [3, 3]
+@_ifjit
+def _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d, v_depths, v_conics,
+                      v_comps, use_comps, c, g, Sc, v_mean, v_cov):
+    """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_mean`` [3] and ``v_cov`` [3, 3]
     (the world covariance); ``Sc`` [3, 3] is scratch. Nothing to add when every
     output gradient of (c, g) is zero (a Gaussian culled in this camera, the common case): skipped."""
     if (v_means2d[c, g, 0] == 0.0 and v_means2d[c, g, 1] == 0.0 and v_depths[c, g] == 0.0
             and v_conics[c, g, 0] == 0.0 and v_conics[c, g, 1] == 0.0 and v_conics[c, g, 2] == 0.0
             and (not use_comps or v_comps[c, g] == 0.0)):
         return
-    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, width, height,
-                                                                      near, far, c, g, Sc)
+    x, y, z, zs, depth_ok, tx, ty, j00, j02, j11, j12 = _camera_frame(means, cov, viewmats, Ks, lims, near, far,
+                                                                      c, g, Sc)
     fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-    lxp, lxn, lyp, lyn = _fov_limits(Ks, width, height, c)
+    lxp, lxn, lyp, lyn = lims[c, 0], lims[c, 1], lims[c, 2], lims[c, 3]
     rx, ry = x / zs, y / zs
     x_clamped = rx < -lxn or rx > lxp
     y_clamped = ry < -lyn or ry > lyp
@@ -251,7 +271,7 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
         # culled: conics are constants (det_safe = 1 branch) and never rasterized; only depth flows
         v_z = v_depths[c, g]
         for k in range(3):
-            v_means[g, k] += viewmats[c, 2, k] * v_z
+            v_mean[k] += viewmats[c, 2, k] * v_z
         return
     # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
     q00, q01, q11 = d / det, -b0 / det, a / det
@@ -306,7 +326,7 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
     v_zs += -(vu * (Ks[c, 0, 0] * x + Ks[c, 0, 1] * y) + vv * (Ks[c, 1, 0] * x + Ks[c, 1, 1] * y)) / zs2
     v_z = v_depths[c, g] + v_zs  # depth_ok holds here
     for k in range(3):
-        v_means[g, k] += viewmats[c, 0, k] * v_x + viewmats[c, 1, k] * v_y + viewmats[c, 2, k] * v_z
+        v_mean[k] += viewmats[c, 0, k] * v_x + viewmats[c, 1, k] * v_y + viewmats[c, 2, k] * v_z
     # Sc = R S R^T: dL/dS = R^T v_Sc R (as two products: column k of v_Sc R, then R^T times it)
     for k in range(3):
         r0k, r1k, r2k = viewmats[c, 0, k], viewmats[c, 1, k], viewmats[c, 2, k]
@@ -317,42 +337,51 @@ def _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far,
             v_cov[i, k] += viewmats[c, 0, i] * rv0 + viewmats[c, 1, i] * rv1 + viewmats[c, 2, i] * rv2
 
 
-@_pjit
+@_pfjit
 def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, far,
                      v_means2d, v_depths, v_conics, v_comps, use_comps, v_means, v_covars):
     """Gradients of :func:`project_forward`'s outputs into ``v_means`` [N, 3] and ``v_covars`` [N, 3, 3]
     (cameras summed in order per Gaussian)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        Sc = np.empty((3, 3))
+        Sc, cov, v_cov, v_mean = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for k in range(3):
-                v_means[g, k] = 0.0
+                v_mean[k] = 0.0
                 for j in range(3):
-                    v_covars[g, k, j] = 0.0
+                    v_cov[k, j] = 0.0
+                    cov[k, j] = covars[g, k, j]
             for c in range(n_cam):
-                _project_grad_one(means, covars[g], viewmats, Ks, width, height, eps2d, near, far, v_means2d,
-                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_means, v_covars[g])
+                _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d,
+                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_mean, v_cov)
+            for k in range(3):
+                v_means[g, k] = v_mean[k]
+                for j in range(3):
+                    v_covars[g, k, j] = v_cov[k, j]
 
 
-@_pjit
+@_pfjit
 def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, near, far,
                         v_means2d, v_depths, v_conics, v_comps, use_comps, v_means, v_quats, v_scales):
     """Gradients of :func:`project_qs_forward`'s outputs into ``v_means`` [N, 3], ``v_quats`` [N, 4] and
     ``v_scales`` [N, 3] (cameras summed in order per Gaussian, then through the covariance)."""
     n_cam, n = viewmats.shape[0], means.shape[0]
+    lims = _camera_limits(Ks, width, height)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         Sc = np.empty((3, 3))
         R, vR, cov, v_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+        v_mean = np.empty(3)  # float64 sums over the cameras, written once in the output's dtype
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             _covar(quats, scales, g, R, cov)
             for k in range(3):
-                v_means[g, k] = 0.0
+                v_mean[k] = 0.0
                 for j in range(3):
                     v_cov[k, j] = 0.0
             for c in range(n_cam):
-                _project_grad_one(means, cov, viewmats, Ks, width, height, eps2d, near, far, v_means2d,
-                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_means, v_cov)
+                _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d,
+                                  v_depths, v_conics, v_comps, use_comps, c, g, Sc, v_mean, v_cov)
+            v_means[g, 0], v_means[g, 1], v_means[g, 2] = v_mean[0], v_mean[1], v_mean[2]
             _covar_grad(quats, scales, g, v_cov, R, vR, v_quats, v_scales)
 
 
@@ -389,24 +418,24 @@ def depth_keys(depths: np.ndarray) -> np.ndarray:
     return np.where(neg, ~bits, bits | np.uint64(1 << 63))
 
 
-RADIX_BITS = 16  # 4 passes at most; the passes over digits all keys share (exponent bits) are skipped
+RADIX_BITS = 11  # 2048 bins (L1-resident); the passes over digits all keys share (exponent bits) are skipped
 
 
 @_jit
-def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
-    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose square touches it, in depth order
+def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, order_out, roff, epos):
+    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose tile range ``bounds`` [C, N, 4]
+    (x0, x1, y0, y1; :func:`pack_gaussians`' ``cbounds`` for the compositing tiles) covers it, in depth order
     (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
-    sort of each camera's visible Gaussians by ``keys`` (:func:`depth_keys`) and one pass that appends them to
-    their tiles in that order, instead of a sort per tile. Also, per (camera, Gaussian) ``idx`` in row-major
-    tile order, the list positions of its entries ``epos[goff[idx]:goff[idx + 1]]`` (for :func:`gather_slots`)."""
+    sort of each camera's visible Gaussians by ``keys`` (:func:`depth_keys`; each Gaussian's tile square packed
+    into one integer travels with it, so the pass that appends them to their tiles in that order reads
+    sequentially), instead of a sort per tile. Also, per camera, the visible Gaussians in depth order
+    ``order_out`` [C, N] (-1 past the last) and, per rank ``idx = camera * N + rank``, the list positions of its
+    entries in row-major tile order ``epos[roff[idx]:roff[idx + 1]]`` (for :func:`gather_slots`)."""
     n_cam, n = bounds.shape[0], bounds.shape[1]
     n_tiles = tile_w * tile_h
     counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
-    goff[0] = 0
     for c in range(n_cam):
         for g in range(n):
-            cnt = (bounds[c, g, 1] - bounds[c, g, 0]) * (bounds[c, g, 3] - bounds[c, g, 2])
-            goff[c * n + g + 1] = goff[c * n + g] + cnt
             for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
                 for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
                     counts[c * n_tiles + ty * tile_w + tx] += 1
@@ -416,17 +445,21 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
     fill = offsets[:-1].copy()
     order = np.empty(n, dtype=np.int64)
     tmp = np.empty(n, dtype=np.int64)
-    okey = np.empty(n, dtype=np.uint64)  # the keys travel with the indices: each pass reads them in sequence
-    tkey = np.empty(n, dtype=np.uint64)
+    okey = np.empty(n, dtype=np.uint64)  # the keys and squares travel with the indices: each pass reads them in
+    tkey = np.empty(n, dtype=np.uint64)  # sequence
+    obox = np.empty(n, dtype=np.int64)
+    tbox = np.empty(n, dtype=np.int64)
     n_bins = 1 << RADIX_BITS
     hist = np.empty(n_bins, dtype=np.int64)
     mask = np.uint64(n_bins - 1)
+    j = 0
     for c in range(n_cam):
         m = 0
         for g in range(n):
             if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
                 order[m] = g
                 okey[m] = keys[c, g]
+                obox[m] = bounds[c, g, 0] | (bounds[c, g, 1] << 16) | (bounds[c, g, 2] << 32) | (bounds[c, g, 3] << 48)
                 m += 1
         for shift in range(0, 64, RADIX_BITS):
             sh = np.uint64(shift)
@@ -442,21 +475,31 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, goff, epos):
                 acc += h
             for i in range(m):
                 b = (okey[i] >> sh) & mask
-                tmp[hist[b]] = order[i]
-                tkey[hist[b]] = okey[i]
-                hist[b] += 1
+                d = hist[b]
+                tmp[d] = order[i]
+                tkey[d] = okey[i]
+                tbox[d] = obox[i]
+                hist[b] = d + 1
             order, tmp = tmp, order
             okey, tkey = tkey, okey
+            obox, tbox = tbox, obox
         for i in range(m):
             g = order[i]
-            j = goff[c * n + g]
-            for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
-                for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
+            box = obox[i]
+            x0, x1, y0, y1 = box & 0xFFFF, (box >> 16) & 0xFFFF, (box >> 32) & 0xFFFF, box >> 48
+            order_out[c, i] = g
+            roff[c * n + i] = j
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
                     t = c * n_tiles + ty * tile_w + tx
                     gids[fill[t]] = g
                     epos[j] = fill[t]
                     fill[t] += 1
                     j += 1
+        for i in range(m, n):
+            order_out[c, i] = -1
+            roff[c * n + i] = j
+    roff[n_cam * n] = j
 
 
 # --------------------------------------------------------------------------------------------------
@@ -481,38 +524,59 @@ def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
 R_MX, R_MY, R_Q0, R_Q1, R_Q2, R_O, R_CUT, R_INVQ0, R_X0, R_X1, R_Y0, R_Y1, R_FEAT = range(13)
 
 
-@_pjit
-def pack_gaussians(means2d, conics, opacities, colors, radii, width, height, rec):
+def composite_tile_size(width: int, height: int) -> int:
+    """The side of the compositing tiles (pixels): 64 from 256² up, 32 below. Independent of the API's
+    ``tile_size``, which keeps its meaning (gsplat's squares: which pixels a Gaussian may touch, ``n_isects``):
+    each Gaussian's pixel box is clipped to its squares' rectangle (:func:`pack_gaussians`), the same pixels as
+    compositing it tile by tile, while the larger tiles cut the list entries (fewer Gaussians cross a tile edge)."""
+    return 64 if width * height >= 256 * 256 else 32
+
+
+@_pfjit
+def pack_gaussians(means2d, conics, opacities, colors, radii, bounds, tile_size, ctile, width, height, rec,
+                   cbounds):
     """Per (camera, Gaussian), computed once per call instead of once per list entry, into ``rec`` [C, N,
     13 + D] (the compositing dtype): the 2D mean, conic, opacity, the ``sigma`` above which ``o exp(-sigma) <
     1/255`` for certain (``ln(255 o)`` plus ``SIGMA_MARGIN``; pairs below it take the exact test), ``1 / q0``,
     the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 ln(255 o)`` plus a pixel of
     margin (the PyTorch renderer enumerates the same boxes; empty when culled or never visible; clipped to the
-    image) and its features. float64 arithmetic: this is per Gaussian, not per pixel."""
+    image and to the rectangle of its ``tile_size`` squares ``bounds`` [C, N, 4], as the PyTorch renderer's
+    tiles clip it) and its features; and ``cbounds`` [C, N, 4] = the compositing tiles (side ``ctile``) the box
+    touches (empty with the box). float64 arithmetic: this is per Gaussian, not per pixel. Returns the number
+    of (compositing tile, Gaussian) entries."""
     n_cam, n = radii.shape
     n_feat = colors.shape[2]
-    for idx in numba.prange(n_cam * n):
-        c, g = idx // n, idx % n
-        o = float(opacities[c, g])
-        q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
-        rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
-        rec[c, g, R_Q0], rec[c, g, R_Q1], rec[c, g, R_Q2], rec[c, g, R_O] = q0, q1, q2, o
-        rec[c, g, R_CUT] = math.log(max(o * 255.0, 1e-300)) + SIGMA_MARGIN
-        rec[c, g, R_INVQ0] = 1.0 / q0 if q0 > 0.0 else 0.0
-        for f in range(n_feat):
-            rec[c, g, R_FEAT + f] = colors[c, g, f]
-        extent = 2.0 * math.log(max(o * 255.0, 1.0))
-        if radii[c, g] <= 0 or extent <= 0.0:
-            rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
-            continue
-        inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
-        half_w = math.sqrt(extent * q2 * inv_det) + 1.0
-        half_h = math.sqrt(extent * q0 * inv_det) + 1.0
-        u, v = float(means2d[c, g, 0]) - 0.5, float(means2d[c, g, 1]) - 0.5
-        rec[c, g, R_X0] = min(max(math.floor(u - half_w), 0), width)
-        rec[c, g, R_X1] = min(max(math.floor(u + half_w) + 1, 0), width)
-        rec[c, g, R_Y0] = min(max(math.floor(v - half_h), 0), height)
-        rec[c, g, R_Y1] = min(max(math.floor(v + half_h) + 1, 0), height)
+    total = 0
+    for c in range(n_cam):
+        for g in numba.prange(n):
+            o = float(opacities[c, g])
+            q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
+            rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
+            rec[c, g, R_Q0], rec[c, g, R_Q1], rec[c, g, R_Q2], rec[c, g, R_O] = q0, q1, q2, o
+            rec[c, g, R_CUT] = math.log(max(o * 255.0, 1e-300)) + SIGMA_MARGIN
+            rec[c, g, R_INVQ0] = 1.0 / q0 if q0 > 0.0 else 0.0
+            for f in range(n_feat):
+                rec[c, g, R_FEAT + f] = colors[c, g, f]
+            extent = 2.0 * math.log(max(o * 255.0, 1.0))
+            x0 = x1 = y0 = y1 = 0
+            if radii[c, g] > 0 and extent > 0.0:
+                inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
+                half_w = math.sqrt(extent * q2 * inv_det) + 1.0
+                half_h = math.sqrt(extent * q0 * inv_det) + 1.0
+                u, v = float(means2d[c, g, 0]) - 0.5, float(means2d[c, g, 1]) - 0.5
+                x0 = max(min(max(math.floor(u - half_w), 0), width), bounds[c, g, 0] * tile_size)
+                x1 = min(min(max(math.floor(u + half_w) + 1, 0), width), bounds[c, g, 1] * tile_size)
+                y0 = max(min(max(math.floor(v - half_h), 0), height), bounds[c, g, 2] * tile_size)
+                y1 = min(min(max(math.floor(v + half_h) + 1, 0), height), bounds[c, g, 3] * tile_size)
+            if x0 < x1 and y0 < y1:
+                rec[c, g, R_X0], rec[c, g, R_X1], rec[c, g, R_Y0], rec[c, g, R_Y1] = x0, x1, y0, y1
+                cx0, cx1, cy0, cy1 = x0 // ctile, (x1 - 1) // ctile + 1, y0 // ctile, (y1 - 1) // ctile + 1
+                cbounds[c, g, 0], cbounds[c, g, 1], cbounds[c, g, 2], cbounds[c, g, 3] = cx0, cx1, cy0, cy1
+                total += (cx1 - cx0) * (cy1 - cy0)
+            else:
+                rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
+                cbounds[c, g, 0] = cbounds[c, g, 1] = cbounds[c, g, 2] = cbounds[c, g, 3] = 0
+    return total
 
 
 @_pjit
@@ -520,7 +584,9 @@ def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec
     """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); ``cap``
     [C * tiles] = per tile the pixels of its entries' boxes within it (the most pairs compositing can keep)."""
     n_rec = rec.shape[2]
-    for t in numba.prange(offsets.shape[0] - 1):
+    n_all = offsets.shape[0] - 1
+    for it in numba.prange(n_all):
+        t = _interleave(it, n_all)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         area = 0
         for k in range(offsets[t], offsets[t + 1]):
@@ -532,6 +598,16 @@ def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec
             if x0 < x1 and y0 < y1:
                 area += (x1 - x0) * (y1 - y0)
         cap[t] = area
+
+
+@_ijit
+def _interleave(i, n):
+    """The tile of parallel iteration ``i`` of ``n``: the even tiles first, then the odd ones. numba's pool gives
+    each thread one contiguous range of iterations, so each thread gets every other tile of the whole image
+    instead of its top or bottom half (a scene's sky and ground cost differently); which thread renders a tile
+    never changes its result."""
+    half = (n + 1) // 2
+    return 2 * i if i < half else 2 * (i - half) + 1
 
 
 @_ijit
@@ -571,15 +647,16 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
     as a per-pixel loop. The tile's state (transmittance, accumulated features) lives in contiguous arrays.
 
     With ``record``, the pairs that contributed are kept for the backward pass, which then replays only them
-    (no spans, cut tests or ``exp`` again): per pair its pixel in the tile ``pix`` and ``exp(-sigma)`` ``pes``,
-    from the tile's slot ``pbase[t]`` (its capacity: :func:`gather_entries`' box areas) on, and per list entry
-    the end of its pairs ``pend`` [n_isects] (written whether or not recording)."""
+    (no spans, cut tests or ``exp`` again): per pair its pixel in the tile ``pix`` (row << 16 | column) and
+    ``exp(-sigma)`` ``pes``, from the tile's slot ``pbase[t]`` (its capacity: :func:`gather_entries`' box
+    areas) on, and per list entry the end of its pairs ``pend`` [n_isects] (written whether or not recording)."""
     alpha_clamp, athr, tstop, half, one, zero, two = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
     n_cam = render.shape[0]
     n_feat = render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
-    for t in numba.prange(n_cam * n_tiles):
+    for it in numba.prange(n_cam * n_tiles):
+        t = _interleave(it, n_cam * n_tiles)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
         tw = x_hi - x_lo
@@ -652,7 +729,7 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                                 acc[p * n_feat + f] += w * e_[R_FEAT + f]
                         T[p] = nt
                         if record:
-                            pix[j] = p
+                            pix[j] = ((py - y_lo) << 16) | (px - x_lo)  # no division to undo it
                             pes[j] = e
                             j += 1
             pend[k] = j
@@ -677,7 +754,8 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
     n_feat = v_render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
-    for t in numba.prange(n_cam * n_tiles):
+    for it in numba.prange(n_cam * n_tiles):
+        t = _interleave(it, n_cam * n_tiles)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
         tw = x_hi - x_lo
@@ -717,10 +795,11 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                 c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
                 c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
                 for j in range(j0, j1):
-                    p = pix[j]
+                    lx, ly = pix[j] & 0xFFFF, pix[j] >> 16
+                    p = ly * tw + lx
                     e = pes[j]
-                    dx = xc[p % tw] - mx
-                    dy = yc[p // tw] - my
+                    dx = xc[lx] - mx
+                    dy = yc[ly] - my
                     raw = o * e
                     alpha = min(alpha_clamp, raw)
                     ra = one / (one - alpha)
@@ -772,25 +851,35 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
 
 
 @_pjit
-def gather_slots(goff, epos, slots, grads):
-    """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features) = the sums of the list entries' ``slots``
-    [n_isects, 6 + D] per (camera, Gaussian), over its entries in row-major tile order (``goff``, ``epos`` of
-    :func:`bin_gaussians`; the order of the whole list): deterministic for any thread count. (Writing the slots
-    in this order from the compositing instead, to read them contiguously here, cost more: scattered writes.)"""
+def gather_slots(order, roff, epos, slots, grads):
+    """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features; the caller zero-fills it: Gaussians without
+    entries keep their zeros) = the sums of the list entries' ``slots`` [n_isects, 6 + D] per (camera,
+    Gaussian), in float64 over its entries in row-major tile order (:func:`bin_gaussians`' ``order``, ``roff``,
+    ``epos``): deterministic for any thread count. Walked in depth order: each tile's entries are then read in
+    list order (near-sequential), and the scattered accesses are one row written per Gaussian instead of one
+    read per entry."""
     n_s = slots.shape[1]
-    n_cam, n = grads.shape[0], grads.shape[1]
-    for ch in numba.prange((n_cam * n + CHUNK - 1) // CHUNK):
+    n_cam, n = order.shape
+    total = n_cam * n
+    for ch in numba.prange((total + CHUNK - 1) // CHUNK):
         acc = np.empty(n_s)
-        for idx in range(ch * CHUNK, min((ch + 1) * CHUNK, n_cam * n)):
-            c, g = idx // n, idx % n
-            for j in range(n_s):
-                acc[j] = 0.0
-            for i in range(goff[idx], goff[idx + 1]):
-                k = epos[i]
+        idx0 = ch * CHUNK
+        c = idx0 // n  # one division per chunk (a 64-bit division costs tens of cycles)
+        r = idx0 - c * n
+        for idx in range(idx0, min(idx0 + CHUNK, total)):
+            g = order[c, r]
+            if g >= 0:
                 for j in range(n_s):
-                    acc[j] += slots[k, j]
-            for j in range(n_s):
-                grads[c, g, j] = acc[j]
+                    acc[j] = 0.0
+                for i in range(roff[idx], roff[idx + 1]):
+                    k = epos[i]
+                    for j in range(n_s):
+                        acc[j] += slots[k, j]
+                for j in range(n_s):
+                    grads[c, g, j] = acc[j]
+            r += 1
+            if r == n:
+                r, c = 0, c + 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -803,7 +892,7 @@ _C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325
        1.445305721320277, -0.5900435899266435)
 
 
-@_ijit
+@_ifjit
 def _sh_basis(degree, x, y, z, b, db):
     """The ``(degree + 1)^2`` basis values at the unit direction (x, y, z) into ``b`` [16] and, when ``db`` has
     rows, their derivatives into ``db`` [16, 3] (sh.py's ``sh_basis`` term by term)."""
@@ -851,14 +940,15 @@ def _sh_basis(degree, x, y, z, b, db):
             db[15, 0], db[15, 1] = _C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * _C3[6] * x * y
 
 
-@_ijit
+@_ifjit
 def _unit_dir(means, campos, c, g):
-    dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
+    dx, dy, dz = (float(means[g, 0]) - campos[c, 0], float(means[g, 1]) - campos[c, 1],
+                  float(means[g, 2]) - campos[c, 2])
     nrm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # torch.nn.functional.normalize's eps
     return dx / nrm, dy / nrm, dz / nrm, nrm
 
 
-@_pjit
+@_pfjit
 def sh_forward(degree, means, campos, coeffs, rgb):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
     (float32 or float64, read as they are; float64 arithmetic)
@@ -878,42 +968,70 @@ def sh_forward(degree, means, campos, coeffs, rgb):
                     rgb[c, g, j] = max(acc + 0.5, 0.0)
 
 
-@_pjit
+@_ifjit
+def _sh_dir_grad(degree, x, y, z, w):
+    """``sum_k w[k] dY_k / d(x, y, z)`` at the direction (x, y, z): :func:`_sh_basis`' derivatives contracted
+    with the weights ``w`` [16] (each basis function's coefficient gradient), without the [16, 3] table."""
+    g0 = g1 = g2 = 0.0
+    if degree >= 1:
+        g0 -= _C1 * w[3]
+        g1 -= _C1 * w[1]
+        g2 += _C1 * w[2]
+    if degree >= 2:
+        g0 += _C2[0] * y * w[4] - 2.0 * _C2[2] * x * w[6] + _C2[3] * z * w[7] + 2.0 * _C2[4] * x * w[8]
+        g1 += _C2[0] * x * w[4] + _C2[1] * z * w[5] - 2.0 * _C2[2] * y * w[6] - 2.0 * _C2[4] * y * w[8]
+        g2 += _C2[1] * y * w[5] + 4.0 * _C2[2] * z * w[6] + _C2[3] * x * w[7]
+    if degree >= 3:
+        xx, yy, zz = x * x, y * y, z * z
+        g0 += (_C3[0] * 6.0 * x * y * w[9] + _C3[1] * y * z * w[10] - 2.0 * _C3[2] * x * y * w[11]
+               - 6.0 * _C3[3] * x * z * w[12] + _C3[4] * (4.0 * zz - 3.0 * xx - yy) * w[13]
+               + 2.0 * _C3[5] * x * z * w[14] + _C3[6] * (3.0 * xx - 3.0 * yy) * w[15])
+        g1 += (_C3[0] * (3.0 * xx - 3.0 * yy) * w[9] + _C3[1] * x * z * w[10]
+               + _C3[2] * (4.0 * zz - xx - 3.0 * yy) * w[11] - 6.0 * _C3[3] * y * z * w[12]
+               - 2.0 * _C3[4] * x * y * w[13] - 2.0 * _C3[5] * y * z * w[14] - 6.0 * _C3[6] * x * y * w[15])
+        g2 += (_C3[1] * x * y * w[10] + 8.0 * _C3[2] * y * z * w[11] + _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w[12]
+               + 8.0 * _C3[4] * x * z * w[13] + _C3[5] * (xx - yy) * w[14])
+    return g0, g1, g2
+
+
+@_pfjit
 def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
     order, in float64, whatever the dtype of ``coeffs`` / ``v_coeffs``; the clamp passes the gradient where its
-    input is >= 0, as ``torch.clamp_min``)."""
+    input is >= 0, as ``torch.clamp_min``). The direction's gradient contracts the basis derivatives with each
+    basis function's coefficient gradient (:func:`_sh_dir_grad`) instead of a [16, 3] table per pair."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     n_k = v_coeffs.shape[1]
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        b, db = np.empty(16), np.empty((16, 3))
+        b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
         vco = np.empty((n_k, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for k in range(n_k):
                 vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
-            v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
+            vm0 = vm1 = vm2 = 0.0  # float64 sums over the cameras, written once in the output's dtype
             for c in range(n_cam):
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
-                vd0 = vd1 = vd2 = 0.0
-                for j in range(3):
-                    acc = 0.0
-                    for k in range(nb):
-                        acc += b[k] * coeffs[g, k, j]
-                    if acc + 0.5 < 0.0:
-                        continue
-                    v = v_rgb[c, g, j]
-                    for k in range(nb):
-                        vco[k, j] += b[k] * v
-                        vc = coeffs[g, k, j] * v
-                        vd0 += db[k, 0] * vc
-                        vd1 += db[k, 1] * vc
-                        vd2 += db[k, 2] * vc
+                a0 = a1 = a2 = 0.0
+                for k in range(nb):
+                    a0 += b[k] * coeffs[g, k, 0]
+                    a1 += b[k] * coeffs[g, k, 1]
+                    a2 += b[k] * coeffs[g, k, 2]
+                v0 = float(v_rgb[c, g, 0]) if not a0 + 0.5 < 0.0 else 0.0
+                v1 = float(v_rgb[c, g, 1]) if not a1 + 0.5 < 0.0 else 0.0
+                v2 = float(v_rgb[c, g, 2]) if not a2 + 0.5 < 0.0 else 0.0
+                for k in range(nb):
+                    vco[k, 0] += b[k] * v0
+                    vco[k, 1] += b[k] * v1
+                    vco[k, 2] += b[k] * v2
+                    w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
+                vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
-                v_means[g, 0] += (vd0 - x * dot) / nrm
-                v_means[g, 1] += (vd1 - y * dot) / nrm
-                v_means[g, 2] += (vd2 - z * dot) / nrm
+                vm0 += (vd0 - x * dot) / nrm
+                vm1 += (vd1 - y * dot) / nrm
+                vm2 += (vd2 - z * dot) / nrm
+            v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
             for k in range(n_k):
                 v_coeffs[g, k, 0], v_coeffs[g, k, 1], v_coeffs[g, k, 2] = vco[k, 0], vco[k, 1], vco[k, 2]

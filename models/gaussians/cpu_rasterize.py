@@ -96,8 +96,26 @@ def _np(t: Tensor) -> np.ndarray:
 
 
 def _np_native(t: Tensor, dtype) -> np.ndarray:
-    """A C-contiguous NumPy copy of ``t`` in ``dtype`` (float32 or float64: the compositing kernels' arithmetic)."""
-    return np.array(t.detach().to(device="cpu").numpy(), dtype=dtype, order="C", copy=True)
+    """A C-contiguous NumPy copy of ``t`` in ``dtype`` (float32 or float64: the kernels' input and output dtype)."""
+    x = t.detach().to(device="cpu", dtype=torch.float32 if dtype == np.float32 else torch.float64)
+    return np.array(x.numpy(), order="C", copy=True)
+
+
+def _np_view(t: Tensor, dtype) -> np.ndarray:
+    """``t`` as a C-contiguous array in ``dtype``, without a copy where it already is one: for inputs a kernel
+    only reads during the call (nothing kept for a backward pass)."""
+    x = t.detach().to(device="cpu", dtype=torch.float32 if dtype == np.float32 else torch.float64)
+    return np.ascontiguousarray(x.numpy())
+
+
+def _dt(t: Tensor):
+    """The NumPy dtype the kernels read and write for ``t``: float32 stays float32 (the kernels compute in
+    float64 per Gaussian and round once on writing, as a conversion would), anything else is float64."""
+    return np.float32 if t.dtype == torch.float32 else np.float64
+
+
+def _grad_np(v: Tensor | None, shape, dt) -> np.ndarray:
+    return np.zeros(shape, dt) if v is None else _np_native(v, dt)
 
 
 def _out(a: np.ndarray, like: Tensor) -> Tensor:
@@ -135,8 +153,9 @@ class _SH(torch.autograd.Function):
         # saved for backward, so an in-place change before it is caught by autograd's version check
         co_t = coeffs.detach().contiguous()
         co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(coeffs)
-        m, cp = _np(means), _np(campos)
-        rgb = np.empty((len(cp), len(m), 3))
+        dt = _dt(means)
+        m, cp = _np_native(means, dt), _np(campos)
+        rgb = np.empty((len(cp), len(m), 3), dt)
         with _LOCK:
             K.sh_forward(degree, m, cp, co, rgb)
         ctx.save_for_backward(co_t)
@@ -150,7 +169,7 @@ class _SH(torch.autograd.Function):
         co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(co_t)
         v_m, v_co = np.empty_like(m), np.empty(co.shape, dtype=co.dtype)
         with _LOCK:
-            K.sh_backward(ctx.degree, m, cp, co, rgb, _np(v_rgb), v_m, v_co)
+            K.sh_backward(ctx.degree, m, cp, co, rgb, _np_native(v_rgb, m.dtype), v_m, v_co)
         return None, _out(v_m, ctx.likes[0]), _out(v_co, ctx.likes[1]), None
 
 
@@ -168,10 +187,11 @@ def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: i
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, covars, viewmats, Ks, width, height, eps2d, near, far, radius_clip):
-        m, cv, vm, k = _np(means), _np(covars), _np(viewmats), _np(Ks)
+        dt = _dt(means)
+        m, cv, vm, k = _np_native(means, dt), _np(covars), _np(viewmats), _np(Ks)
         n_cam, n = vm.shape[0], m.shape[0]
-        means2d, depths = np.empty((n_cam, n, 2)), np.empty((n_cam, n))
-        conics, comps = np.empty((n_cam, n, 3)), np.empty((n_cam, n))
+        means2d, depths = np.empty((n_cam, n, 2), dt), np.empty((n_cam, n), dt)
+        conics, comps = np.empty((n_cam, n, 3), dt), np.empty((n_cam, n), dt)
         radii = np.empty((n_cam, n), dtype=np.int32)
         with _LOCK:
             K.project_forward(m, cv, vm, k, width, height, eps2d, near, far, radius_clip,
@@ -186,16 +206,12 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_means2d, v_depths, v_conics, v_comps, _v_radii):
         m, cv, vm, k = ctx.arrays
-        n_cam, n = vm.shape[0], m.shape[0]
-
-        def grad(v, shape):
-            return np.zeros(shape) if v is None else _np(v)
-
-        v_comps_np = grad(v_comps, (n_cam, n))
-        v_means, v_covars = np.empty((n, 3)), np.empty((n, 3, 3))
+        n_cam, n, dt = vm.shape[0], m.shape[0], m.dtype
+        v_comps_np = _grad_np(v_comps, (n_cam, n), dt)
+        v_means, v_covars = np.empty((n, 3), dt), np.empty((n, 3, 3))
         with _LOCK:
-            K.project_backward(m, cv, vm, k, *ctx.scalars, grad(v_means2d, (n_cam, n, 2)),
-                               grad(v_depths, (n_cam, n)), grad(v_conics, (n_cam, n, 3)), v_comps_np,
+            K.project_backward(m, cv, vm, k, *ctx.scalars, _grad_np(v_means2d, (n_cam, n, 2), dt),
+                               _grad_np(v_depths, (n_cam, n), dt), _grad_np(v_conics, (n_cam, n, 3), dt), v_comps_np,
                                v_comps is not None, v_means, v_covars)
         like = ctx.like
         return _out(v_means, like), _out(v_covars, like), None, None, None, None, None, None, None, None
@@ -222,10 +238,12 @@ class _ProjectQS(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, Ks, width, height, eps2d, near, far, radius_clip):
-        m, q, sc, vm, k = _np(means), _np(quats), _np(scales), _np(viewmats), _np(Ks)
+        dt = _dt(means)
+        m, q, sc = _np_native(means, dt), _np_native(quats, _dt(quats)), _np_native(scales, _dt(scales))
+        vm, k = _np(viewmats), _np(Ks)
         n_cam, n = vm.shape[0], m.shape[0]
-        means2d, depths = np.empty((n_cam, n, 2)), np.empty((n_cam, n))
-        conics, comps = np.empty((n_cam, n, 3)), np.empty((n_cam, n))
+        means2d, depths = np.empty((n_cam, n, 2), dt), np.empty((n_cam, n), dt)
+        conics, comps = np.empty((n_cam, n, 3), dt), np.empty((n_cam, n), dt)
         radii = np.empty((n_cam, n), dtype=np.int32)
         with _LOCK:
             K.project_qs_forward(m, q, sc, vm, k, width, height, eps2d, near, far, radius_clip,
@@ -240,16 +258,12 @@ class _ProjectQS(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_means2d, v_depths, v_conics, v_comps, _v_radii):
         m, q, sc, vm, k = ctx.arrays
-        n_cam, n = vm.shape[0], m.shape[0]
-
-        def grad(v, shape):
-            return np.zeros(shape) if v is None else _np(v)
-
-        v_means, v_quats, v_scales = np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3))
+        n_cam, n, dt = vm.shape[0], m.shape[0], m.dtype
+        v_means, v_quats, v_scales = np.empty((n, 3), dt), np.empty((n, 4), q.dtype), np.empty((n, 3), sc.dtype)
         with _LOCK:
-            K.project_qs_backward(m, q, sc, vm, k, *ctx.scalars, grad(v_means2d, (n_cam, n, 2)),
-                                  grad(v_depths, (n_cam, n)), grad(v_conics, (n_cam, n, 3)),
-                                  grad(v_comps, (n_cam, n)), v_comps is not None, v_means, v_quats, v_scales)
+            K.project_qs_backward(m, q, sc, vm, k, *ctx.scalars, _grad_np(v_means2d, (n_cam, n, 2), dt),
+                                  _grad_np(v_depths, (n_cam, n), dt), _grad_np(v_conics, (n_cam, n, 3), dt),
+                                  _grad_np(v_comps, (n_cam, n), dt), v_comps is not None, v_means, v_quats, v_scales)
         lm, lq, ls = ctx.likes
         return (_out(v_means, lm), _out(v_quats, lq), _out(v_scales, ls), None, None, None, None, None, None, None,
                 None)
@@ -279,39 +293,44 @@ class _Composite(torch.autograd.Function):
         tile_w, tile_h = -(-width // tile_size), -(-height // tile_size)
         # the compositing arithmetic is float32 for float32 inputs (the fit), float64 otherwise
         dt = np.float32 if means2d.dtype == torch.float32 else np.float64
-        m2, con, col, opa = (_np_native(x, dt) for x in (means2d, conics, colors, opacities))
+        m2, con, col, opa = (_np_view(x, dt) for x in (means2d, conics, colors, opacities))
         use_bg = backgrounds is not None
         bg = _np_native(backgrounds, dt) if use_bg else np.zeros((n_cam, d), dt)
         cst = K.composite_constants(alpha_clamp, dt)
         rad = np.ascontiguousarray(radii.cpu().numpy())
         bounds = _SCRATCH.get("bounds", (n_cam, n, 4), np.int64)
+        cbounds = _SCRATCH.get("cbounds", (n_cam, n, 4), np.int64)
         rec = _SCRATCH.get("rec", (n_cam, n, K.R_FEAT + d), dt)
         render = np.empty((n_cam, height, width, d), dt)
         t_final = np.empty((n_cam, height, width), dt)
-        offsets = _SCRATCH.get("offsets", n_cam * tile_w * tile_h + 1, np.int64)
+        # compositing tiles (K.composite_tile_size) apart from the API's tile_size, which decides n_isects and
+        # which pixels a Gaussian may touch (its boxes are clipped to its tile_size squares)
+        ctile = K.composite_tile_size(width, height)
+        ctw, cth = -(-width // ctile), -(-height // ctile)
+        offsets = _SCRATCH.get("offsets", n_cam * ctw * cth + 1, np.int64)
         with _LOCK:
             n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
-            gids, epos = _SCRATCH.get("gids", n_isects, np.int64), _SCRATCH.get("epos", n_isects, np.int64)
-            goff = _SCRATCH.get("goff", n_cam * n + 1, np.int64)
-            K.bin_gaussians(bounds, K.depth_keys(depths.numpy()), tile_w, tile_h, offsets, gids, goff, epos)
-            K.pack_gaussians(m2, con, opa, col, rad, width, height, rec)
-            ent = _SCRATCH.get("ent", (n_isects, rec.shape[2]), dt)
-            cap = _SCRATCH.get("cap", n_cam * tile_w * tile_h, np.int64)
-            K.gather_entries(offsets, gids, tile_w * tile_h, tile_w, tile_size, width, height, rec, ent, cap)
+            n_ent = K.pack_gaussians(m2, con, opa, col, rad, bounds, tile_size, ctile, width, height, rec, cbounds)
+            gids, epos = _SCRATCH.get("gids", n_ent, np.int64), _SCRATCH.get("epos", n_ent, np.int64)
+            order, roff = _SCRATCH.get("order", (n_cam, n), np.int64), _SCRATCH.get("roff", n_cam * n + 1, np.int64)
+            K.bin_gaussians(cbounds, K.depth_keys(depths.numpy()), ctw, cth, offsets, gids, order, roff, epos)
+            ent = _SCRATCH.get("ent", (n_ent, rec.shape[2]), dt)
+            cap = _SCRATCH.get("cap", n_cam * ctw * cth, np.int64)
+            K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap)
             pbase = _SCRATCH.get("pbase", len(cap) + 1, np.int64)
             pbase[0] = 0
             if record:
                 np.cumsum(cap, out=pbase[1:])
             else:
                 pbase[1:] = 0
-            pend = _SCRATCH.get("pend", n_isects, np.int64)
+            pend = _SCRATCH.get("pend", n_ent, np.int64)
             pix = _SCRATCH.get("pix", pbase[-1], np.int32)
             pes = _SCRATCH.get("pes", pbase[-1], dt)
-            K.composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, render, t_final,
+            K.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
                                 pbase, pend, pix, pes, record)
-        ctx.arrays = (ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes)
+        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes)
         ctx.shape = (n_cam, n, d)
-        ctx.scalars = (width, height, tile_size, tile_w, use_bg)
+        ctx.scalars = (width, height, ctile, ctw, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
         info.update({"tile_width": tile_w, "tile_height": tile_h, "n_isects": int(n_isects),
                     "tiles_per_gauss": torch.from_numpy((bounds[..., 1] - bounds[..., 0])
@@ -321,19 +340,19 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        ent, bg, cst, offsets, gids, goff, epos, t_final, pbase, pend, pix, pes = ctx.arrays
-        width, height, tile_size, tile_w, use_bg = ctx.scalars
+        ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes = ctx.arrays
+        width, height, ctile, ctw, use_bg = ctx.scalars
         n_cam, n, d = ctx.shape
         dt = ent.dtype
-        vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_native(v_render, dt)
-        va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_native(v_alphas[..., 0], dt)
-        n_isects = len(gids)
-        slots = _SCRATCH.get("slots", (n_isects, 6 + d), dt)  # per-entry sums (float64 in the kernel), in the dtype
-        grads = _SCRATCH.get("grads", (n_cam, n, 6 + d), np.float64)
+        vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_view(v_render, dt)
+        va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_view(v_alphas[..., 0], dt)
+        slots = _SCRATCH.get("slots", (len(gids), 6 + d), dt)  # per-entry sums (float64 in the kernel), in the dtype
+        # the gradients in the inputs' dtype (float64 sums), handed to PyTorch as views of one array
+        grads = np.zeros((n_cam, n, 6 + d), dt)
         with _LOCK:
-            K.composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, bg, use_bg, t_final, vr, va,
+            K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, t_final, vr, va,
                                  pbase, pend, pix, pes, slots)
-            K.gather_slots(goff, epos, slots, grads)
+            K.gather_slots(order, roff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
         v_bg = None
