@@ -20,6 +20,7 @@ from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.task_runners import ThreadPoolTaskRunner
 
+from navcrafter.flows.blas import one_blas_thread
 from navcrafter.flows.tools.report import read_manifest
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
@@ -62,6 +63,7 @@ reconstruction_task = task(clip_reconstruction.reconstruction_rows, name="recons
 
 
 @flow(name="evaluate-store", persist_result=False)
+@one_blas_thread  # scenes run in threads: numpy's OpenBLAS pool hung when two entered it (flows/blas.py)
 def evaluate_store(store: str, config: RunConfig, scene_ids: list[str] | None = None) -> EvaluationRun:
     """Score finished scenes of ``store`` (all of them unless ``scene_ids``) and write the tables."""
     evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"

@@ -24,6 +24,7 @@ from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.flows import dashboard, dispatch
+from navcrafter.flows.blas import one_blas_thread
 from navcrafter.flows.tools.report import (
     SceneResult,
     manifest_rows_for,
@@ -244,6 +245,7 @@ def scene_task(store: str, scene_id: str, config: RunConfig, run_id: str, source
 
 @flow(name="explore-collection", persist_result=False,
       task_runner=ThreadPoolTaskRunner(max_workers=2))
+@one_blas_thread  # scenes run in threads: numpy's OpenBLAS pool hung when two entered it (flows/blas.py)
 def explore_collection(photos: str, store: str, config: RunConfig,
                        scene_deployment: str | None = None) -> CollectionResult:
     """Explore every image of a collection into ``store``; one result per image (or per scene, when
