@@ -1,0 +1,133 @@
+"""Where the compiled CPU rasterizer's time goes: single-thread process CPU time per kernel (phase) of one
+forward + backward at 100k Gaussians x 256x256 (``benchmarks/rasterizer.py``'s scene), RGB and SH3 + RGB+ED,
+optionally beside the kernels of another git revision run back to back in the same process.
+
+    python benchmarks/rasterizer_phases.py                          # this tree
+    python benchmarks/rasterizer_phases.py --baseline e30e0c0       # that revision's kernels, then this tree's
+
+Process CPU time (``time.process_time``) on one numba thread and one torch thread is the stable figure on a
+shared machine (wall time counts other processes' turns). Each kernel the autograd glue calls through the
+``cpu_kernels`` module is timed; "Python / PyTorch" is the rest of the forward + backward (conversions, the
+render modes' tensor ops, the loss and autograd). The baseline is ``git show REV:`` of ``cpu_kernels.py`` and
+``cpu_rasterize.py`` written to a temporary directory and imported from there (the rest of the package is this
+tree's). Medians over ``--repeats`` after two warm-up calls; the load average is printed before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib.util
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from benchmarks.rasterizer import make_scene  # noqa: E402
+from navcrafter.models.gaussians import cpu_kernels, cpu_rasterize  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+KERNELS = "models/gaussians/cpu_kernels.py"
+GLUE = "models/gaussians/cpu_rasterize.py"
+IMPORT_LINE = "from navcrafter.models.gaussians import cpu_kernels as K"
+
+
+def load_baseline(rev: str, tmp: Path):
+    """The (kernels, glue) modules of git revision ``rev``, imported from files under ``tmp``."""
+    kernels = subprocess.run(["git", "show", f"{rev}:{KERNELS}"], cwd=ROOT, check=True, capture_output=True,
+                             text=True).stdout
+    glue = subprocess.run(["git", "show", f"{rev}:{GLUE}"], cwd=ROOT, check=True, capture_output=True,
+                          text=True).stdout
+    if IMPORT_LINE not in glue:
+        raise SystemExit(f"{rev}:{GLUE} does not import the kernels as {IMPORT_LINE!r}; cannot rebind it")
+    (tmp / "baseline_cpu_kernels.py").write_text(kernels)
+    (tmp / "baseline_cpu_rasterize.py").write_text(glue.replace(IMPORT_LINE, "import baseline_cpu_kernels as K"))
+    sys.path.insert(0, str(tmp))
+    mods = []
+    for name in ("baseline_cpu_kernels", "baseline_cpu_rasterize"):
+        spec = importlib.util.spec_from_file_location(name, tmp / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+        mods.append(mod)
+    return mods[0], mods[1]
+
+
+def instrument(kernels, acc: dict) -> None:
+    """Replace every compiled kernel (and ``depth_keys``) on the module by a wrapper adding its process CPU time
+    to ``acc[name]``; the glue calls them as ``K.name(...)``, so it calls the wrappers."""
+    for name in dir(kernels):
+        fn = getattr(kernels, name)
+        if name.startswith("_") or not (hasattr(fn, "py_func") or name == "depth_keys"):
+            continue
+
+        def timed(*args, _fn=fn, _name=name):
+            c0 = time.process_time()
+            out = _fn(*args)
+            acc[_name] = acc.get(_name, 0.0) + time.process_time() - c0
+            return out
+
+        setattr(kernels, name, functools.wraps(fn)(timed))
+
+
+def run(glue, acc: dict, scene: dict, sh: int | None, mode: str, repeats: int) -> dict:
+    rows = []
+    for _ in range(repeats):
+        params = [p.clone().requires_grad_() for p in scene["params"]]
+        acc.clear()
+        c0 = time.process_time()
+        out, alpha, _ = glue.rasterization(*params, scene["viewmats"], scene["Ks"], scene["size"], scene["size"],
+                                           sh_degree=sh, render_mode=mode)
+        weights = torch.rand(out.shape, generator=torch.Generator().manual_seed(1))
+        ((out * weights).sum() + alpha.sum()).backward()
+        total = time.process_time() - c0
+        rows.append({**acc, "Python / PyTorch": total - sum(acc.values()), "total": total})
+    return {k: statistics.median(r.get(k, 0.0) for r in rows) * 1000 for k in rows[0]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--baseline", help="a git revision whose kernels run beside this tree's")
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--gaussians", type=int, default=100_000)
+    ap.add_argument("--size", type=int, default=256)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cpu_rasterize.set_threads(1)
+    versions = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.baseline:
+            versions[args.baseline] = load_baseline(args.baseline, Path(tmp))
+        versions["this tree"] = (cpu_kernels, cpu_rasterize)
+        accs = {name: {} for name in versions}
+        for name, (kernels, _) in versions.items():
+            instrument(kernels, accs[name])
+        print(f"load average before: {os.getloadavg()}", flush=True)
+        for sh, mode in ((None, "RGB"), (3, "RGB+ED")):
+            scene = make_scene(args.gaussians, args.size, sh)
+            res = {}
+            for name, (_, glue) in versions.items():
+                run(glue, accs[name], scene, sh, mode, 2)  # warm-up (compiles or loads the kernels)
+            for name, (_, glue) in versions.items():
+                res[name] = run(glue, accs[name], scene, sh, mode, args.repeats)
+            keys = list(dict.fromkeys(k for r in res.values() for k in r if k != "total")) + ["total"]
+            kind = "RGB" if sh is None else f"SH{sh}, {mode}"
+            title = f"{args.gaussians // 1000}k Gaussians x {args.size}², {kind}"
+            print(f"\n{title}: single-thread process CPU per forward + backward, median of {args.repeats} (ms)")
+            print(f"| phase | {' | '.join(res)} |")
+            print("|---|" + "---:|" * len(res))
+            for k in keys:
+                print(f"| {k} | " + " | ".join(f"{r.get(k, 0.0):.1f}" for r in res.values()) + " |")
+        print(f"\nload average after: {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()
