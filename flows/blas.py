@@ -10,21 +10,10 @@ environment variables would have to be set before numpy is imported) and restore
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable
-from typing import TypeVar
-
 from threadpoolctl import threadpool_limits
 
-F = TypeVar("F", bound=Callable)
 
-
-def one_blas_thread(fn: F) -> F:
-    """``fn`` run with BLAS libraries (OpenBLAS, MKL, ...) limited to one thread, restored afterwards."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        with threadpool_limits(limits=1, user_api="blas"):
-            return fn(*args, **kwargs)
-
-    return wrapper
+def one_blas_thread() -> threadpool_limits:
+    """A context in which BLAS libraries (OpenBLAS, MKL, ...) use one thread; restored when it ends. Entered in
+    the flow's body (a decorator would hide the flow's annotations from Prefect's parameter validation)."""
+    return threadpool_limits(limits=1, user_api="blas")

@@ -63,9 +63,14 @@ reconstruction_task = task(clip_reconstruction.reconstruction_rows, name="recons
 
 
 @flow(name="evaluate-store", persist_result=False)
-@one_blas_thread  # scenes run in threads: numpy's OpenBLAS pool hung when two entered it (flows/blas.py)
 def evaluate_store(store: str, config: RunConfig, scene_ids: list[str] | None = None) -> EvaluationRun:
     """Score finished scenes of ``store`` (all of them unless ``scene_ids``) and write the tables."""
+    with one_blas_thread():  # scenes run in threads: numpy's OpenBLAS pool hung when two entered it
+        return _evaluate_store(store, config, scene_ids)
+
+
+def _evaluate_store(store: str, config: RunConfig, scene_ids: list[str] | None = None) -> EvaluationRun:
+    """The body of ``evaluate_store``."""
     evaluation_id = f"{utcnow():%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"
     ids, names = evaluable_scenes(store)
     if scene_ids is not None:

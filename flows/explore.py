@@ -245,7 +245,6 @@ def scene_task(store: str, scene_id: str, config: RunConfig, run_id: str, source
 
 @flow(name="explore-collection", persist_result=False,
       task_runner=ThreadPoolTaskRunner(max_workers=2))
-@one_blas_thread  # scenes run in threads: numpy's OpenBLAS pool hung when two entered it (flows/blas.py)
 def explore_collection(photos: str, store: str, config: RunConfig,
                        scene_deployment: str | None = None) -> CollectionResult:
     """Explore every image of a collection into ``store``; one result per image (or per scene, when
@@ -257,6 +256,13 @@ def explore_collection(photos: str, store: str, config: RunConfig,
     ('explore-scene/NAME') each scene is instead a flow run of that deployment (e.g. on a GPU work
     pool), at most ``config.max_parallel_scenes`` in flight (``flows/dispatch.py``).
     """
+    with one_blas_thread():  # scenes run in threads: numpy's OpenBLAS pool hung when two entered it
+        return _explore_collection(photos, store, config, scene_deployment)
+
+
+def _explore_collection(photos: str, store: str, config: RunConfig,
+                        scene_deployment: str | None = None) -> CollectionResult:
+    """The body of ``explore_collection``."""
     problems = preflight(config)
     if problems:
         raise ValueError(" ".join(problems))

@@ -17,11 +17,20 @@ def _blas_threads() -> list[int]:
 def test_one_blas_thread_inside_and_restored_after():
     before = _blas_threads()
     assert before, "numpy has no BLAS library threadpoolctl can see"
-    inside = one_blas_thread(_blas_threads)()
+    with one_blas_thread():
+        inside = _blas_threads()
     assert inside == [1] * len(before)
     assert _blas_threads() == before
 
 
-def test_the_collection_flows_are_limited():
-    for flow_ in (explore_collection, evaluate_store):
-        assert getattr(flow_.fn, "__wrapped__", None) is not None, f"{flow_.name} runs without one_blas_thread"
+def test_the_collection_flows_are_limited(monkeypatch):
+    """Each flow's body runs inside the limit (seen from the body the flow calls)."""
+    import navcrafter.flows.evaluate as evaluate_mod
+    import navcrafter.flows.explore as explore_mod
+
+    seen = {}
+    monkeypatch.setattr(explore_mod, "_explore_collection", lambda *a: seen.setdefault("explore", _blas_threads()))
+    monkeypatch.setattr(evaluate_mod, "_evaluate_store", lambda *a: seen.setdefault("evaluate", _blas_threads()))
+    explore_collection.fn("photos", "store", None)
+    evaluate_store.fn("store", None)
+    assert set(seen["explore"]) == {1} and set(seen["evaluate"]) == {1}
