@@ -58,7 +58,10 @@ def test_scene_nodes_gaussians_clouds_frustums_candidates(viewer_store, viser_se
     sid = ids["tabletop-0.png"]
     data = read_scene(Store(store, create=False), sid)
     assert data.label == LABEL and data.gaussians is not None and len(data.iterations) == 2
-    data.iterations[0].collides[0] = True  # as if G had rejected candidate 0 of iteration 1
+    it1 = data.iterations[0]
+    assert len(it1.candidates) > 1
+    rej = next(c for c in range(len(it1.candidates)) if c != it1.chosen)  # the explorer's chosen one comes first
+    it1.collides[rej] = True  # as if G had rejected a candidate of iteration 1 that was not chosen
     view = build_scene(viser_server, store, sid, data)
     n = view.nodes
     assert isinstance(n[f"{ROOT}/gaussians"], viser.GaussianSplatHandle)
@@ -72,7 +75,7 @@ def test_scene_nodes_gaussians_clouds_frustums_candidates(viewer_store, viser_se
         cands = [x.rsplit("/", 1)[1] for x in n if x.startswith(f"{ROOT}/iter_{k}/candidates/")]
         assert len(cands) == len(data.iterations[k - 1].candidates)
         assert sum(c.startswith("chosen") for c in cands) == 1
-    assert f"{ROOT}/iter_1/candidates/rejected_000" in n
+    assert f"{ROOT}/iter_1/candidates/rejected_{rej:03d}" in n
     assert not any("rejected" in x for x in n if x.startswith(f"{ROOT}/iter_2/"))
     # the latest cloud shows; an earlier iteration adds and shows its own, hiding later cameras
     assert n[f"{ROOT}/cloud/iter_2"].visible
