@@ -57,7 +57,8 @@ def fbm(x: np.ndarray, y: np.ndarray, seed: int, octaves: int = 4) -> np.ndarray
 
 # The noise in one numba loop (the textures of a frame are most of the simulated synthesizer's time). Same
 # arithmetic as the numpy form it replaced, operation by operation (IEEE, no fast-math: the same bits), and the
-# lattice hash in wrapping int64 as numpy computes it: _hash2 below is that form, kept for reference and tests.
+# lattice hash in wrapping int64 as numpy computes it: ``_hash2`` above is the array form of the same hash (the
+# brick, tile and window patterns call it on arrays; the tests check the noise against it bit for bit).
 @numba.njit(cache=True, nogil=True)
 def _hash1(ix: float, iy: float, seed: int) -> float:
     h = (np.int64(ix) * 374761393 + np.int64(iy) * 668265263 + seed * 2147483647) & 0xFFFFFFFF
