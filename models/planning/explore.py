@@ -350,8 +350,7 @@ class ExplorerPlanner:
         vmap = VoxelMap.build(seen, points, cfg.explore_voxels)
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
                                follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix,
-                               reach=cfg.explore_reach)
-        det.views = seen.views  # seen free space (``_visibility``); the surfaces G keeps are the views' depth maps
+                               reach=cfg.explore_reach, visibility_views=seen.views)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S

@@ -226,12 +226,15 @@ class CollisionDetector:
     Surfaces: the cloud (a KD-tree on the cloud thinned to voxels of ``r_safe / 8``; ``thin=False``
     when the caller already thinned it at most that coarsely, so distances are exact to within
     0.11 * ``r_safe``), the earlier views' depth maps as meshes (``surfaces``), and an optional ground
-    plane. ``unknown_is_free`` selects the ``"free"`` policy for space no camera has seen.
+    plane. ``unknown_is_free`` selects the ``"free"`` policy for space no camera has seen. ``visibility_views``, when
+    given, are the views whose seen free space G trusts (``_visibility``) in place of ``views`` (e.g. the explorer's
+    views with the input photo's sky opened); the surfaces stay those of ``views``' depth maps.
     """
 
     def __init__(self, cloud_points: np.ndarray, r_safe: float, views: list[SeenView], thin: bool = True,
                  unknown_is_free: bool = False, surfaces: bool = True,
-                 ground: tuple[np.ndarray, float] | None = None, follow_error: float = 0.0) -> None:
+                 ground: tuple[np.ndarray, float] | None = None, follow_error: float = 0.0,
+                 visibility_views: list[SeenView] | None = None) -> None:
         if r_safe <= 0:
             raise ValueError("r_safe must be positive")
         self.r_safe = float(r_safe)
@@ -240,7 +243,7 @@ class CollisionDetector:
         pts = thin_points(cloud_points, r_safe / 8) if thin else np.asarray(cloud_points, dtype=np.float64)
         self.points = pts
         self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False) if len(pts) else None
-        self.views = views
+        self.views = views if visibility_views is None else visibility_views
         self.centres = np.array([v.c2w[:3, 3] for v in views]).reshape(-1, 3)
         self.surfaces = view_surfaces(views) if surfaces else None
         self.ground = ground  # (unit normal pointing up, offset): height above ground = n . x + offset
