@@ -510,7 +510,7 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, order_out, roff, 
 # no float64 literal promotes the per-pixel arithmetic. Fast-math without ``nnan``/``ninf`` (the code compares
 # and clamps; no infinities or NaNs are assumed away); the per-tile code is the same on any thread count.
 SIGMA_MARGIN = 1e-3  # a sigma cut's margin above ln(255 o): far above float32 rounding of the row spans
-LANES = 8  # pixels per row chunk: one AVX2 register of float32 (two of float64); the compositing's vector width
+NARROW_BOX = 4  # boxes this wide (pixels) or narrower skip the row spans: testing each pixel costs less
 
 
 def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
@@ -580,16 +580,15 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, bounds, tile_size,
 
 
 @_pjit
-def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec, ent, cap, bcap):
-    """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); per tile [C *
-    tiles] the most runs (``cap``: (entry, column block) pairs) and flag bytes (``bcap``: their pixels) that
-    compositing can record (:func:`composite_forward`)."""
+def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec, ent, cap):
+    """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); ``cap``
+    [C * tiles] = per tile the pixels of its entries' boxes within it (the most pairs compositing can keep)."""
     n_rec = rec.shape[2]
     n_all = offsets.shape[0] - 1
     for it in numba.prange(n_all):
         t = _interleave(it, n_all)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
-        runs = area = 0
+        area = 0
         for k in range(offsets[t], offsets[t + 1]):
             g = gids[k]
             for j in range(n_rec):
@@ -597,11 +596,8 @@ def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec
             x0, x1 = max(int(rec[c, g, R_X0]), x_lo), min(int(rec[c, g, R_X1]), x_hi)
             y0, y1 = max(int(rec[c, g, R_Y0]), y_lo), min(int(rec[c, g, R_Y1]), y_hi)
             if x0 < x1 and y0 < y1:
-                nb = (x1 - 1 - x_lo) // LANES - (x0 - x_lo) // LANES + 1
-                runs += nb
-                area += nb * (y1 - y0) * LANES
-        cap[t] = runs
-        bcap[t] = area
+                area += (x1 - x0) * (y1 - y0)
+        cap[t] = area
 
 
 @_ijit
@@ -623,67 +619,38 @@ def _tile(t, n_tiles, tile_w, tile_size, width, height):
     return c, x_lo, min(x_lo + tile_size, width), y_lo, min(y_lo + tile_size, height)
 
 
-def _exp_neg(s):
-    """``exp(-s)`` for ``0 <= s <= 20`` in ``s``'s dtype, branch-free so that a loop over pixels vectorises (libm's
-    ``exp`` is a call LLVM cannot vectorise and numba has no vector maths library here); compiled per dtype by
-    the overload below. Python fallback (tests of the pure-Python functions)."""
-    return math.exp(-s)
+@_ifjit
+def _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1):
+    """The columns ``[rx0, rx1)`` of ``[x0, x1)`` in one pixel row (offset ``dy`` from the mean) where ``sigma``
+    can be <= ``cut``: the roots of ``q0/2 dx^2 + q1 dy dx + q2/2 dy^2 - cut``. ``cut`` carries its own margin
+    (``SIGMA_MARGIN``), so every pixel the exact test accepts is inside."""
+    if q0 <= zero:
+        return x0, x1
+    b = q1 * dy
+    disc = b * b - q0 * (q2 * dy * dy - two * cut)
+    if disc < zero:
+        return x0, x0
+    root = math.sqrt(disc)
+    lo = mx - half + (-b - root) * inv_q0
+    hi = mx - half + (-b + root) * inv_q0
+    return max(x0, math.floor(lo)), max(min(x1, math.floor(hi) + 1), x0)
 
-
-def _exp_neg_impl(dt, degree):
-    """Cody-Waite reduction ``s = n ln2 - r``, ``|r| <= ln2 / 2``, Taylor polynomial of ``exp(r)`` to ``degree``
-    (float32: degree 7, truncation 6e-9 relative; float64: 12, 2e-16) and ``2^-n`` from the bits of ``n`` by
-    selects (``n <= 28``; no table, no bit casts). Every constant is in ``dt`` so nothing promotes."""
-    log2e, ln2_hi, ln2_lo = dt(1.4426950408889634), dt(0.693145751953125), dt(1.4286068203094172e-06)
-    zero, half, lim = dt(0.0), dt(0.5), dt(20.0)
-    inv_fact = tuple(dt(1.0 / math.factorial(i)) for i in range(degree + 1))
-    p1, p2, p4, p8, p16, one = dt(0.5), dt(0.25), dt(2.0 ** -4), dt(2.0 ** -8), dt(2.0 ** -16), dt(1.0)
-    c = inv_fact
-
-    if degree == 7:
-        def poly(r):
-            return c[0] + r * (c[1] + r * (c[2] + r * (c[3] + r * (c[4] + r * (c[5] + r * (c[6] + r * c[7]))))))
-    else:
-        def poly(r):
-            return c[0] + r * (c[1] + r * (c[2] + r * (c[3] + r * (c[4] + r * (c[5] + r * (c[6] + r * (
-                c[7] + r * (c[8] + r * (c[9] + r * (c[10] + r * (c[11] + r * c[12])))))))))))
-    poly = numba.njit(inline="always", fastmath=_FASTMATH)(poly)
-
-    def impl(s):
-        s = min(max(s, zero), lim)
-        n = np.int32(s * log2e + half)  # round to nearest (s >= 0: truncation is floor; math.floor is a call)
-        nf = dt(n)
-        r = (nf * ln2_hi - s) + nf * ln2_lo
-        scale = ((p1 if n & 1 else one) * (p2 if n & 2 else one)) * ((p4 if n & 4 else one)
-                                                                     * (p8 if n & 8 else one))
-        return poly(r) * scale * (p16 if n & 16 else one)
-    return impl
-
-
-@numba.extending.overload(_exp_neg, inline="always", jit_options={"fastmath": _FASTMATH, "error_model": "numpy"})
-def _ov_exp_neg(s):
-    if isinstance(s, numba.types.Float):
-        return _exp_neg_impl(np.float32, 7) if s.bitwidth == 32 else _exp_neg_impl(np.float64, 12)
-    return None
 
 @_pfjit
 def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, render, t_final,
-                      cbase, cend, chead, cbyte, bbase, okb, record):
+                      pbase, pend, pix, pes, record):
     """Front-to-back compositing: ``render`` [C, H, W, D], ``t_final`` [C, H, W] (final transmittance).
 
-    Per tile, Gaussian-major: the tile's list is walked once in depth order and each entry visits its alpha box.
-    The tile's state (transmittance, a plane per feature, the stopped pixels, each pixel's centre) is laid out
-    in column blocks of ``LANES`` pixels, row after row within a block (:func:`_block_start`), so the part of a
-    box inside one block is one contiguous run of ``rows x LANES`` pixels: one loop, branch-free (masks instead
-    of the box's columns, the cut, threshold and stop tests; :func:`_exp_neg`), that LLVM vectorises; each pixel
-    still sees its Gaussians front to back with the arithmetic of a per-pixel loop.
+    Per tile, Gaussian-major: the tile's list is walked once in depth order and each entry visits only the
+    pixels of its alpha box, row by row within the row's span of its ellipse, so the work is the candidate
+    pairs, not pixels x list length; each pixel still sees its Gaussians front to back with the same arithmetic
+    as a per-pixel loop. The tile's state (transmittance, accumulated features) lives in contiguous arrays.
 
-    With ``record``, the (entry, block) runs that contributed are kept for the backward pass, which replays only
-    them: per run its block and rows ``chead`` (``block << 16 | first row << 8 | rows``) and the offset
-    ``cbyte`` of its lanes' contribution flags in ``okb`` (one byte per pixel of the run), from the tile's
-    slots ``cbase[t]`` / ``bbase[t]`` on (its capacity: :func:`gather_entries`' counts), and per list entry the
-    end of its runs ``cend`` [n_isects] (written whether or not recording)."""
-    alpha_clamp, athr, tstop, one, zero = cst[0], cst[1], cst[2], cst[4], cst[5]
+    With ``record``, the pairs that contributed are kept for the backward pass, which then replays only them
+    (no spans, cut tests or ``exp`` again): per pair its pixel in the tile ``pix`` (row << 16 | column) and
+    ``exp(-sigma)`` ``pes``, from the tile's slot ``pbase[t]`` (its capacity: :func:`gather_entries`' box
+    areas) on, and per list entry the end of its pairs ``pend`` [n_isects] (written whether or not recording)."""
+    alpha_clamp, athr, tstop, half, one, zero, two = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
     n_cam = render.shape[0]
     n_feat = render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
@@ -692,114 +659,96 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
         t = _interleave(it, n_cam * n_tiles)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
-        th = y_hi - y_lo
-        n_pad = ((x_hi - x_lo + LANES - 1) // LANES) * LANES * th
-        n_px = (x_hi - x_lo) * th
-        T = np.ones(n_pad, cst.dtype)
-        acc = np.zeros(n_feat * n_pad, cst.dtype)  # feature-major planes
-        done = np.zeros(n_pad, cst.dtype)  # 1 where the pixel stopped
-        xcen, ycen = _block_centres(x_lo, x_hi, y_lo, y_hi, cst.dtype)
-        wv = np.empty(LANES * th, cst.dtype)
-        scratch = np.empty(LANES * th, np.uint8)  # the flags' target when not recording
-        bx = np.empty(2, cst.dtype)
+        tw = x_hi - x_lo
+        n_px = tw * (y_hi - y_lo)
+        T = np.ones(n_px, cst.dtype)
+        acc = np.zeros(n_px * n_feat, cst.dtype)
+        done = np.zeros(n_px, dtype=np.bool_)
+        xc = np.empty(tw, cst.dtype)
+        for i in range(tw):
+            xc[i] = x_lo + i + 0.5
+        yc = np.empty(y_hi - y_lo, cst.dtype)
+        for i in range(y_hi - y_lo):
+            yc[i] = y_lo + i + 0.5
         n_done = 0
-        j = cbase[t]
-        jb = bbase[t]
+        j = pbase[t]
         for k in range(lo, hi):
             if n_done == n_px:
                 for kk in range(k, hi):
-                    cend[kk] = j
+                    pend[kk] = j
                 break
             e_ = ent[k]
             x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
             y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
             if x0 < x1 and y0 < y1:
                 mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
-                o, cut = e_[R_O], e_[R_CUT]
-                hq0, hq2 = cst[3] * q0, cst[3] * q2
-                bx[0], bx[1] = x0, x1  # in the dtype (an integer operand would promote to float64)
-                fx0, fx1 = bx[0], bx[1]  # the box's pixels: centres strictly between
-                n = (y1 - y0) * LANES
-                for b in range((x0 - x_lo) // LANES, (x1 - 1 - x_lo) // LANES + 1):
-                    s0 = (b * th + y0 - y_lo) * LANES
-                    xs, ys = xcen[s0:s0 + n], ycen[s0:s0 + n]
-                    Ts, ds = T[s0:s0 + n], done[s0:s0 + n]
-                    okv = okb[jb:jb + n] if record else scratch[:n]
-                    fin = zero  # float sums: integer ones keep the loop from vectorising
-                    cnt = zero
-                    for i in range(n):
-                        xx = xs[i]
-                        dx = xx - mx
-                        dy = ys[i] - my
-                        sigma = hq0 * dx * dx + hq2 * dy * dy + q1 * dx * dy
-                        e = _exp_neg(sigma)
+                o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
+                # the first (up to) four features as scalars: RGB and RGB + depth take the unrolled updates
+                c0 = e_[R_FEAT] if n_feat > 0 else zero
+                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                narrow = x1 - x0 <= NARROW_BOX
+                for py in range(y0, y1):
+                    dy = yc[py - y_lo] - my
+                    if narrow:
+                        rx0, rx1 = x0, x1
+                    else:
+                        rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
+                    row = (py - y_lo) * tw - x_lo
+                    for px in range(rx0, rx1):
+                        p = row + px
+                        if done[p]:
+                            continue
+                        dx = xc[px - x_lo] - mx
+                        sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+                        if sigma < zero or sigma > cut:
+                            continue
+                        e = math.exp(-sigma)
                         alpha = min(alpha_clamp, o * e)
-                        tp = Ts[i]
+                        if alpha < athr:
+                            continue
+                        tp = T[p]
                         nt = tp * (one - alpha)
-                        live = (xx > fx0) & (xx < fx1) & (ds[i] == zero) & (sigma >= zero) & (sigma <= cut) \
-                            & (alpha >= athr)
-                        stop = live & (nt <= tstop)
-                        ok = live & (nt > tstop)
-                        ds[i] += one if stop else zero  # 0 wherever stop can be true (plain store, no masked one)
-                        fin += one if stop else zero
-                        cnt += one if ok else zero
-                        Ts[i] = nt if ok else tp
-                        wv[i] = alpha * tp if ok else zero
-                        okv[i] = 1 if ok else 0
-                    n_done += int(fin)
-                    if cnt != zero:
-                        for f in range(n_feat):
-                            cf = e_[R_FEAT + f]
-                            acs = acc[f * n_pad + s0:f * n_pad + s0 + n]
-                            for i in range(n):
-                                acs[i] += wv[i] * cf
+                        if nt <= tstop:
+                            done[p] = True
+                            n_done += 1
+                            continue
+                        w = alpha * tp
+                        if n_feat == 3:
+                            acc[p * 3] += w * c0
+                            acc[p * 3 + 1] += w * c1
+                            acc[p * 3 + 2] += w * c2
+                        elif n_feat == 4:
+                            acc[p * 4] += w * c0
+                            acc[p * 4 + 1] += w * c1
+                            acc[p * 4 + 2] += w * c2
+                            acc[p * 4 + 3] += w * c3
+                        else:
+                            for f in range(n_feat):
+                                acc[p * n_feat + f] += w * e_[R_FEAT + f]
+                        T[p] = nt
                         if record:
-                            chead[j] = (b << 16) | ((y0 - y_lo) << 8) | (y1 - y0)
-                            cbyte[j] = jb
+                            pix[j] = ((py - y_lo) << 16) | (px - x_lo)  # no division to undo it
+                            pes[j] = e
                             j += 1
-                            jb += n
-            cend[k] = j
+            pend[k] = j
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
-                p = _block_index(px - x_lo, py - y_lo, th)
+                p = (py - y_lo) * tw + (px - x_lo)
                 for f in range(n_feat):
-                    render[c, py, px, f] = acc[f * n_pad + p] + (T[p] * backgrounds[c, f] if use_bg else zero)
+                    render[c, py, px, f] = acc[p * n_feat + f] + (T[p] * backgrounds[c, f] if use_bg else zero)
                 t_final[c, py, px] = T[p]
-
-
-@_ijit
-def _block_index(col, row, th):
-    """Index of the tile's pixel (col, row) in the column-block layout: blocks of ``LANES`` columns, each
-    ``th`` rows of ``LANES`` pixels."""
-    return ((col // LANES) * th + row) * LANES + col % LANES
-
-
-@_ijit
-def _block_centres(x_lo, x_hi, y_lo, y_hi, dt):
-    """Each pixel's centre (x, y) in the column-block layout, in the compositing dtype (padding columns past
-    the tile included: they lie outside every box)."""
-    th = y_hi - y_lo
-    nb = (x_hi - x_lo + LANES - 1) // LANES
-    xcen = np.empty(nb * th * LANES, dt)
-    ycen = np.empty(nb * th * LANES, dt)
-    for b in range(nb):
-        for r in range(th):
-            for ln in range(LANES):
-                p = (b * th + r) * LANES + ln
-                xcen[p] = x_lo + b * LANES + ln + 0.5
-                ycen[p] = y_lo + r + 0.5
-    return xcen, ycen
 
 
 @_pfjit
 def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final,
-                       v_render, v_alphas, cbase, cend, chead, cbyte, okb, slots):
+                       v_render, v_alphas, pbase, pend, pix, pes, slots):
     """Gradients of each list entry (tile, Gaussian) into the slots [n_isects, 6 + D] (a tile writes only its
-    own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to front over the
-    runs forward recorded (``composite_forward``'s ``record``), each evaluated in all its pixels as forward did
-    (the same ``exp``, so the same values) with forward's flags as the mask, so each pixel sees its
+    own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
+    front over the pairs forward recorded (``composite_forward``'s ``record``), so each pixel sees its
     contributions in reverse order (transmittance recovered by division from forward's final transmittance).
-    Per-entry sums are float64 (each run's pixels summed in the dtype first)."""
+    Per-entry sums are float64."""
     alpha_clamp, half, one, zero = cst[0], cst[3], cst[4], cst[5]
     n_cam = v_render.shape[0]
     n_feat = v_render.shape[3]
@@ -809,97 +758,94 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
         t = _interleave(it, n_cam * n_tiles)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         lo, hi = offsets[t], offsets[t + 1]
-        th = y_hi - y_lo
-        n_pad = ((x_hi - x_lo + LANES - 1) // LANES) * LANES * th
-        T = np.ones(n_pad, cst.dtype)
-        va = np.zeros(n_pad, cst.dtype)
-        behind = np.zeros(n_feat * n_pad, cst.dtype)
-        vr = np.zeros(n_feat * n_pad, cst.dtype)
+        tw = x_hi - x_lo
+        n_px = tw * (y_hi - y_lo)
+        T = np.empty(n_px, cst.dtype)
+        va = np.empty(n_px, cst.dtype)
+        behind = np.empty(n_px * n_feat, cst.dtype)
+        vr = np.empty(n_px * n_feat, cst.dtype)
         gcol = np.empty(n_feat)
-        xcen, ycen = _block_centres(x_lo, x_hi, y_lo, y_hi, cst.dtype)
-        wv = np.empty(LANES * th, cst.dtype)
-        rav = np.empty(LANES * th, cst.dtype)
-        tiv = np.empty(LANES * th, cst.dtype)
-        vav = np.empty(LANES * th, cst.dtype)
-        ev = np.empty(LANES * th, cst.dtype)
-        alv = np.empty(LANES * th, cst.dtype)
+        xc = np.empty(tw, cst.dtype)
+        for i in range(tw):
+            xc[i] = x_lo + i + 0.5
+        yc = np.empty(y_hi - y_lo, cst.dtype)
+        for i in range(y_hi - y_lo):
+            yc[i] = y_lo + i + 0.5
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
-                p = _block_index(px - x_lo, py - y_lo, th)
+                p = (py - y_lo) * tw + (px - x_lo)
                 T[p] = t_final[c, py, px]
                 va[p] = v_alphas[c, py, px] * t_final[c, py, px]
                 for f in range(n_feat):
-                    behind[f * n_pad + p] = T[p] * backgrounds[c, f] if use_bg else zero
-                    vr[f * n_pad + p] = v_render[c, py, px, f]
+                    behind[p * n_feat + f] = T[p] * backgrounds[c, f] if use_bg else zero
+                    vr[p * n_feat + f] = v_render[c, py, px, f]
         for k in range(hi - 1, lo - 1, -1):
             g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
+            g0 = g1 = g2 = g3 = 0.0  # the unrolled features' sums (gcol otherwise)
             for f in range(n_feat):
                 gcol[f] = 0.0
-            j0 = cend[k - 1] if k > lo else cbase[t]
-            j1 = cend[k]
+            j0 = pend[k - 1] if k > lo else pbase[t]
+            j1 = pend[k]
             if j1 > j0:
                 e_ = ent[k]
                 mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
                 o = e_[R_O]
-                hq0, hq2 = half * q0, half * q2
-                for jj in range(j0, j1):
-                    hd = chead[jj]
-                    b, ry0, n = hd >> 16, (hd >> 8) & 0xFF, (hd & 0xFF) * LANES
-                    s0 = (b * th + ry0) * LANES
-                    ob = cbyte[jj]
-                    xs, ys, okv = xcen[s0:s0 + n], ycen[s0:s0 + n], okb[ob:ob + n]
-                    Ts, vas = T[s0:s0 + n], va[s0:s0 + n]
-                    for i in range(n):
-                        m = okv[i] != 0
-                        dx = xs[i] - mx
-                        dy = ys[i] - my
-                        sigma = hq0 * dx * dx + hq2 * dy * dy + q1 * dx * dy
-                        e = _exp_neg(sigma)
-                        raw = o * e
-                        alpha = min(alpha_clamp, raw)
-                        ra = one / (one - alpha)
-                        ti = Ts[i] * ra
-                        Ts[i] = ti if m else Ts[i]
-                        ev[i] = e if m & (raw <= alpha_clamp) else zero  # 0: no gradient through sigma
-                        alv[i] = alpha
-                        rav[i] = ra
-                        tiv[i] = ti
-                        wv[i] = alpha * ti if m else zero
-                        vav[i] = vas[i] * ra
-                    for f in range(n_feat):
-                        cf = e_[R_FEAT + f]
-                        fb = f * n_pad + s0
-                        vrs, bhs = vr[fb:fb + n], behind[fb:fb + n]
-                        sg = zero
-                        for i in range(n):
-                            vrf = vrs[i]
-                            bh = bhs[i]
-                            sg += wv[i] * vrf
-                            vav[i] += vrf * (tiv[i] * cf - bh * rav[i])
-                            bhs[i] = bh + wv[i] * cf
-                        gcol[f] += sg
-                    s_mx = s_my = s_q0 = s_q1 = s_q2 = s_o = zero
-                    for i in range(n):
-                        dx = xs[i] - mx
-                        dy = ys[i] - my
-                        e = ev[i]
-                        v_alpha = vav[i]
-                        v_sigma = -v_alpha * alv[i] if e != zero else zero
-                        s_o += v_alpha * e
+                c0 = e_[R_FEAT] if n_feat > 0 else zero
+                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                for j in range(j0, j1):
+                    lx, ly = pix[j] & 0xFFFF, pix[j] >> 16
+                    p = ly * tw + lx
+                    e = pes[j]
+                    dx = xc[lx] - mx
+                    dy = yc[ly] - my
+                    raw = o * e
+                    alpha = min(alpha_clamp, raw)
+                    ra = one / (one - alpha)
+                    Ti = T[p] * ra
+                    w = alpha * Ti
+                    v_alpha = va[p] * ra
+                    if n_feat == 3 or n_feat == 4:  # RGB, RGB + depth: unrolled
+                        b = p * n_feat
+                        vc0, vc1, vc2 = vr[b], vr[b + 1], vr[b + 2]
+                        g0 += w * vc0
+                        g1 += w * vc1
+                        g2 += w * vc2
+                        v_alpha += vc0 * (Ti * c0 - behind[b] * ra)
+                        v_alpha += vc1 * (Ti * c1 - behind[b + 1] * ra)
+                        v_alpha += vc2 * (Ti * c2 - behind[b + 2] * ra)
+                        behind[b] += w * c0
+                        behind[b + 1] += w * c1
+                        behind[b + 2] += w * c2
+                        if n_feat == 4:
+                            vc3 = vr[b + 3]
+                            g3 += w * vc3
+                            v_alpha += vc3 * (Ti * c3 - behind[b + 3] * ra)
+                            behind[b + 3] += w * c3
+                    else:
+                        for f in range(n_feat):
+                            vc = vr[p * n_feat + f]
+                            cf = e_[R_FEAT + f]
+                            gcol[f] += w * vc
+                            v_alpha += vc * (Ti * cf - behind[p * n_feat + f] * ra)
+                            behind[p * n_feat + f] += w * cf
+                    T[p] = Ti
+                    if raw <= alpha_clamp:
+                        g_o += v_alpha * e
+                        v_sigma = -v_alpha * alpha
                         hv = half * v_sigma
-                        s_q0 += hv * dx * dx
-                        s_q1 += v_sigma * dx * dy
-                        s_q2 += hv * dy * dy
-                        s_mx -= v_sigma * (q0 * dx + q1 * dy)
-                        s_my -= v_sigma * (q1 * dx + q2 * dy)
-                    g_mx += s_mx
-                    g_my += s_my
-                    g_q0 += s_q0
-                    g_q1 += s_q1
-                    g_q2 += s_q2
-                    g_o += s_o
+                        g_q0 += hv * dx * dx
+                        g_q1 += v_sigma * dx * dy
+                        g_q2 += hv * dy * dy
+                        g_mx -= v_sigma * (q0 * dx + q1 * dy)
+                        g_my -= v_sigma * (q1 * dx + q2 * dy)
             slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
             slots[k, 5] = g_o
+            if n_feat == 3 or n_feat == 4:
+                gcol[0], gcol[1], gcol[2] = g0, g1, g2
+                if n_feat == 4:
+                    gcol[3] = g3
             for f in range(n_feat):
                 slots[k, 6 + f] = gcol[f]
 

@@ -316,24 +316,19 @@ class _Composite(torch.autograd.Function):
             K.bin_gaussians(cbounds, K.depth_keys(depths.numpy()), ctw, cth, offsets, gids, order, roff, epos)
             ent = _SCRATCH.get("ent", (n_ent, rec.shape[2]), dt)
             cap = _SCRATCH.get("cap", n_cam * ctw * cth, np.int64)
-            bcap = _SCRATCH.get("bcap", n_cam * ctw * cth, np.int64)
-            K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap, bcap)
-            # per tile, the first slot of its recorded runs and of their flag bytes (none without a backward)
-            cbase = _SCRATCH.get("cbase", len(cap) + 1, np.int64)
-            bbase = _SCRATCH.get("bbase", len(cap) + 1, np.int64)
-            cbase[0] = bbase[0] = 0
+            K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap)
+            pbase = _SCRATCH.get("pbase", len(cap) + 1, np.int64)
+            pbase[0] = 0
             if record:
-                np.cumsum(cap, out=cbase[1:])
-                np.cumsum(bcap, out=bbase[1:])
+                np.cumsum(cap, out=pbase[1:])
             else:
-                cbase[1:] = bbase[1:] = 0
-            cend = _SCRATCH.get("cend", n_ent, np.int64)
-            chead = _SCRATCH.get("chead", cbase[-1], np.int32)
-            cbyte = _SCRATCH.get("cbyte", cbase[-1], np.int64)
-            okb = _SCRATCH.get("okb", bbase[-1], np.uint8)
+                pbase[1:] = 0
+            pend = _SCRATCH.get("pend", n_ent, np.int64)
+            pix = _SCRATCH.get("pix", pbase[-1], np.int32)
+            pes = _SCRATCH.get("pes", pbase[-1], dt)
             K.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
-                                cbase, cend, chead, cbyte, bbase, okb, record)
-        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, cbase, cend, chead, cbyte, okb)
+                                pbase, pend, pix, pes, record)
+        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes)
         ctx.shape = (n_cam, n, d)
         ctx.scalars = (width, height, ctile, ctw, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
@@ -345,7 +340,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        ent, bg, cst, offsets, gids, order, roff, epos, t_final, cbase, cend, chead, cbyte, okb = ctx.arrays
+        ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes = ctx.arrays
         width, height, ctile, ctw, use_bg = ctx.scalars
         n_cam, n, d = ctx.shape
         dt = ent.dtype
@@ -356,7 +351,7 @@ class _Composite(torch.autograd.Function):
         grads = np.zeros((n_cam, n, 6 + d), dt)
         with _LOCK:
             K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, t_final, vr, va,
-                                 cbase, cend, chead, cbyte, okb, slots)
+                                 pbase, pend, pix, pes, slots)
             K.gather_slots(order, roff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
