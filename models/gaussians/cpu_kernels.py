@@ -30,6 +30,12 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
 CHUNK = 512  # Gaussians per parallel chunk of the per-Gaussian kernels (scratch arrays allocated per chunk)
 ALPHA_THRESHOLD = 1.0 / 255.0
 TRANSMITTANCE_STOP = 1e-4
+# The compositing loops index with unsigned integers (np.uintp): numba gives every access by a signed index a
+# negative-index wraparound (a compare and a select), ~8 % of those loops' time (measured: forward 30.1 -> 27.8 ms,
+# backward 20.0 -> 18.2 ms at 100k x 256², one thread, same process). Their constants are unsigned too: a signed
+# operand would promote the index to float64.
+_U1, _U2, _U3, _U4 = np.uintp(1), np.uintp(2), np.uintp(3), np.uintp(4)
+_U16, _UFFFF = np.uintp(16), np.uintp(0xFFFF)
 
 # error_model "numpy": a float division by zero gives inf / nan instead of a check and branch on every division
 # (no kernel divides by a value that can be zero: denominators are clamped, or tested first)
@@ -697,10 +703,10 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                         rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
                     row = (py - y_lo) * tw - x_lo
                     for px in range(rx0, rx1):
-                        p = row + px
+                        p = np.uintp(row + px)  # unsigned: no negative-index wraparound on every access
                         if done[p]:
                             continue
-                        dx = xc[px - x_lo] - mx
+                        dx = xc[np.uintp(px - x_lo)] - mx
                         sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
                         if sigma < zero or sigma > cut:
                             continue
@@ -716,21 +722,23 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                             continue
                         w = alpha * tp
                         if n_feat == 3:
-                            acc[p * 3] += w * c0
-                            acc[p * 3 + 1] += w * c1
-                            acc[p * 3 + 2] += w * c2
+                            b3 = p * _U3
+                            acc[b3] += w * c0
+                            acc[b3 + _U1] += w * c1
+                            acc[b3 + _U2] += w * c2
                         elif n_feat == 4:
-                            acc[p * 4] += w * c0
-                            acc[p * 4 + 1] += w * c1
-                            acc[p * 4 + 2] += w * c2
-                            acc[p * 4 + 3] += w * c3
+                            b4 = p * _U4
+                            acc[b4] += w * c0
+                            acc[b4 + _U1] += w * c1
+                            acc[b4 + _U2] += w * c2
+                            acc[b4 + _U3] += w * c3
                         else:
                             for f in range(n_feat):
-                                acc[p * n_feat + f] += w * e_[R_FEAT + f]
+                                acc[p * np.uintp(n_feat) + np.uintp(f)] += w * e_[R_FEAT + f]
                         T[p] = nt
                         if record:
-                            pix[j] = ((py - y_lo) << 16) | (px - x_lo)  # no division to undo it
-                            pes[j] = e
+                            pix[np.uintp(j)] = ((py - y_lo) << 16) | (px - x_lo)  # no division to undo it
+                            pes[np.uintp(j)] = e
                             j += 1
             pend[k] = j
         for py in range(y_lo, y_hi):
@@ -765,6 +773,7 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
         behind = np.empty(n_px * n_feat, cst.dtype)
         vr = np.empty(n_px * n_feat, cst.dtype)
         gcol = np.empty(n_feat)
+        utw, unf = np.uintp(tw), np.uintp(n_feat)
         xc = np.empty(tw, cst.dtype)
         for i in range(tw):
             xc[i] = x_lo + i + 0.5
@@ -794,9 +803,11 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                 c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
                 c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
                 c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
-                for j in range(j0, j1):
-                    lx, ly = pix[j] & 0xFFFF, pix[j] >> 16
-                    p = ly * tw + lx
+                for jj in range(j0, j1):
+                    j = np.uintp(jj)  # unsigned indices: no negative-index wraparound on every access
+                    pv = np.uintp(pix[j])
+                    lx, ly = pv & _UFFFF, pv >> _U16
+                    p = ly * utw + lx
                     e = pes[j]
                     dx = xc[lx] - mx
                     dy = yc[ly] - my
@@ -807,29 +818,32 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                     w = alpha * Ti
                     v_alpha = va[p] * ra
                     if n_feat == 3 or n_feat == 4:  # RGB, RGB + depth: unrolled
-                        b = p * n_feat
-                        vc0, vc1, vc2 = vr[b], vr[b + 1], vr[b + 2]
+                        b = p * unf
+                        b1, b2 = b + _U1, b + _U2
+                        vc0, vc1, vc2 = vr[b], vr[b1], vr[b2]
                         g0 += w * vc0
                         g1 += w * vc1
                         g2 += w * vc2
                         v_alpha += vc0 * (Ti * c0 - behind[b] * ra)
-                        v_alpha += vc1 * (Ti * c1 - behind[b + 1] * ra)
-                        v_alpha += vc2 * (Ti * c2 - behind[b + 2] * ra)
+                        v_alpha += vc1 * (Ti * c1 - behind[b1] * ra)
+                        v_alpha += vc2 * (Ti * c2 - behind[b2] * ra)
                         behind[b] += w * c0
-                        behind[b + 1] += w * c1
-                        behind[b + 2] += w * c2
+                        behind[b1] += w * c1
+                        behind[b2] += w * c2
                         if n_feat == 4:
-                            vc3 = vr[b + 3]
+                            b3 = b + _U3
+                            vc3 = vr[b3]
                             g3 += w * vc3
-                            v_alpha += vc3 * (Ti * c3 - behind[b + 3] * ra)
-                            behind[b + 3] += w * c3
+                            v_alpha += vc3 * (Ti * c3 - behind[b3] * ra)
+                            behind[b3] += w * c3
                     else:
                         for f in range(n_feat):
-                            vc = vr[p * n_feat + f]
+                            bf = p * unf + np.uintp(f)
+                            vc = vr[bf]
                             cf = e_[R_FEAT + f]
                             gcol[f] += w * vc
-                            v_alpha += vc * (Ti * cf - behind[p * n_feat + f] * ra)
-                            behind[p * n_feat + f] += w * cf
+                            v_alpha += vc * (Ti * cf - behind[bf] * ra)
+                            behind[bf] += w * cf
                     T[p] = Ti
                     if raw <= alpha_clamp:
                         g_o += v_alpha * e

@@ -95,17 +95,21 @@ def _np(t: Tensor) -> np.ndarray:
     return np.array(t.detach().to(device="cpu", dtype=torch.float64).numpy(), dtype=np.float64, order="C", copy=True)
 
 
+def _as_kernel_dtype(t: Tensor, dtype) -> np.ndarray:
+    """``t`` on the CPU in the kernels' ``dtype`` (float32 for ``np.float32``, float64 otherwise), as NumPy;
+    shares memory with ``t`` where it already is that (the callers copy or not)."""
+    return t.detach().to(device="cpu", dtype=torch.float32 if dtype == np.float32 else torch.float64).numpy()
+
+
 def _np_native(t: Tensor, dtype) -> np.ndarray:
     """A C-contiguous NumPy copy of ``t`` in ``dtype`` (float32 or float64: the kernels' input and output dtype)."""
-    x = t.detach().to(device="cpu", dtype=torch.float32 if dtype == np.float32 else torch.float64)
-    return np.array(x.numpy(), order="C", copy=True)
+    return np.array(_as_kernel_dtype(t, dtype), order="C", copy=True)
 
 
 def _np_view(t: Tensor, dtype) -> np.ndarray:
     """``t`` as a C-contiguous array in ``dtype``, without a copy where it already is one: for inputs a kernel
     only reads during the call (nothing kept for a backward pass)."""
-    x = t.detach().to(device="cpu", dtype=torch.float32 if dtype == np.float32 else torch.float64)
-    return np.ascontiguousarray(x.numpy())
+    return np.ascontiguousarray(_as_kernel_dtype(t, dtype))
 
 
 def _dt(t: Tensor):
