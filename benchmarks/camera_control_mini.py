@@ -71,9 +71,11 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 6.6 min at load ~7
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # 42 min at load 5-18
-                                                      # (results: benchmarks/results/camera-control-mini/full)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 22.8 min at load 5-7
+                          # beside other runs (results: benchmarks/results/camera-control-mini/quick)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
+                          # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
+                          # (results: benchmarks/results/camera-control-mini/full)
     # a GPU session, Wan2.1-1.3B width (not run on the CPU):
     python benchmarks/camera_control_mini.py --out DIR --device cuda --heads 12 --head-dim 128 --layers 30 \
         --ffn 8960 --adapter-channels 64 --resolution 64 --frames 17 --autoencoder exact --threads 8
