@@ -109,3 +109,38 @@ def test_cosine_trainer_warms_up_then_decays_to_zero_without_touching_the_produc
     assert CameraTrainer(model, [{}], cfg).lr_at(100) == pytest.approx(1e-3)  # the product's schedule: constant
     assert control.num_reference_frames == 1
     assert mini.turn_frames(9) == [0, 2, 4, 6, 8] and mini.turn_frames(17) == [0, 4, 8, 12, 16]
+
+
+def test_texture_scale_enlarges_every_material_and_keeps_the_scene(mini):
+    plain, coarse = mini.make_scene("room", 3, 16, 1.0), mini.make_scene("room", 3, 16, 4.0)
+    assert [m.scale * 4.0 for m in plain.sim.materials] == pytest.approx([m.scale for m in coarse.sim.materials])
+    assert [m.color_a for m in plain.sim.materials] == [m.color_a for m in coarse.sim.materials]
+    np.testing.assert_array_equal(plain.c2w0, coarse.c2w0)
+    assert plain.L == coarse.L
+    assert not np.array_equal(mini.render_rgb(plain, plain.c2w0), mini.render_rgb(coarse, coarse.c2w0))
+    with pytest.raises(ValueError, match="texture_scale must be positive"):
+        mini.make_scene("room", 3, 16, 0.0)
+
+
+def test_camera_guidance_extrapolates_from_the_camera_free_base(mini):
+    import torch
+
+    class Const(torch.nn.Module):
+        def __init__(self, value):
+            super().__init__()
+            self.value, self.calls = value, []
+
+        def forward(self, hidden, ts, text, image, plucker, cond, lora, **kw):
+            self.calls.append(plucker)
+            return torch.full_like(hidden, self.value)
+
+    model, base = Const(2.0), Const(0.5)
+    x, cam = torch.zeros(1, 3), torch.ones(1)
+    out = mini.CameraGuided(model, base, 3.0)(x, None, None, None, cam, None, 1.0)
+    torch.testing.assert_close(out, torch.full_like(x, 0.5 + 3.0 * (2.0 - 0.5)))
+    assert base.calls == [None]  # the unconditional branch sees no cameras
+    torch.testing.assert_close(mini.CameraGuided(model, base, 1.0)(x, None, None, None, cam, None, 1.0),
+                               torch.full_like(x, 2.0))  # w = 1: the model alone
+    with pytest.raises(ValueError, match="needs the frozen base"):
+        mini.sample_videos(model, [], None, plucker_from=None, steps=1, lora=1.0, shift=3.0, seed=0, device="cpu",
+                           camera_guidance=2.0)
