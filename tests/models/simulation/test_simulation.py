@@ -563,3 +563,26 @@ def test_shading_loops_are_the_numpy_form_bit_for_bit(kind):
     a, b = rng.random(3), rng.random(3)
     mix, grain = rng.normal(0.5, 1.0, 5000), rng.normal(0.5, 1.5, 5000)  # out of [0, 1] too: the clip
     np.testing.assert_array_equal(_mix(a, b, mix, grain), _mix_numpy(a, b, mix, grain))
+
+
+def test_deciding_distances_give_the_decisions_of_one_full_query():
+    """Soft anchoring queries each point only out to the distance where its field value stops anchoring it
+    (``backend._deciding_distances``): the decisions are those of one query out to the full bound, point for point,
+    on points at every distance from a cloud (on it, near, beyond the bound) and field values from 0 to 1."""
+    from scipy.spatial import cKDTree
+
+    from navcrafter.models.simulation.backend import _deciding_distances
+
+    rng = np.random.default_rng(3)
+    cloud = rng.uniform(-1, 1, (4000, 3))
+    pts = np.concatenate([cloud[:3000] + rng.normal(0, s, (3000, 3)) for s in (0.002, 0.02, 0.08, 0.3)])
+    u = np.concatenate([rng.random(len(pts) - 3), [0.0, 1.0, 1e-300]])
+    tree = cKDTree(cloud)
+    falloff, bound = 0.072, 0.72
+    full, _ = tree.query(pts, k=1, distance_upper_bound=bound)
+    got = _deciding_distances(tree, pts, u, falloff, bound)
+    decide = [np.isfinite(d) & (u < np.exp(-np.where(np.isfinite(d), d, bound) / falloff)) for d in (full, got)]
+    np.testing.assert_array_equal(decide[1], decide[0])
+    assert 0.2 < decide[0].mean() < 0.8 and np.isinf(got).mean() > np.isinf(full).mean() + 0.1  # queries stopped early
+    found = np.isfinite(got)
+    np.testing.assert_array_equal(got[found], full[found])
