@@ -15,15 +15,14 @@ points tie exactly in depth (the pooling kept the first centre of its window, th
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 import torch
-from threadpoolctl import ThreadpoolController
 
 from navcrafter.models.camera.cameras import invert_pose
+from navcrafter.models.threads import one_openmp_thread
 
 
 @dataclass
@@ -37,7 +36,7 @@ def render_points(points: np.ndarray | torch.Tensor, c2w: np.ndarray, K: np.ndar
                   point_size: float, colors: np.ndarray | None = None, max_radius: int = 3,
                   near: float = 1e-3) -> PointRender:
     """Render world ``points [N, 3]`` from an OpenCV camera-to-world pose with intrinsics ``K``."""
-    with _openmp().limit(limits=1, user_api="openmp"):
+    with one_openmp_thread():
         iy, ix, z, radius, ids, R = _project(points, c2w, K, height, width, point_size, max_radius, near)
     best_z, best_id = _zbuffer(iy, ix, z, radius, ids, height, width, R)
     hit = np.isfinite(best_z)
@@ -50,17 +49,12 @@ def render_points(points: np.ndarray | torch.Tensor, c2w: np.ndarray, K: np.ndar
     return PointRender(depth, hit, out_color)
 
 
-@functools.cache
-def _openmp() -> ThreadpoolController:
-    return ThreadpoolController()
-
-
 def _project(points, c2w, K, height: int, width: int, point_size: float, max_radius: int, near: float):
     """The points' padded pixels, depths, splat radii and ids (torch, float32), in the calling thread alone: torch's
     elementwise kernels on two OpenMP threads spent ~10x the CPU time of one when the cores were busy (scenes run
     in threads side by side: the two threads spin waiting for each other; 282k points, load ~6: 0.27 vs 0.03 s of
-    CPU a frame), and the same values either way (elementwise; the 3 x 3 product is one BLAS call). The limit is
-    the calling thread's OpenMP setting only (``threadpoolctl``), restored after."""
+    CPU a frame), and the same values either way (elementwise; the 3 x 3 product is one BLAS call):
+    ``models.threads.one_openmp_thread``."""
     R = int(max_radius)
     Hp, Wp = height + 2 * R, width + 2 * R  # padded so that splats of points just outside still count
     pts = torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3)

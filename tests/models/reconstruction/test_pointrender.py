@@ -10,6 +10,7 @@ import torch
 
 from navcrafter.models.camera.cameras import Intrinsics, look_at
 from navcrafter.models.reconstruction.pointrender import _project, render_points
+from navcrafter.models.threads import one_openmp_thread
 
 
 def test_projection_on_one_thread_has_the_values_of_several_and_restores_the_setting():
@@ -34,9 +35,7 @@ def test_projection_on_one_thread_has_the_values_of_several_and_restores_the_set
         assert seen["threads"] == 2
     finally:
         torch.set_num_threads(before)
-    from navcrafter.models.reconstruction.pointrender import _openmp
-
-    with _openmp().limit(limits=1, user_api="openmp"):
+    with one_openmp_thread():
         assert torch.get_num_threads() == 1
         one = _project(points, c2w, K, 192, 256, 0.02, 3, 1e-3)
     for a, b in zip(one[:5], several[:5], strict=True):
