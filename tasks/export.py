@@ -26,6 +26,7 @@ from navcrafter.models.gaussians.ply import save_ply
 from navcrafter.models.gaussians.train import render_model
 from navcrafter.models.media import encode_mp4, label_frames
 from navcrafter.models.reconstruction.pointcloud import ply_bytes
+from navcrafter.models.threads import one_openmp_thread
 from navcrafter.schemas.layout import FIT, REFINE, SYNTHESIZE
 from navcrafter.schemas.tables import to_table
 from navcrafter.tasks.backends import run_band
@@ -116,8 +117,9 @@ def export(ctx: StepContext) -> dict:
         doc["label"] = label
     writer.write_file("trajectory.json", json.dumps(doc, indent=1).encode())
     if config.fit.enabled:
-        write_gaussian_exports(writer, scene, comments, band,
-                               config.synthesis.fps, refined=config.refine.enabled)
+        with one_openmp_thread():  # torch's kernels around the rasterizer on this scene's thread alone
+            write_gaussian_exports(writer, scene, comments, band,
+                                   config.synthesis.fps, refined=config.refine.enabled)
     table = to_table("trajectories", rows)
     buf = io.BytesIO()
     import pyarrow.parquet as pq

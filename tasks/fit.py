@@ -59,6 +59,7 @@ from navcrafter.models.gaussians.train import GaussianTrainer, TrainView
 from navcrafter.models.metrics.image import psnr
 from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
 from navcrafter.models.reconstruction.pointrender import render_points
+from navcrafter.models.threads import one_openmp_thread
 from navcrafter.schemas.layout import LIFT, SYNTHESIZE
 from navcrafter.tasks.common import logger
 from navcrafter.tasks.memory import PeakRSS
@@ -68,7 +69,7 @@ from navcrafter.tasks.steps import StepContext
 
 
 def fit(ctx: StepContext) -> dict:
-    with PeakRSS() as peak:
+    with PeakRSS() as peak, one_openmp_thread():  # torch's kernels on this scene's thread alone (models/threads.py)
         out = _fit(ctx)
     return {**out, "peak_rss_mb": peak.mb}
 

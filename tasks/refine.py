@@ -34,6 +34,7 @@ from navcrafter.models.gaussians.recipe import continue_training, heldout_metric
 from navcrafter.models.gaussians.train import TrainView, render_model
 from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
 from navcrafter.models.reconstruction.pointrender import render_points
+from navcrafter.models.threads import one_openmp_thread
 from navcrafter.schemas.layout import FIT
 from navcrafter.tasks.common import load_cloud, logger
 from navcrafter.tasks.memory import PeakRSS
@@ -47,7 +48,7 @@ class RefinerMissing(RuntimeError):
 
 
 def refine(ctx: StepContext) -> dict:
-    with PeakRSS() as peak:
+    with PeakRSS() as peak, one_openmp_thread():  # torch on this scene's thread alone (models/threads.py)
         out = _refine(ctx)
     return {**out, "peak_rss_mb": peak.mb}
 

@@ -48,7 +48,7 @@ from navcrafter.models.metrics.cloud import (
 )
 from navcrafter.models.planning.planners import search_space
 from navcrafter.models.simulation.reference import object_region_prefixes, reference_points
-from navcrafter.models.simulation.render import render
+from navcrafter.models.simulation.render import render_many
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EXPORT, LIFT, PLAN, STEPS, SYNTHESIZE
 from navcrafter.schemas.tables import utcnow
@@ -96,13 +96,13 @@ SEEN_SAMPLE = 100_000  # ``seen`` is measured on at most this many reference poi
 def exploration(truth, points_gt: np.ndarray, dist: np.ndarray, reference: np.ndarray, d0_m: float,
                 frames_gt: np.ndarray, K) -> dict[str, float]:
     """``exploration_metrics`` of one explored scene, from its ground truth: ``truth`` (``SimulationTruth``-like:
-    ``.scene`` renders with ``models.simulation.render.render``), the reconstruction ``points_gt`` and their
+    ``.scene`` renders with ``models.simulation.render.render_many``), the reconstruction ``points_gt`` and their
     distances ``dist`` to the true surfaces, the ``reference`` surface points, the scene scale ``d0_m`` (metres),
     ``frames_gt`` ``[T, 4, 4]``: every true camera of the run (input camera included) in the ground-truth frame,
     ``K``: their ``Intrinsics``. Reusable by any loop over scenes with a ground truth (the benchmark's)."""
     s = min(1.0, SEEN_SIDE / max(K.width, K.height))
     Ks = K.resize(max(1, round(K.width * s)), max(1, round(K.height * s))) if s < 1.0 else K
-    depths = [render(truth.scene, c2w, Ks, colour=False).depth for c2w in np.asarray(frames_gt)]
+    depths = list(render_many(truth.scene, np.asarray(frames_gt), Ks, colour=False).depth)  # one batched cast
     sample = np.arange(0, len(reference), max(1, -(-len(reference) // SEEN_SAMPLE)))
     seen = seen_mask(reference[sample], frames_gt, Ks.K, depths)
     prefixes = object_region_prefixes(truth.scene.kind)

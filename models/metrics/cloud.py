@@ -225,16 +225,15 @@ def close_frame_mask(scene, c2w_gt: np.ndarray, intrinsics, near_m: float,
     pixels show a true surface nearer (z-depth) than ``near_m``. Rendered (depth only) with ``intrinsics``
     scaled down to ``max_side`` pixels on the longer side."""
     # deferred: open3d (the simulation's renderer) loads only for ground-truth scenes
-    from navcrafter.models.simulation.render import render
+    from navcrafter.models.simulation.render import render_many
 
     w, h = intrinsics.width, intrinsics.height
     s = min(1.0, max_side / max(w, h))
     K = intrinsics.resize(max(1, round(w * s)), max(1, round(h * s))) if s < 1.0 else intrinsics
-    out = np.zeros(len(c2w_gt), dtype=bool)
-    for i, c2w in enumerate(np.asarray(c2w_gt, dtype=np.float64)):
-        r = render(scene, c2w, K, colour=False)
-        out[i] = float((r.hit & (r.depth < near_m)).mean()) > 0.5
-    return out
+    c2w_gt = np.asarray(c2w_gt, dtype=np.float64).reshape(-1, 4, 4)
+    r = render_many(scene, c2w_gt, K, colour=False)  # one cast: each frame's pixels as its own render's
+    return np.array([float((hit & (depth < near_m)).mean()) > 0.5 for hit, depth in zip(r.hit, r.depth, strict=True)],
+                    dtype=bool)
 
 
 def close_frame_metrics(close: np.ndarray) -> dict[str, float]:

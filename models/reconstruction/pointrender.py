@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from navcrafter.models.camera.cameras import invert_pose
+from navcrafter.models.threads import one_openmp_thread
 
 
 @dataclass
@@ -35,6 +36,25 @@ def render_points(points: np.ndarray | torch.Tensor, c2w: np.ndarray, K: np.ndar
                   point_size: float, colors: np.ndarray | None = None, max_radius: int = 3,
                   near: float = 1e-3) -> PointRender:
     """Render world ``points [N, 3]`` from an OpenCV camera-to-world pose with intrinsics ``K``."""
+    with one_openmp_thread():
+        iy, ix, z, radius, ids, R = _project(points, c2w, K, height, width, point_size, max_radius, near)
+    best_z, best_id = _zbuffer(iy, ix, z, radius, ids, height, width, R)
+    hit = np.isfinite(best_z)
+    depth = np.where(hit, best_z, np.float32(0.0)).astype(np.float32)
+    out_color = None
+    if colors is not None:
+        col = np.zeros((height, width, 3), dtype=np.uint8)
+        col[hit] = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)[best_id[hit]]
+        out_color = col
+    return PointRender(depth, hit, out_color)
+
+
+def _project(points, c2w, K, height: int, width: int, point_size: float, max_radius: int, near: float):
+    """The points' padded pixels, depths, splat radii and ids (torch, float32), in the calling thread alone: torch's
+    elementwise kernels on two OpenMP threads spent ~10x the CPU time of one when the cores were busy (scenes run
+    in threads side by side: the two threads spin waiting for each other; 282k points, load ~6: 0.27 vs 0.03 s of
+    CPU a frame), and the same values either way (elementwise; the 3 x 3 product is one BLAS call):
+    ``models.threads.one_openmp_thread``."""
     R = int(max_radius)
     Hp, Wp = height + 2 * R, width + 2 * R  # padded so that splats of points just outside still count
     pts = torch.as_tensor(points, dtype=torch.float32).reshape(-1, 3)
@@ -51,15 +71,7 @@ def render_points(points: np.ndarray | torch.Tensor, c2w: np.ndarray, K: np.ndar
     inside = (ix >= 0) & (ix < Wp) & (iy >= 0) & (iy < Hp)
     ix, iy, z, ids = ix[inside], iy[inside], z[inside], ids[inside]
     radius = torch.clamp(torch.ceil(Kt[0, 0] * point_size / (2 * z) - 0.5), 0, R).to(torch.int64)
-    best_z, best_id = _zbuffer(iy.numpy(), ix.numpy(), z.numpy(), radius.numpy(), ids.numpy(), height, width, R)
-    hit = np.isfinite(best_z)
-    depth = np.where(hit, best_z, np.float32(0.0)).astype(np.float32)
-    out_color = None
-    if colors is not None:
-        col = np.zeros((height, width, 3), dtype=np.uint8)
-        col[hit] = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)[best_id[hit]]
-        out_color = col
-    return PointRender(depth, hit, out_color)
+    return iy.numpy(), ix.numpy(), z.numpy(), radius.numpy(), ids.numpy(), R
 
 
 @numba.njit(cache=True, nogil=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import open3d as o3d
 
@@ -28,10 +29,112 @@ class Render:
 
 
 def _cast(scene: SimScene, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
+    rays = np.empty((int(np.prod(np.shape(origins)[:-1])), 6), dtype=np.float32)  # the float32 rays, filled in place
+    rays[:, :3] = np.reshape(origins, (-1, 3))
+    rays[:, 3:] = np.reshape(dirs, (-1, 3))
+    return _cast_rays(scene, rays)
+
+
+def _cast_rays(scene: SimScene, rays: np.ndarray) -> dict[str, np.ndarray]:
     rc, _ = scene.raycasting()
-    rays = np.concatenate([origins, dirs], axis=-1).reshape(-1, 6).astype(np.float32)
     ans = rc.cast_rays(o3d.core.Tensor(rays))
     return {k: v.numpy() for k, v in ans.items()}
+
+
+# The per-ray arithmetic of shading in numba loops (most of the simulated synthesizer's time was numpy passes over
+# arrays of millions of rays). Each loop does the operations of the numpy form it replaced in the same order and
+# precision (IEEE, no fast-math; sums of three products left to right, as numpy's reductions over a length-3 axis
+# add them): the same bits (tests/models/simulation/test_simulation.py checks them against the numpy form).
+@numba.njit(cache=True, nogil=True)
+def _hit_geometry(origins: np.ndarray, dirs: np.ndarray, t: np.ndarray, normals: np.ndarray,
+                  idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hit points ``o + d t`` and unit normals facing the ray (two-sided) ``[M, 3]`` float64 of the rays ``idx``."""
+    m = idx.shape[0]
+    p = np.empty((m, 3))
+    n = np.empty((m, 3))
+    for j in range(m):
+        i = idx[j]
+        tt = np.float64(t[i])
+        d0, d1, d2 = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        p[j, 0] = origins[i, 0] + d0 * tt
+        p[j, 1] = origins[i, 1] + d1 * tt
+        p[j, 2] = origins[i, 2] + d2 * tt
+        a0, a1, a2 = np.float64(normals[i, 0]), np.float64(normals[i, 1]), np.float64(normals[i, 2])
+        norm = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        if norm < 1e-12:  # np.maximum(norm, 1e-12): NaN stays NaN
+            norm = 1e-12
+        a0, a1, a2 = a0 / norm, a1 / norm, a2 / norm
+        f = -1.0 if a0 * d0 + a1 * d1 + a2 * d2 > 0 else 1.0
+        n[j, 0], n[j, 1], n[j, 2] = a0 * f, a1 * f, a2 * f
+    return p, n
+
+
+@numba.njit(cache=True, nogil=True)
+def _lambert(p: np.ndarray, n: np.ndarray, vector: np.ndarray, point: bool
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lambert factor ``[M]`` (clipped cosine x attenuation), the distance to the light (inf for the sun) and the
+    float32 shadow rays ``[M, 6]`` (from 2 mm off the surface towards the light) of hit points ``p``, normals
+    ``n``; ``vector``: the light's position (``point``) or the direction towards the sun."""
+    m = p.shape[0]
+    lam = np.empty(m)
+    dist = np.empty(m)
+    rays = np.empty((m, 6), dtype=np.float32)
+    for j in range(m):
+        if point:
+            l0, l1, l2 = vector[0] - p[j, 0], vector[1] - p[j, 1], vector[2] - p[j, 2]
+            dd = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
+            l0, l1, l2 = l0 / dd, l1 / dd, l2 / dd
+            atten = 1.0 / (1.0 + 0.04 * (dd * dd))
+        else:
+            l0, l1, l2 = vector[0], vector[1], vector[2]
+            dd = np.inf
+            atten = 1.0
+        c = n[j, 0] * l0 + n[j, 1] * l1 + n[j, 2] * l2
+        if c < 0.0:  # np.clip(c, 0, None): NaN stays NaN
+            c = 0.0
+        lam[j] = c * atten
+        dist[j] = dd
+        for k in range(3):
+            rays[j, k] = np.float32(p[j, k] + n[j, k] * 2e-3)
+        rays[j, 3], rays[j, 4], rays[j, 5] = np.float32(l0), np.float32(l1), np.float32(l2)
+    return lam, dist, rays
+
+
+@numba.njit(cache=True, nogil=True)
+def _lit(colour: np.ndarray, idx: np.ndarray, alb: np.ndarray, lam: np.ndarray, dist: np.ndarray,
+         shadow_t: np.ndarray, ambient: float, strength: float) -> None:
+    """``colour[idx] = alb * (ambient + strength * lam)``, ``lam`` 0 where the shadow ray hit a surface before the
+    light (``shadow_t``: its hit distances, empty for no shadows)."""
+    shadows = shadow_t.shape[0] > 0
+    for j in range(idx.shape[0]):
+        lj = lam[j]
+        if shadows and np.float64(shadow_t[j]) < dist[j] - 1e-2:
+            lj = 0.0
+        k = ambient + strength * lj
+        for c in range(3):
+            colour[idx[j], c] = alb[j, c] * k
+
+
+@numba.njit(cache=True, nogil=True)
+def _facing_normals(normals: np.ndarray, dirs: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit float32 normals facing the rays (0 on misses) and z-depth (0 on misses) of a cast's rays."""
+    m = t.shape[0]
+    out = np.zeros((m, 3), dtype=np.float32)
+    depth = np.zeros(m, dtype=np.float32)
+    tiny = np.float32(1e-12)
+    for i in range(m):
+        if not np.isfinite(t[i]):
+            continue
+        depth[i] = t[i]
+        a0, a1, a2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        norm = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        if norm < tiny:
+            norm = tiny
+        a0, a1, a2 = a0 / norm, a1 / norm, a2 / norm
+        s = np.float64(a0) * dirs[i, 0] + np.float64(a1) * dirs[i, 1] + np.float64(a2) * dirs[i, 2]
+        f = np.float32(-1.0) if s > 0 else np.float32(1.0)
+        out[i, 0], out[i, 1], out[i, 2] = a0 * f, a1 * f, a2 * f
+    return out, depth
 
 
 def _shade(scene: SimScene, origins: np.ndarray, dirs: np.ndarray, shadows: bool,
@@ -42,41 +145,28 @@ def _shade(scene: SimScene, origins: np.ndarray, dirs: np.ndarray, shadows: bool
         return scene.shade_hits(ans, origins, dirs)
     t = ans["t_hit"]
     hit = np.isfinite(t)
-    colour = np.empty((len(t), 3))
-    if scene.sky:
-        dn = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    colour = np.zeros((len(t), 3))
+    if scene.sky:  # the misses' sky colour (each ray's on its own: the hits' are overwritten below)
+        miss = np.flatnonzero(~hit)
+        dm = dirs[miss]
+        dn = dm / np.linalg.norm(dm, axis=1, keepdims=True)
         elev = np.clip(dn[:, 2], 0.0, 1.0)[:, None] ** 0.6
-        colour[:] = SKY_HORIZON * (1 - elev) + SKY_ZENITH * elev
-    else:
-        colour[:] = 0.0
+        colour[miss] = SKY_HORIZON * (1 - elev) + SKY_ZENITH * elev
     if not hit.any():
         return colour
     _, mat_of_geom = scene.raycasting()
     idx = np.flatnonzero(hit)
-    p = origins[idx] + dirs[idx] * t[idx, None]
-    n = ans["primitive_normals"][idx].astype(np.float64)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    n *= np.where((n * dirs[idx]).sum(1, keepdims=True) > 0, -1.0, 1.0)  # two-sided
+    p, n = _hit_geometry(np.ascontiguousarray(origins, dtype=np.float64), np.ascontiguousarray(dirs, dtype=np.float64),
+                         t, ans["primitive_normals"], idx)
     mats = mat_of_geom[ans["geometry_ids"][idx].astype(np.int64)]
     alb = np.empty((len(idx), 3))
     for m in np.unique(mats):
         sel = mats == m
         alb[sel] = albedo(scene.materials[m], p[sel], n[sel])
     light = scene.light
-    if light.kind == "sun":
-        to_l = np.broadcast_to(np.asarray(light.vector, dtype=np.float64), p.shape)
-        dist = np.full(len(p), np.inf)
-        atten = np.ones(len(p))
-    else:
-        to_l = np.asarray(light.vector, dtype=np.float64) - p
-        dist = np.linalg.norm(to_l, axis=1)
-        to_l = to_l / dist[:, None]
-        atten = 1.0 / (1.0 + 0.04 * dist**2)
-    lam = np.clip((n * to_l).sum(1), 0.0, None) * atten
-    if shadows:
-        sh = _cast(scene, p + n * 2e-3, to_l)["t_hit"]
-        lam = np.where(sh < dist - 1e-2, 0.0, lam)
-    colour[idx] = alb * (light.ambient + light.strength * lam)[:, None]
+    lam, dist, shadow_rays = _lambert(p, n, np.asarray(light.vector, dtype=np.float64), light.kind != "sun")
+    shadow_t = _cast_rays(scene, shadow_rays)["t_hit"] if shadows else np.zeros(0, dtype=np.float32)
+    _lit(colour, idx, alb, lam, dist, shadow_t, float(light.ambient), float(light.strength))
     return colour
 
 
@@ -120,12 +210,9 @@ def render_many(scene: SimScene, c2w: np.ndarray, intrinsics: Intrinsics, supers
         ans = _cast(scene, o, d)
         t = ans["t_hit"]
         h = np.isfinite(t)
-        n = ans["primitive_normals"].astype(np.float32)
-        n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-        n *= np.where((n * d).sum(-1, keepdims=True) > 0, -1.0, 1.0).astype(np.float32)
-        n[~h] = 0.0
+        n, z = _facing_normals(ans["primitive_normals"], np.ascontiguousarray(d, dtype=np.float64), t)
         hit[a:b].reshape(-1)[sel] = h
-        depth[a:b].reshape(-1)[sel] = np.where(h, t, 0.0).astype(np.float32)  # dirs have camera z = 1: t is z
+        depth[a:b].reshape(-1)[sel] = z  # dirs have camera z = 1: t is z
         normal[a:b].reshape(-1, 3)[sel] = n
         if not colour:
             continue

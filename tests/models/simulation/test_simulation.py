@@ -478,3 +478,111 @@ def test_refiner_repairs_towards_the_truth_only_where_the_scene_was_observed():
     perfect.refiner.observe(np.zeros((0, 3)))
     out = perfect.refiner.refine(blank, None, seed=0, hint_c2w=pose, hint_intrinsics=K)
     assert np.abs(out.astype(int) - gt).mean() < 2  # the perfect preset stays exact
+
+
+def _shade_numpy(scene, origins, dirs, shadows, ans):
+    """``render._shade`` as it was in numpy (before its per-ray arithmetic moved into numba loops)."""
+    from navcrafter.models.simulation.render import SKY_HORIZON, SKY_ZENITH, _cast
+    from navcrafter.models.simulation.textures import albedo
+
+    t = ans["t_hit"]
+    hit = np.isfinite(t)
+    colour = np.empty((len(t), 3))
+    if scene.sky:
+        dn = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        elev = np.clip(dn[:, 2], 0.0, 1.0)[:, None] ** 0.6
+        colour[:] = SKY_HORIZON * (1 - elev) + SKY_ZENITH * elev
+    else:
+        colour[:] = 0.0
+    _, mat_of_geom = scene.raycasting()
+    idx = np.flatnonzero(hit)
+    p = origins[idx] + dirs[idx] * t[idx, None]
+    n = ans["primitive_normals"][idx].astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n *= np.where((n * dirs[idx]).sum(1, keepdims=True) > 0, -1.0, 1.0)
+    mats = mat_of_geom[ans["geometry_ids"][idx].astype(np.int64)]
+    alb = np.empty((len(idx), 3))
+    for m in np.unique(mats):
+        sel = mats == m
+        alb[sel] = albedo(scene.materials[m], p[sel], n[sel])
+    light = scene.light
+    if light.kind == "sun":
+        to_l = np.broadcast_to(np.asarray(light.vector, dtype=np.float64), p.shape)
+        dist = np.full(len(p), np.inf)
+        atten = np.ones(len(p))
+    else:
+        to_l = np.asarray(light.vector, dtype=np.float64) - p
+        dist = np.linalg.norm(to_l, axis=1)
+        to_l = to_l / dist[:, None]
+        atten = 1.0 / (1.0 + 0.04 * dist**2)
+    lam = np.clip((n * to_l).sum(1), 0.0, None) * atten
+    if shadows:
+        sh = _cast(scene, p + n * 2e-3, to_l)["t_hit"]
+        lam = np.where(sh < dist - 1e-2, 0.0, lam)
+    colour[idx] = alb * (light.ambient + light.strength * lam)[:, None]
+    return colour
+
+
+def _mix_numpy(a, b, mix, grain):
+    col = a[None] * (1 - mix[:, None]) + b[None] * mix[:, None]
+    col *= (0.88 + 0.24 * grain)[:, None]
+    return np.clip(col, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("kind", ["room", "street", "tabletop"])
+def test_shading_loops_are_the_numpy_form_bit_for_bit(kind):
+    """The numba loops of the renderer's shading (hit points and normals, Lambert and shadow rays, lighting, the
+    facing normals and depth of a cast, the albedo mix) compute what the numpy form they replaced computed, to the
+    bit, on a point-lit room and table-top and a sun-lit street with sky: the demo's frames (and every cache key
+    downstream of them) stay as they were."""
+    from navcrafter.models.camera.cameras import world_rays
+    from navcrafter.models.simulation.render import _cast, _facing_normals, _shade
+    from navcrafter.models.simulation.textures import _mix
+
+    scene = generate_scene(kind, 2)
+    K = Intrinsics.from_fov(scene.camera_fov_x_deg, 48, 32)
+    rng = np.random.default_rng(1)
+    poses = [scene.camera_c2w @ make_pose(axis_angle_to_matrix(rng.normal(size=3), 0.6 * rng.random()),
+                                          rng.normal(0, 0.2, 3)) for _ in range(3)]
+    rays = [world_rays(c, K.K, K.height, K.width) for c in poses]
+    o = np.stack([np.broadcast_to(r[0], r[1].shape) for r in rays]).reshape(-1, 3).astype(np.float64)
+    d = np.stack([r[1] for r in rays]).reshape(-1, 3)
+    ans = _cast(scene, o, d)
+    assert 0.2 < np.isfinite(ans["t_hit"]).mean() and (kind != "street" or not np.isfinite(ans["t_hit"]).all())
+    for shadows in (True, False):
+        np.testing.assert_array_equal(_shade(scene, o, d, shadows, ans), _shade_numpy(scene, o, d, shadows, ans))
+    t = ans["t_hit"]
+    h = np.isfinite(t)
+    n = ans["primitive_normals"].astype(np.float32)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    n *= np.where((n * d).sum(-1, keepdims=True) > 0, -1.0, 1.0).astype(np.float32)
+    n[~h] = 0.0
+    got_n, got_z = _facing_normals(ans["primitive_normals"], d, t)
+    np.testing.assert_array_equal(got_n, n)
+    np.testing.assert_array_equal(got_z, np.where(h, t, 0.0).astype(np.float32))
+    a, b = rng.random(3), rng.random(3)
+    mix, grain = rng.normal(0.5, 1.0, 5000), rng.normal(0.5, 1.5, 5000)  # out of [0, 1] too: the clip
+    np.testing.assert_array_equal(_mix(a, b, mix, grain), _mix_numpy(a, b, mix, grain))
+
+
+def test_deciding_distances_give_the_decisions_of_one_full_query():
+    """Soft anchoring queries each point only out to the distance where its field value stops anchoring it
+    (``backend._deciding_distances``): the decisions are those of one query out to the full bound, point for point,
+    on points at every distance from a cloud (on it, near, beyond the bound) and field values from 0 to 1."""
+    from scipy.spatial import cKDTree
+
+    from navcrafter.models.simulation.backend import _deciding_distances
+
+    rng = np.random.default_rng(3)
+    cloud = rng.uniform(-1, 1, (4000, 3))
+    pts = np.concatenate([cloud[:3000] + rng.normal(0, s, (3000, 3)) for s in (0.002, 0.02, 0.08, 0.3)])
+    u = np.concatenate([rng.random(len(pts) - 3), [0.0, 1.0, 1e-300]])
+    tree = cKDTree(cloud)
+    falloff, bound = 0.072, 0.72
+    full, _ = tree.query(pts, k=1, distance_upper_bound=bound)
+    got = _deciding_distances(tree, pts, u, falloff, bound)
+    decide = [np.isfinite(d) & (u < np.exp(-np.where(np.isfinite(d), d, bound) / falloff)) for d in (full, got)]
+    np.testing.assert_array_equal(decide[1], decide[0])
+    assert 0.2 < decide[0].mean() < 0.8 and np.isinf(got).mean() > np.isinf(full).mean() + 0.1  # queries stopped early
+    found = np.isfinite(got)
+    np.testing.assert_array_equal(got[found], full[found])
