@@ -71,7 +71,7 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 22.8 min at load 5-7
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 8.0 min, near-idle cores
                           # beside other runs (results: benchmarks/results/camera-control-mini/quick)
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
                           # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
