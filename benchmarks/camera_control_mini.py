@@ -72,7 +72,7 @@ trained control given the mirrored cameras:
   with another clip's cameras minus with the clip's own).
 
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 8.0 min, near-idle cores
-                          # beside other runs (results: benchmarks/results/camera-control-mini/quick)
+                          # (22.8 min at load 5-7; results: benchmarks/results/camera-control-mini/quick)
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
                           # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
                           # (results: benchmarks/results/camera-control-mini/full)
