@@ -110,6 +110,9 @@ PSNR_CAP = 100.0  # dB, for a frame reproduced exactly (MSE 0)
 # every procedural material's feature size is multiplied by this (module docstring, "Coarse textures"); chosen by
 # looking at renders of development scenes 0-5 at 32² before any training (1: the data engine's own textures)
 TEXTURE_SCALE = 4.0
+CONDITIONS = ("first", "all")  # the I2V condition video: frame 0 then zeros, or frame 0 in every frame (make_clip)
+CONDITION = "all"
+FLIP = True  # training clips also mirrored left-right (flipped_clip)
 CAMERA_GUIDANCE = 3.0  # sampling: classifier-free guidance weight on the camera (CameraGuided); chosen on dev seeds
 
 SIZES = {  # training scenes (8 clips each), held-out scenes (8 clips each), steps of the two stages
@@ -285,23 +288,46 @@ def candidate_grid(scene: Scene, resolution: int) -> tuple[np.ndarray, np.ndarra
 # --------------------------------------------------------------------------------------------------
 # Clips
 # --------------------------------------------------------------------------------------------------
-def make_clip(encoders, frames: np.ndarray, c2w: np.ndarray, K: np.ndarray, clip_id: str) -> dict:
-    """A clip as ``tasks/training/clips.py`` stores it (the same encoder calls), in memory."""
+def make_clip(encoders, frames: np.ndarray, c2w: np.ndarray, K: np.ndarray, clip_id: str,
+              condition: str = "first") -> dict:
+    """A clip as ``tasks/training/clips.py`` stores it (the same encoder calls), in memory. ``condition``: the
+    I2V condition video's frames 1.. are zeros (``"first"``, Wan I2V's and the product's) or copies of frame 0
+    (``"all"``, module docstring "Frame 0 in every latent frame"); the mask marks frame 0 only either way."""
     from navcrafter.models.synthesis.pipeline import _to_video
 
+    if condition not in CONDITIONS:
+        raise ValueError(f"condition must be one of {CONDITIONS}, got {condition!r}")
     video = _to_video(frames)
-    condition = np.zeros_like(video)
-    condition[:, 0] = video[:, 0]
+    cond = np.zeros_like(video)
+    cond[:, 0] = video[:, 0]
+    if condition == "all":
+        cond[:, 1:] = video[:, :1]
     rel = np.linalg.inv(c2w[0]) @ c2w
     return {"latents": encoders.encode_video(video).astype(np.float32),
-            "image_latents": encoders.encode_video(condition).astype(np.float32),
+            "image_latents": encoders.encode_video(cond).astype(np.float32),
             "image_embeds": np.asarray(encoders.image_features(frames[0]), np.float32),
             "text_embeds": np.asarray(encoders.text_embeddings(""), np.float32),
             "c2w": rel, "K": np.asarray(K, np.float64), "attrs": {"clip_id": clip_id}}
 
 
+def mirror_relative_poses(c2w: np.ndarray) -> np.ndarray:
+    """The cameras of a clip mirrored left-right: poses relative to frame 0, reflected in frame 0's x = 0 plane
+    (``M·rel·M``, M = diag(-1, 1, 1, 1): the world reflected and each camera's x axis flipped, so every rotation
+    stays proper). The frames of that mirrored world are the clip's frames flipped horizontally (the principal
+    point is centred): a pan or an orbit turns the other way, a tilt and a dolly stay as they are."""
+    c2w = np.asarray(c2w, np.float64)
+    M = np.diag([-1.0, 1.0, 1.0, 1.0])
+    return M @ (np.linalg.inv(c2w[0]) @ c2w) @ M
+
+
+def flipped_clip(encoders, clip: dict, K: np.ndarray, condition: str = CONDITION) -> dict:
+    """The training clip of ``build_scenes``' ``clip`` entry mirrored left-right (``mirror_relative_poses``)."""
+    truth = np.ascontiguousarray(clip["truth"][:, :, ::-1])
+    return make_clip(encoders, truth, mirror_relative_poses(clip["poses"]), K, clip["id"] + "-flip", condition)
+
+
 def build_scenes(kinds, seeds, frames: int, resolution: int, encoders, *, grid: bool, seed: int,
-                 texture_scale: float = TEXTURE_SCALE) -> list[dict]:
+                 texture_scale: float = TEXTURE_SCALE, condition: str = CONDITION) -> list[dict]:
     """Per scene: the 8 clips (4 families × both directions) with their true frames, and the estimator grid."""
     out = []
     for j, s in enumerate(seeds):
@@ -316,7 +342,8 @@ def build_scenes(kinds, seeds, frames: int, resolution: int, encoders, *, grid: 
                 truth = render_path(scene, poses)
                 cid = f"{kind}-{s}-{fam}{'+' if sign > 0 else '-'}"
                 entry["clips"].append({"family": fam, "amplitude": a, "poses": poses, "truth": truth,
-                                       "clip": make_clip(encoders, truth, poses, scene.K.K, cid), "id": cid})
+                                       "clip": make_clip(encoders, truth, poses, scene.K.K, cid, condition),
+                                       "id": cid})
         if grid:
             entry["grid"] = candidate_grid(scene, resolution)
         out.append(entry)
@@ -404,6 +431,26 @@ def sample_videos(model, clips: list[dict], encoders, *, plucker_from: list[dict
             c["plucker"] = clip_conditions(model, plucker_from[i], device)["plucker"]
         z = sample_clip(net, c, seed=seed + i, steps=steps, guidance_scale=1.0, lora_scale=lora, flow_shift=shift)
         out.append(video_to_frames(encoders.decode_video(z[0].float().cpu().numpy())))
+    return out
+
+
+@torch.no_grad()
+def mean_videos(model, clips: list[dict], encoders, *, seed: int, device: str) -> list[np.ndarray]:
+    """The model's one-step mean video from pure noise (σ = 1: ``x̂0 = ε − v(ε)``, Tweedie's estimate of the clip
+    given frame 0, no sampling noise), without cameras: for the base, what it has learned of image-to-video."""
+    from navcrafter.models.synthesis.pipeline import initial_noise, video_to_frames
+    from navcrafter.models.synthesis.training import clip_conditions
+
+    was = model.training
+    model.eval()
+    out = []
+    for i, clip in enumerate(clips):
+        c = clip_conditions(model, clip, device)
+        noise = torch.from_numpy(initial_noise(seed + i, *c["x0"].shape[1:])).to(device)
+        v = model(torch.cat([noise, c["hidden_cond"]], dim=1), torch.full((1,), 1000.0, device=device), c["text"],
+                  c["image"], None, c["cond"], torch.tensor(1.0, device=device))
+        out.append(video_to_frames(encoders.decode_video((noise - v)[0].float().cpu().numpy())))
+    model.train(was)
     return out
 
 
@@ -502,6 +549,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="camera LoRA strength when sampling (the product's and paper's 0.7; trained at 1.0)")
     ap.add_argument("--camera-guidance", type=float, default=CAMERA_GUIDANCE,
                     help="classifier-free guidance weight on the camera against the frozen base (1: none)")
+    ap.add_argument("--condition", choices=CONDITIONS, default=CONDITION,
+                    help="the I2V condition video: frame 0 then zeros (first: Wan's) or frame 0 in every frame (all)")
+    ap.add_argument("--flip", action=argparse.BooleanOptionalAction, default=FLIP,
+                    help="add every training clip mirrored left-right (mirror_relative_poses)")
     ap.add_argument("--texture-scale", type=float, default=TEXTURE_SCALE,
                     help="multiplies every material's feature size (1: the data engine's own textures)")
     ap.add_argument("--autoencoder", choices=("exact", "pca"), default="pca",
@@ -530,9 +581,9 @@ def main(argv: list[str] | None = None) -> int:
 
     t0 = time.perf_counter()
     train = build_scenes(kinds, range(args.seed, args.seed + size["train_scenes"]), T, R, enc, grid=False,
-                         seed=args.seed, texture_scale=args.texture_scale)
+                         seed=args.seed, texture_scale=args.texture_scale, condition=args.condition)
     held = build_scenes(kinds, range(args.eval_seed, args.eval_seed + size["eval_scenes"]), T, R, enc, grid=True,
-                        seed=args.eval_seed, texture_scale=args.texture_scale)
+                        seed=args.eval_seed, texture_scale=args.texture_scale, condition=args.condition)
     if args.autoencoder == "pca":  # fitted on the training clips only, then every clip is encoded with it
         from navcrafter.models.synthesis.encoders import PCAEncoders
 
@@ -541,8 +592,10 @@ def main(argv: list[str] | None = None) -> int:
                               args.latent_channels)
         for e in train + held:
             for c in e["clips"]:
-                c["clip"] = make_clip(enc, c["truth"], c["poses"], e["scene"].K.K, c["id"])
+                c["clip"] = make_clip(enc, c["truth"], c["poses"], e["scene"].K.K, c["id"], args.condition)
     train_clips = [c["clip"] for e in train for c in e["clips"]]
+    if args.flip:  # the training clips mirrored left-right as well (module docstring, "Mirrored training clips")
+        train_clips += [flipped_clip(enc, c, e["scene"].K.K, args.condition) for e in train for c in e["clips"]]
     held_flat = [c for e in held for c in e["clips"]]
     held_clips = [c["clip"] for c in held_flat]
     mirror_of = {c["id"]: m["clip"] for e in held for c in e["clips"] for m in e["clips"]
@@ -574,6 +627,11 @@ def main(argv: list[str] | None = None) -> int:
 
     base_state = cosine_trainer(model, train_clips, base_cfg, device=args.device).train(None, on_step=progress("base"))
     timings["base_s"] = time.perf_counter() - t0
+    # the base's image-to-video alone: its mean video against simply copying frame 0 into every frame
+    base_mean = float(np.mean([video_psnr(v, c["truth"]) for v, c in zip(
+        mean_videos(model, held_clips, enc, seed=args.eval_seed, device=args.device), held_flat)]))
+    copy0 = float(np.mean([video_psnr(np.repeat(c["truth"][:1], T, axis=0), c["truth"]) for c in held_flat]))
+    print(f"base mean video {base_mean:.2f} dB on frames 1.. (copy frame 0: {copy0:.2f} dB)", flush=True)
     untrained = copy.deepcopy(model).eval()
     control_cfg = training_config(stage="control", steps=size["control_steps"], seed=args.seed + 1, **cfg)
     t0 = time.perf_counter()
@@ -609,6 +667,7 @@ def main(argv: list[str] | None = None) -> int:
         "trained": entry(m_t, gap_t), "untrained": entry(m_u, gap_u), "trained_wrong_cameras": entry(m_w, None),
         **({} if v_unguided is None else {"trained_without_camera_guidance": entry(measure(v_unguided, held), gap_t)}),
         "autoencoder_psnr": ae,
+        "base_mean_video_psnr": base_mean, "copy_frame0_psnr": copy0,
         "floor": {k: floor[k] for k in ("r_err", "t_err", "direction_accuracy", "psnr", "ssim", "by_family")},
         "goals": {"direction_accuracy_ge_0.9": m_t["direction_accuracy"] >= 0.9,
                   "untrained_at_chance": abs(m_u["direction_accuracy"] - 0.5) <= 0.2,
@@ -630,7 +689,7 @@ def main(argv: list[str] | None = None) -> int:
             "reference_frames_in_training": args.reference_frames,
             "sampling_steps": args.sampling_steps, "lora_scale_inference": lora, "flow_shift": shift,
             "guidance_scale": 1.0, "camera_guidance": args.camera_guidance, "texture_scale": args.texture_scale,
-            "quick": bool(args.quick), "device": args.device,
+            "condition": args.condition, "flip": args.flip, "quick": bool(args.quick), "device": args.device,
             "threads": args.threads, "load_average_at_end": list(__import__("os").getloadavg()),
             "base_trainable_parameters": trainable_parameters(model, base_cfg),
             "control_trainable_parameters": trainable_parameters(model, control_cfg),
@@ -684,6 +743,9 @@ def markdown(r: dict) -> str:
         f"| floor / ceiling: the autoencoded truth | {r['floor'].get('direction_accuracy', float('nan')):.3f} | "
         f"{r['floor']['r_err']:.2f} | {r['floor']['t_err']:.3f} | {r['autoencoder_psnr']:.2f} | "
         f"{r['floor'].get('ssim', float('nan')):.3f} | |", "",
+        *([f"The base alone (stage 1, no cameras): its one-step mean video scores {r['base_mean_video_psnr']:.2f} dB "
+           f"on frames 1.., copying frame 0 into every frame {r['copy_frame0_psnr']:.2f} dB.", ""]
+          if "base_mean_video_psnr" in r else []),
         "By family (direction accuracy / R_err deg / T_err L):", "",
         "| | " + " | ".join(FAMILIES) + " |", "|---|" + "---|" * len(FAMILIES),
         *[f"| {n} | " + " | ".join(f"{x['by_family'][f]['direction_accuracy']:.2f} / {x['by_family'][f]['r_err']:.1f}"

@@ -144,3 +144,39 @@ def test_camera_guidance_extrapolates_from_the_camera_free_base(mini):
     with pytest.raises(ValueError, match="needs the frozen base"):
         mini.sample_videos(model, [], None, plucker_from=None, steps=1, lora=1.0, shift=3.0, seed=0, device="cpu",
                            camera_guidance=2.0)
+
+
+def test_mirrored_cameras_turn_the_other_way(mini):
+    # a level camera (OpenCV axes: x right, y down = world -z, z forward = world +y): mirroring a pan or an
+    # orbit gives the opposite one; a tilt and a dolly are unchanged; every rotation stays proper
+    c2w0 = np.eye(4)
+    c2w0[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    c2w0[:3, 3] = [0.3, -1.0, 1.5]
+
+    def rel(p):
+        return np.linalg.inv(p[0]) @ p
+
+    for fam, a in (("pan", 30.0), ("orbit", 25.0), ("tilt", 12.0), ("dolly", 0.3)):
+        fwd = mini.path_poses(fam, a, 5, c2w0, 2.0)
+        back = mini.path_poses(fam, -a, 5, c2w0, 2.0)
+        m = mini.mirror_relative_poses(fwd)
+        np.testing.assert_allclose(np.linalg.det(m[:, :3, :3]), 1.0, atol=1e-12)
+        expected = rel(back) if fam in ("pan", "orbit") else rel(fwd)
+        np.testing.assert_allclose(m, expected, atol=1e-12)
+        if fam in ("pan", "orbit"):
+            assert not np.allclose(m, rel(fwd), atol=1e-3)
+
+
+def test_condition_all_gives_frame_0_to_every_latent_frame(mini, held):
+    from navcrafter.models.synthesis.encoders import PixelShuffleEncoders
+
+    enc = PixelShuffleEncoders(4, temporal=4, image_dim=8, text_dim=16, image_tokens=16)
+    c, K = held[0]["clips"][0], held[0]["scene"].K.K
+    first = mini.make_clip(enc, c["truth"], c["poses"], K, "x", "first")["image_latents"]
+    every = mini.make_clip(enc, c["truth"], c["poses"], K, "x", "all")["image_latents"]
+    np.testing.assert_array_equal(first[:, 0], every[:, 0])
+    assert not first[:, 1:].any()  # Wan's I2V condition: frame 0, then zeros
+    for f in range(1, every.shape[1]):  # a still video of frame 0: every latent frame is latent frame 0
+        np.testing.assert_array_equal(every[:, f], every[:, 0])
+    with pytest.raises(ValueError, match="condition"):
+        mini.make_clip(enc, c["truth"], c["poses"], K, "x", "middle")
