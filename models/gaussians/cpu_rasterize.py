@@ -312,15 +312,16 @@ class _Composite(torch.autograd.Function):
         ctile = K.composite_tile_size(width, height)
         ctw, cth = -(-width // ctile), -(-height // ctile)
         offsets = _SCRATCH.get("offsets", n_cam * ctw * cth + 1, np.int64)
+        depth64 = _SCRATCH.get("depth64", (n_cam, n), np.float64)
         with _LOCK:
-            n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
-            n_ent = K.pack_gaussians(m2, con, opa, col, rad, bounds, tile_size, ctile, width, height, rec, cbounds)
+            n_isects, n_ent = K.pack_gaussians(m2, con, opa, col, rad, depths.numpy(), tile_size, tile_w, tile_h,
+                                               ctile, width, height, rec, bounds, cbounds, depth64)
             gids, epos = _SCRATCH.get("gids", n_ent, np.int64), _SCRATCH.get("epos", n_ent, np.int64)
             order, roff = _SCRATCH.get("order", (n_cam, n), np.int64), _SCRATCH.get("roff", n_cam * n + 1, np.int64)
-            K.bin_gaussians(cbounds, K.depth_keys(depths.numpy()), ctw, cth, offsets, gids, order, roff, epos)
             ent = _SCRATCH.get("ent", (n_ent, rec.shape[2]), dt)
             cap = _SCRATCH.get("cap", n_cam * ctw * cth, np.int64)
-            K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap)
+            K.bin_gaussians(cbounds, depth64.view(np.uint64), ctw, cth, ctile, width, height, rec, offsets, gids,
+                            order, roff, epos, ent, cap, numba.get_num_threads())
             pbase = _SCRATCH.get("pbase", len(cap) + 1, np.int64)
             pbase[0] = 0
             if record:
@@ -354,8 +355,8 @@ class _Composite(torch.autograd.Function):
         # the gradients in the inputs' dtype (float64 sums), handed to PyTorch as views of one array
         grads = np.zeros((n_cam, n, 6 + d), dt)
         with _LOCK:
-            K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, t_final, vr, va,
-                                 pbase, pend, pix, pes, slots)
+            K.composite_backward(ent, offsets, gids, width, height, ctile, ctw, cst, bg, use_bg, t_final, vr, va,
+                                 pbase, pend, pix, pes, slots, grads)
             K.gather_slots(order, roff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
