@@ -1,6 +1,6 @@
 """Where the compiled CPU rasterizer's time goes: single-thread process CPU time per kernel (phase) of one
 forward + backward at 100k Gaussians x 256x256 (``benchmarks/rasterizer.py``'s scene), RGB and SH3 + RGB+ED,
-optionally beside the kernels of another git revision run back to back in the same process.
+optionally beside the kernels of another git revision in the same process (the two alternate call by call).
 
     python benchmarks/rasterizer_phases.py                          # this tree
     python benchmarks/rasterizer_phases.py --baseline e30e0c0       # that revision's kernels, then this tree's
@@ -86,7 +86,7 @@ def instrument(kernels, acc: dict) -> None:
         setattr(kernels, name, functools.wraps(fn)(timed))
 
 
-def run(glue, acc: dict, scene: dict, sh: int | None, mode: str, repeats: int) -> dict:
+def run(glue, acc: dict, scene: dict, sh: int | None, mode: str, repeats: int) -> list[dict]:
     rows = []
     for _ in range(repeats):
         params = [p.clone().requires_grad_() for p in scene["params"]]
@@ -102,6 +102,10 @@ def run(glue, acc: dict, scene: dict, sh: int | None, mode: str, repeats: int) -
         total = CLOCK() - c0
         rows.append({**acc, "Python / PyTorch, forward": fwd - fwd_k,
                      "Python / PyTorch, backward": total - fwd - (sum(acc.values()) - fwd_k), "total": total})
+    return rows
+
+
+def medians(rows: list[dict]) -> dict:
     return {k: statistics.median(r.get(k, 0.0) for r in rows) * 1000 for k in rows[0]}
 
 
@@ -133,8 +137,11 @@ def main() -> None:
             res = {}
             for name, (_, glue) in versions.items():
                 run(glue, accs[name], scene, sh, mode, 2)  # warm-up (compiles or loads the kernels)
-            for name, (_, glue) in versions.items():
-                res[name] = run(glue, accs[name], scene, sh, mode, args.repeats)
+            rows = {name: [] for name in versions}
+            for _ in range(args.repeats):  # the versions alternate call by call: a change in load hits both
+                for name, (_, glue) in versions.items():
+                    rows[name] += run(glue, accs[name], scene, sh, mode, 1)
+            res = {name: medians(r) for name, r in rows.items()}
             keys = list(dict.fromkeys(k for r in res.values() for k in r if k != "total")) + ["total"]
             kind = "RGB" if sh is None else f"SH{sh}, {mode}"
             title = f"{args.gaussians // 1000}k Gaussians x {args.size}², {kind}"

@@ -394,10 +394,6 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
 # --------------------------------------------------------------------------------------------------
 # Tile binning
 # --------------------------------------------------------------------------------------------------
-RADIX_BITS = 11  # 2048 bins (L1-resident); the passes over digits all keys share (exponent bits) are skipped
-BIN_CHUNK = 8192  # at least this many Gaussians per parallel chunk of the binning passes
-
-
 @_ijit
 def _depth_key(bits):
     """The unsigned integer key of a float64's IEEE ``bits`` (uint64) whose order is the order of the floats:
@@ -407,30 +403,32 @@ def _depth_key(bits):
     return bits | np.uint64(1 << 63)
 
 
-@_pjit
-def bin_gaussians(cbounds, depth_bits, tile_w, tile_h, ctile, width, height, rec, offsets, gids, order_out, roff,
-                  epos, ent, cap, threads):
-    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose compositing-tile range ``cbounds``
-    [C, N, 4] (x0, x1, y0, y1; :func:`pack_gaussians`') covers it, in depth order (stable: ties keep index
-    order): ``offsets`` [C * tiles + 1] and per list entry its record ``ent`` [n_ent, 13 + D] (``rec``'s row)
-    and ``gids`` [n_ent]: the Gaussian ``g`` when it has this one entry, ``-1 - g`` when it has several (the
-    backward pass writes a single entry's gradients straight to its Gaussian); ``cap`` [C * tiles] = per tile
-    the pixels of its entries' boxes within it (the most pairs compositing can keep). One stable LSD radix sort
-    of each camera's visible Gaussians by their depths (``depth_bits`` [C, N]: the float64 depths' bits, keyed
-    by :func:`_depth_key`; each Gaussian's tile square packed into one integer travels with it, so the pass
-    that appends them to their tiles in that order reads sequentially), instead of a sort per tile. Also, per
-    camera, the visible Gaussians in depth order ``order_out`` [C, N] (-1 past the last) and, per rank ``idx =
-    camera * N + rank``, the list positions of its entries in row-major tile order ``epos[roff[idx]:roff[idx +
-    1]]`` (for :func:`gather_slots`).
+RADIX_BITS = 11  # 2048 bins (L1-resident); the passes over digits all keys share (exponent bits) are skipped
 
-    Every pass runs over chunks of the ranks in parallel (per-chunk histograms and tile counts, their prefix
-    sums taken chunk after chunk), which is the serial pass's order: the results are the same on any thread
-    count (``threads``: the chunks, at most; ``numba.get_num_threads()`` inside would stop the caching)."""
-    n_cam, n = cbounds.shape[0], cbounds.shape[1]
+
+@_jit
+def bin_gaussians(bounds, depth_bits, tile_w, tile_h, offsets, gids, order_out, roff, epos):
+    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose tile range ``bounds`` [C, N, 4]
+    (x0, x1, y0, y1; :func:`pack_gaussians`' ``cbounds`` for the compositing tiles) covers it, in depth order
+    (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
+    sort of each camera's visible Gaussians by their depths (``depth_bits`` [C, N]: the float64 depths' bits,
+    keyed by :func:`_depth_key`; each Gaussian's tile square packed
+    into one integer travels with it, so the pass that appends them to their tiles in that order reads
+    sequentially), instead of a sort per tile. Also, per camera, the visible Gaussians in depth order
+    ``order_out`` [C, N] (-1 past the last) and, per rank ``idx = camera * N + rank``, the list positions of its
+    entries in row-major tile order ``epos[roff[idx]:roff[idx + 1]]`` (for :func:`gather_slots`)."""
+    n_cam, n = bounds.shape[0], bounds.shape[1]
     n_tiles = tile_w * tile_h
-    n_rec = rec.shape[2]
-    nch = max(1, min(threads, (n + BIN_CHUNK - 1) // BIN_CHUNK))
-    csize = (n + nch - 1) // nch
+    counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
+    for c in range(n_cam):
+        for g in range(n):
+            for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
+                for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
+                    counts[c * n_tiles + ty * tile_w + tx] += 1
+    offsets[0] = 0
+    for t in range(n_cam * n_tiles):
+        offsets[t + 1] = offsets[t] + counts[t]
+    fill = offsets[:-1].copy()
     order = np.empty(n, dtype=np.int64)
     tmp = np.empty(n, dtype=np.int64)
     okey = np.empty(n, dtype=np.uint64)  # the keys and squares travel with the indices: each pass reads them in
@@ -438,127 +436,56 @@ def bin_gaussians(cbounds, depth_bits, tile_w, tile_h, ctile, width, height, rec
     obox = np.empty(n, dtype=np.int64)
     tbox = np.empty(n, dtype=np.int64)
     n_bins = 1 << RADIX_BITS
-    hist = np.empty((nch, n_bins), dtype=np.int64)
-    cnt = np.empty((nch, n_tiles), dtype=np.int64)
-    area = np.empty((nch, n_tiles), dtype=np.int64)
-    chunk_n = np.empty(nch + 1, dtype=np.int64)
+    hist = np.empty(n_bins, dtype=np.int64)
     mask = np.uint64(n_bins - 1)
-    offsets[0] = 0
+    j = 0
     for c in range(n_cam):
-        # the visible Gaussians in index order, compacted chunk by chunk
-        for ch in numba.prange(nch):
-            k = 0
-            for g in range(ch * csize, min((ch + 1) * csize, n)):
-                if cbounds[c, g, 1] > cbounds[c, g, 0] and cbounds[c, g, 3] > cbounds[c, g, 2]:
-                    k += 1
-            chunk_n[ch + 1] = k
-        chunk_n[0] = 0
-        for ch in range(nch):
-            chunk_n[ch + 1] += chunk_n[ch]
-        m = chunk_n[nch]
-        for ch in numba.prange(nch):
-            i = chunk_n[ch]
-            for g in range(ch * csize, min((ch + 1) * csize, n)):
-                if cbounds[c, g, 1] > cbounds[c, g, 0] and cbounds[c, g, 3] > cbounds[c, g, 2]:
-                    order[i] = g
-                    okey[i] = _depth_key(depth_bits[c, g])
-                    obox[i] = (cbounds[c, g, 0] | (cbounds[c, g, 1] << 16) | (cbounds[c, g, 2] << 32)
-                               | (cbounds[c, g, 3] << 48))
-                    i += 1
-        msize = (m + nch - 1) // nch
+        m = 0
+        for g in range(n):
+            if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
+                order[m] = g
+                okey[m] = _depth_key(depth_bits[c, g])
+                obox[m] = bounds[c, g, 0] | (bounds[c, g, 1] << 16) | (bounds[c, g, 2] << 32) | (bounds[c, g, 3] << 48)
+                m += 1
         for shift in range(0, 64, RADIX_BITS):
             sh = np.uint64(shift)
-            for ch in numba.prange(nch):
-                for b in range(n_bins):
-                    hist[ch, b] = 0
-                for i in range(ch * msize, min((ch + 1) * msize, m)):
-                    hist[ch, (okey[i] >> sh) & mask] += 1
-            if m == 0:
-                break
-            b0 = (okey[0] >> sh) & mask
-            same = 0
-            for ch in range(nch):
-                same += hist[ch, b0]
-            if same == m:
+            hist[:] = 0
+            for i in range(m):
+                hist[(okey[i] >> sh) & mask] += 1
+            if m == 0 or hist[(okey[0] >> sh) & mask] == m:
                 continue  # one digit value for all: the pass would not move anything
             acc = 0
-            for b in range(n_bins):  # stable: bin by bin, each bin's chunks in order
-                for ch in range(nch):
-                    h = hist[ch, b]
-                    hist[ch, b] = acc
-                    acc += h
-            for ch in numba.prange(nch):
-                for i in range(ch * msize, min((ch + 1) * msize, m)):
-                    b = (okey[i] >> sh) & mask
-                    d = hist[ch, b]
-                    tmp[d] = order[i]
-                    tkey[d] = okey[i]
-                    tbox[d] = obox[i]
-                    hist[ch, b] = d + 1
+            for b in range(n_bins):
+                h = hist[b]
+                hist[b] = acc
+                acc += h
+            for i in range(m):
+                b = (okey[i] >> sh) & mask
+                d = hist[b]
+                tmp[d] = order[i]
+                tkey[d] = okey[i]
+                tbox[d] = obox[i]
+                hist[b] = d + 1
             order, tmp = tmp, order
             okey, tkey = tkey, okey
             obox, tbox = tbox, obox
-        # entries per (chunk of ranks, tile); the tiles' offsets; each chunk's first slot per tile
-        base = c * n_tiles
-        for ch in numba.prange(nch):
-            for t in range(n_tiles):
-                cnt[ch, t] = 0
-                area[ch, t] = 0
-            k = 0
-            for i in range(ch * msize, min((ch + 1) * msize, m)):
-                box = obox[i]
-                x0, x1, y0, y1 = box & 0xFFFF, (box >> 16) & 0xFFFF, (box >> 32) & 0xFFFF, box >> 48
-                for ty in range(y0, y1):
-                    for tx in range(x0, x1):
-                        cnt[ch, ty * tile_w + tx] += 1
-                k += (x1 - x0) * (y1 - y0)
-            chunk_n[ch + 1] = k
-        for t in range(n_tiles):
-            tot = 0
-            for ch in range(nch):
-                h = cnt[ch, t]
-                cnt[ch, t] = offsets[base + t] + tot
-                tot += h
-            offsets[base + t + 1] = offsets[base + t] + tot
-        # each chunk's first position in epos: the entries of the ranks before it
-        chunk_n[0] = offsets[base]
-        for ch in range(nch):
-            chunk_n[ch + 1] += chunk_n[ch]
-        for ch in numba.prange(nch):
-            j = chunk_n[ch]
-            for i in range(ch * msize, min((ch + 1) * msize, m)):
-                g = order[i]
-                box = obox[i]
-                x0, x1, y0, y1 = box & 0xFFFF, (box >> 16) & 0xFFFF, (box >> 32) & 0xFFFF, box >> 48
-                order_out[c, i] = g
-                roff[c * n + i] = j
-                gid = g if (x1 - x0) * (y1 - y0) == 1 else -1 - g
-                bx0, bx1 = int(rec[c, g, R_X0]), int(rec[c, g, R_X1])
-                by0, by1 = int(rec[c, g, R_Y0]), int(rec[c, g, R_Y1])
-                for ty in range(y0, y1):
-                    for tx in range(x0, x1):
-                        t = ty * tile_w + tx
-                        k = cnt[ch, t]
-                        gids[k] = gid
-                        epos[j] = k
-                        for r in range(n_rec):
-                            ent[k, r] = rec[c, g, r]
-                        ax0, ax1 = max(bx0, tx * ctile), min(bx1, min((tx + 1) * ctile, width))
-                        ay0, ay1 = max(by0, ty * ctile), min(by1, min((ty + 1) * ctile, height))
-                        if ax0 < ax1 and ay0 < ay1:
-                            area[ch, t] += (ax1 - ax0) * (ay1 - ay0)
-                        cnt[ch, t] = k + 1
-                        j += 1
-        for t in range(n_tiles):
-            a = 0
-            for ch in range(nch):
-                a += area[ch, t]
-            cap[base + t] = a
-        end = offsets[base + n_tiles]
+        for i in range(m):
+            g = order[i]
+            box = obox[i]
+            x0, x1, y0, y1 = box & 0xFFFF, (box >> 16) & 0xFFFF, (box >> 32) & 0xFFFF, box >> 48
+            order_out[c, i] = g
+            roff[c * n + i] = j
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
+                    t = c * n_tiles + ty * tile_w + tx
+                    gids[fill[t]] = g
+                    epos[j] = fill[t]
+                    fill[t] += 1
+                    j += 1
         for i in range(m, n):
             order_out[c, i] = -1
-            roff[c * n + i] = end
-    roff[n_cam * n] = offsets[n_cam * n_tiles]
+            roff[c * n + i] = j
+    roff[n_cam * n] = j
 
 
 # --------------------------------------------------------------------------------------------------
@@ -578,7 +505,7 @@ def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
     return np.array([alpha_clamp, ALPHA_THRESHOLD, TRANSMITTANCE_STOP, 0.5, 1.0, 0.0, 2.0], dtype=dtype)
 
 
-# A list entry's record (:func:`pack_gaussians`, copied per tile in list order by :func:`bin_gaussians`): the
+# A list entry's record (:func:`pack_gaussians`, gathered per tile in list order by :func:`gather_entries`): the
 # compositing loops read one contiguous row per entry instead of five scattered arrays.
 R_MX, R_MY, R_Q0, R_Q1, R_Q2, R_O, R_CUT, R_INVQ0, R_X0, R_X1, R_Y0, R_Y1, R_FEAT = range(13)
 
@@ -593,7 +520,7 @@ def composite_tile_size(width: int, height: int) -> int:
 
 @_pfjit
 def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size, tile_w, tile_h, ctile, width,
-                   height, rec, bounds, cbounds, depth64):
+                   height, rec, bounds, cbounds, depth64, tiles_per_gauss):
     """Per (camera, Gaussian), computed once per call instead of once per list entry, in parallel:
 
     - ``bounds`` [C, N, 4]: gsplat's ``isect_tiles`` squares (x0, x1, y0, y1; half-open, in ``tile_size``
@@ -605,7 +532,8 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
       visible; clipped to the image and to the rectangle of its ``tile_size`` squares, as the PyTorch
       renderer's tiles clip it) and its features;
     - ``cbounds`` [C, N, 4] = the compositing tiles (side ``ctile``) the box touches (empty with the box);
-    - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits).
+    - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits);
+    - ``tiles_per_gauss`` [C, N] = the number of ``tile_size`` squares (the API's ``meta``).
 
     float64 arithmetic: this is per Gaussian, not per pixel. Returns the number of (``tile_size`` tile,
     Gaussian) intersections and of (compositing tile, Gaussian) entries."""
@@ -626,6 +554,7 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 by1 = min(max(math.ceil(ty + tr), 0), tile_h)
                 n_isects += (bx1 - bx0) * (by1 - by0)
             bounds[c, g, 0], bounds[c, g, 1], bounds[c, g, 2], bounds[c, g, 3] = bx0, bx1, by0, by1
+            tiles_per_gauss[c, g] = (bx1 - bx0) * (by1 - by0)
             o = float(opacities[c, g])
             q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
             rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
@@ -654,6 +583,27 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
                 cbounds[c, g, 0] = cbounds[c, g, 1] = cbounds[c, g, 2] = cbounds[c, g, 3] = 0
     return n_isects, total
+
+
+@_pjit
+def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec, ent, cap):
+    """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); ``cap``
+    [C * tiles] = per tile the pixels of its entries' boxes within it (the most pairs compositing can keep)."""
+    n_rec = rec.shape[2]
+    n_all = offsets.shape[0] - 1
+    for it in numba.prange(n_all):
+        t = _interleave(it, n_all)
+        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
+        area = 0
+        for k in range(offsets[t], offsets[t + 1]):
+            g = gids[k]
+            for j in range(n_rec):
+                ent[k, j] = rec[c, g, j]
+            x0, x1 = max(int(rec[c, g, R_X0]), x_lo), min(int(rec[c, g, R_X1]), x_hi)
+            y0, y1 = max(int(rec[c, g, R_Y0]), y_lo), min(int(rec[c, g, R_Y1]), y_hi)
+            if x0 < x1 and y0 < y1:
+                area += (x1 - x0) * (y1 - y0)
+        cap[t] = area
 
 
 @_ijit
@@ -704,7 +654,7 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
 
     With ``record``, the pairs that contributed are kept for the backward pass, which then replays only them
     (no spans, cut tests or ``exp`` again): per pair its pixel in the tile ``pix`` (row << 16 | column) and
-    ``exp(-sigma)`` ``pes``, from the tile's slot ``pbase[t]`` (its capacity: :func:`bin_gaussians`' box
+    ``exp(-sigma)`` ``pes``, from the tile's slot ``pbase[t]`` (its capacity: :func:`gather_entries`' box
     areas) on, and per list entry the end of its pairs ``pend`` [n_isects] (written whether or not recording)."""
     alpha_clamp, athr, tstop, half, one, zero, two = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
     n_cam = render.shape[0]
@@ -800,12 +750,10 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
 
 
 @_pfjit
-def composite_backward(ent, offsets, gids, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final,
-                       v_render, v_alphas, pbase, pend, pix, pes, slots, grads):
-    """Gradients of each list entry (tile, Gaussian): a Gaussian with this one entry (``gids[k] >= 0``,
-    :func:`bin_gaussians`') gets them in its row of ``grads`` [C, N, 6 + D] directly (no other tile writes it),
-    the others in the entry's slot of ``slots`` [n_isects, 6 + D] (a tile writes only its own entries;
-    :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
+def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, t_final,
+                       v_render, v_alphas, pbase, pend, pix, pes, slots):
+    """Gradients of each list entry (tile, Gaussian) into the slots [n_isects, 6 + D] (a tile writes only its
+    own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
     front over the pairs forward recorded (``composite_forward``'s ``record``), so each pixel sees its
     contributions in reverse order (transmittance recovered by division from forward's final transmittance).
     Per-entry sums are float64."""
@@ -906,18 +854,14 @@ def composite_backward(ent, offsets, gids, width, height, tile_size, tile_w, cst
                         g_q2 += hv * dy * dy
                         g_mx -= v_sigma * (q0 * dx + q1 * dy)
                         g_my -= v_sigma * (q1 * dx + q2 * dy)
+            slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
+            slots[k, 5] = g_o
             if n_feat == 3 or n_feat == 4:
                 gcol[0], gcol[1], gcol[2] = g0, g1, g2
                 if n_feat == 4:
                     gcol[3] = g3
-            gid = gids[k]
-            if gid >= 0:  # its only entry: the sum gather_slots would take (one float64 term, rounded once)
-                out = grads[c, gid]
-            else:
-                out = slots[k]
-            out[0], out[1], out[2], out[3], out[4], out[5] = g_mx, g_my, g_q0, g_q1, g_q2, g_o
             for f in range(n_feat):
-                out[6 + f] = gcol[f]
+                slots[k, 6 + f] = gcol[f]
 
 
 @_pjit
@@ -925,8 +869,7 @@ def gather_slots(order, roff, epos, slots, grads):
     """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features; the caller zero-fills it: Gaussians without
     entries keep their zeros) = the sums of the list entries' ``slots`` [n_isects, 6 + D] per (camera,
     Gaussian), in float64 over its entries in row-major tile order (:func:`bin_gaussians`' ``order``, ``roff``,
-    ``epos``): deterministic for any thread count. Gaussians with one entry are skipped: ``composite_backward``
-    wrote theirs. Walked in depth order: each tile's entries are then read in
+    ``epos``): deterministic for any thread count. Walked in depth order: each tile's entries are then read in
     list order (near-sequential), and the scattered accesses are one row written per Gaussian instead of one
     read per entry."""
     n_s = slots.shape[1]
@@ -939,7 +882,7 @@ def gather_slots(order, roff, epos, slots, grads):
         r = idx0 - c * n
         for idx in range(idx0, min(idx0 + CHUNK, total)):
             g = order[c, r]
-            if g >= 0 and roff[idx + 1] - roff[idx] > 1:
+            if g >= 0:
                 for j in range(n_s):
                     acc[j] = 0.0
                 for i in range(roff[idx], roff[idx + 1]):
