@@ -70,8 +70,8 @@ CLOCK = time.process_time  # --wall: time.perf_counter
 
 
 def instrument(kernels, acc: dict) -> None:
-    """Replace every compiled kernel (and ``depth_keys``) on the module by a wrapper adding its time (``CLOCK``)
-    to ``acc[name]``; the glue calls them as ``K.name(...)``, so it calls the wrappers."""
+    """Replace every compiled kernel (and older revisions' ``depth_keys``) on the module by a wrapper adding its time
+    (``CLOCK``) to ``acc[name]``; the glue calls them as ``K.name(...)``, so it calls the wrappers."""
     for name in dir(kernels):
         fn = getattr(kernels, name)
         if name.startswith("_") or not (hasattr(fn, "py_func") or name == "depth_keys"):
