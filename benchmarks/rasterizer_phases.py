@@ -1,9 +1,10 @@
 """Where the compiled CPU rasterizer's time goes: single-thread process CPU time per kernel (phase) of one
 forward + backward at 100k Gaussians x 256x256 (``benchmarks/rasterizer.py``'s scene), RGB and SH3 + RGB+ED,
-optionally beside the kernels of another git revision run back to back in the same process.
+optionally beside the kernels of another git revision in the same process (the two alternate call by call).
 
     python benchmarks/rasterizer_phases.py                          # this tree
     python benchmarks/rasterizer_phases.py --baseline e30e0c0       # that revision's kernels, then this tree's
+    python benchmarks/rasterizer_phases.py --threads 2 --wall       # wall time per phase on 2 threads
 
 Process CPU time (``time.process_time``) on one numba thread and one torch thread is the stable figure on a
 shared machine (wall time counts other processes' turns). Each kernel the autograd glue calls through the
@@ -11,6 +12,8 @@ shared machine (wall time counts other processes' turns). Each kernel the autogr
 render modes' tensor ops, the loss and autograd). The baseline is ``git show REV:`` of ``cpu_kernels.py`` and
 ``cpu_rasterize.py`` written to a temporary directory and imported from there (the rest of the package is this
 tree's). Medians over ``--repeats`` after two warm-up calls; the load average is printed before and after.
+``--threads N --wall`` times the phases in wall time on N threads instead (what the benchmark's goal counts:
+serial phases and thread imbalance show there; the Python / PyTorch rows are split into forward and backward).
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: the repository root makes the benchmarks package importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as benchmarks/rasterizer.py: before torch loads OpenMP
 
 import torch  # noqa: E402
 
@@ -61,35 +66,46 @@ def load_baseline(rev: str, tmp: Path):
     return mods[0], mods[1]
 
 
+CLOCK = time.process_time  # --wall: time.perf_counter
+
+
 def instrument(kernels, acc: dict) -> None:
-    """Replace every compiled kernel (and ``depth_keys``) on the module by a wrapper adding its process CPU time
-    to ``acc[name]``; the glue calls them as ``K.name(...)``, so it calls the wrappers."""
+    """Replace every compiled kernel (and older revisions' ``depth_keys``) on the module by a wrapper adding its time
+    (``CLOCK``) to ``acc[name]``; the glue calls them as ``K.name(...)``, so it calls the wrappers."""
     for name in dir(kernels):
         fn = getattr(kernels, name)
         if name.startswith("_") or not (hasattr(fn, "py_func") or name == "depth_keys"):
             continue
 
         def timed(*args, _fn=fn, _name=name):
-            c0 = time.process_time()
+            c0 = CLOCK()
             out = _fn(*args)
-            acc[_name] = acc.get(_name, 0.0) + time.process_time() - c0
+            acc[_name] = acc.get(_name, 0.0) + CLOCK() - c0
             return out
 
         setattr(kernels, name, functools.wraps(fn)(timed))
 
 
-def run(glue, acc: dict, scene: dict, sh: int | None, mode: str, repeats: int) -> dict:
+def run(glue, acc: dict, scene: dict, sh: int | None, mode: str, repeats: int) -> list[dict]:
     rows = []
     for _ in range(repeats):
         params = [p.clone().requires_grad_() for p in scene["params"]]
+        weights = torch.rand((1, scene["size"], scene["size"], 3 if sh is None else 4),
+                             generator=torch.Generator().manual_seed(1))
         acc.clear()
-        c0 = time.process_time()
+        c0 = CLOCK()
         out, alpha, _ = glue.rasterization(*params, scene["viewmats"], scene["Ks"], scene["size"], scene["size"],
                                            sh_degree=sh, render_mode=mode)
-        weights = torch.rand(out.shape, generator=torch.Generator().manual_seed(1))
+        fwd = CLOCK() - c0
+        fwd_k = sum(acc.values())
         ((out * weights).sum() + alpha.sum()).backward()
-        total = time.process_time() - c0
-        rows.append({**acc, "Python / PyTorch": total - sum(acc.values()), "total": total})
+        total = CLOCK() - c0
+        rows.append({**acc, "Python / PyTorch, forward": fwd - fwd_k,
+                     "Python / PyTorch, backward": total - fwd - (sum(acc.values()) - fwd_k), "total": total})
+    return rows
+
+
+def medians(rows: list[dict]) -> dict:
     return {k: statistics.median(r.get(k, 0.0) for r in rows) * 1000 for k in rows[0]}
 
 
@@ -99,9 +115,14 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--gaussians", type=int, default=100_000)
     ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--threads", type=int, default=1, help="numba and torch threads (default 1)")
+    ap.add_argument("--wall", action="store_true", help="wall time (perf_counter) instead of process CPU time")
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    cpu_rasterize.set_threads(1)
+    global CLOCK
+    if args.wall:
+        CLOCK = time.perf_counter
+    torch.set_num_threads(args.threads)
+    cpu_rasterize.set_threads(args.threads)
     versions = {}
     with tempfile.TemporaryDirectory() as tmp:
         if args.baseline:
@@ -116,12 +137,17 @@ def main() -> None:
             res = {}
             for name, (_, glue) in versions.items():
                 run(glue, accs[name], scene, sh, mode, 2)  # warm-up (compiles or loads the kernels)
-            for name, (_, glue) in versions.items():
-                res[name] = run(glue, accs[name], scene, sh, mode, args.repeats)
+            rows = {name: [] for name in versions}
+            for _ in range(args.repeats):  # the versions alternate call by call: a change in load hits both
+                for name, (_, glue) in versions.items():
+                    rows[name] += run(glue, accs[name], scene, sh, mode, 1)
+            res = {name: medians(r) for name, r in rows.items()}
             keys = list(dict.fromkeys(k for r in res.values() for k in r if k != "total")) + ["total"]
             kind = "RGB" if sh is None else f"SH{sh}, {mode}"
             title = f"{args.gaussians // 1000}k Gaussians x {args.size}², {kind}"
-            print(f"\n{title}: single-thread process CPU per forward + backward, median of {args.repeats} (ms)")
+            clock = "wall time" if args.wall else "process CPU"
+            print(f"\n{title}: {clock} on {args.threads} thread(s) per forward + backward, "
+                  f"median of {args.repeats} (ms)")
             print(f"| phase | {' | '.join(res)} |")
             print("|---|" + "---:|" * len(res))
             for k in keys:

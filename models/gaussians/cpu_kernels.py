@@ -394,45 +394,25 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
 # --------------------------------------------------------------------------------------------------
 # Tile binning
 # --------------------------------------------------------------------------------------------------
-@_jit
-def tile_bounds(means2d, radii, tile_size, tile_w, tile_h, bounds):
-    """gsplat's ``isect_tiles`` squares: ``bounds`` [C, N, 4] = (x0, x1, y0, y1), half-open; returns the
-    number of (Gaussian, tile) intersections."""
-    n_cam, n = radii.shape
-    total = 0
-    for c in range(n_cam):
-        for g in range(n):
-            if radii[c, g] <= 0:
-                bounds[c, g, 0] = bounds[c, g, 1] = bounds[c, g, 2] = bounds[c, g, 3] = 0
-                continue
-            tr = radii[c, g] / tile_size
-            tx, ty = means2d[c, g, 0] / tile_size, means2d[c, g, 1] / tile_size
-            x0 = min(max(math.floor(tx - tr), 0), tile_w)
-            x1 = min(max(math.ceil(tx + tr), 0), tile_w)
-            y0 = min(max(math.floor(ty - tr), 0), tile_h)
-            y1 = min(max(math.ceil(ty + tr), 0), tile_h)
-            bounds[c, g, 0], bounds[c, g, 1], bounds[c, g, 2], bounds[c, g, 3] = x0, x1, y0, y1
-            total += (x1 - x0) * (y1 - y0)
-    return total
-
-
-def depth_keys(depths: np.ndarray) -> np.ndarray:
-    """Unsigned integer keys [C, N] whose order is the order of the float64 ``depths`` (the IEEE bits with the
-    sign bit set for positives and every bit flipped for negatives), for :func:`bin_gaussians`' radix sort."""
-    bits = np.ascontiguousarray(depths, dtype=np.float64).view(np.uint64)
-    neg = (bits >> np.uint64(63)).astype(bool)
-    return np.where(neg, ~bits, bits | np.uint64(1 << 63))
+@_ijit
+def _depth_key(bits):
+    """The unsigned integer key of a float64's IEEE ``bits`` (uint64) whose order is the order of the floats:
+    the sign bit set for positives, every bit flipped for negatives."""
+    if bits >> np.uint64(63):
+        return ~bits
+    return bits | np.uint64(1 << 63)
 
 
 RADIX_BITS = 11  # 2048 bins (L1-resident); the passes over digits all keys share (exponent bits) are skipped
 
 
 @_jit
-def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, order_out, roff, epos):
+def bin_gaussians(bounds, depth_bits, tile_w, tile_h, offsets, gids, order_out, roff, epos):
     """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose tile range ``bounds`` [C, N, 4]
     (x0, x1, y0, y1; :func:`pack_gaussians`' ``cbounds`` for the compositing tiles) covers it, in depth order
     (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
-    sort of each camera's visible Gaussians by ``keys`` (:func:`depth_keys`; each Gaussian's tile square packed
+    sort of each camera's visible Gaussians by their depths (``depth_bits`` [C, N]: the float64 depths' bits,
+    keyed by :func:`_depth_key`; each Gaussian's tile square packed
     into one integer travels with it, so the pass that appends them to their tiles in that order reads
     sequentially), instead of a sort per tile. Also, per camera, the visible Gaussians in depth order
     ``order_out`` [C, N] (-1 past the last) and, per rank ``idx = camera * N + rank``, the list positions of its
@@ -464,7 +444,7 @@ def bin_gaussians(bounds, keys, tile_w, tile_h, offsets, gids, order_out, roff, 
         for g in range(n):
             if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
                 order[m] = g
-                okey[m] = keys[c, g]
+                okey[m] = _depth_key(depth_bits[c, g])
                 obox[m] = bounds[c, g, 0] | (bounds[c, g, 1] << 16) | (bounds[c, g, 2] << 32) | (bounds[c, g, 3] << 48)
                 m += 1
         for shift in range(0, 64, RADIX_BITS):
@@ -539,22 +519,42 @@ def composite_tile_size(width: int, height: int) -> int:
 
 
 @_pfjit
-def pack_gaussians(means2d, conics, opacities, colors, radii, bounds, tile_size, ctile, width, height, rec,
-                   cbounds):
-    """Per (camera, Gaussian), computed once per call instead of once per list entry, into ``rec`` [C, N,
-    13 + D] (the compositing dtype): the 2D mean, conic, opacity, the ``sigma`` above which ``o exp(-sigma) <
-    1/255`` for certain (``ln(255 o)`` plus ``SIGMA_MARGIN``; pairs below it take the exact test), ``1 / q0``,
-    the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 ln(255 o)`` plus a pixel of
-    margin (the PyTorch renderer enumerates the same boxes; empty when culled or never visible; clipped to the
-    image and to the rectangle of its ``tile_size`` squares ``bounds`` [C, N, 4], as the PyTorch renderer's
-    tiles clip it) and its features; and ``cbounds`` [C, N, 4] = the compositing tiles (side ``ctile``) the box
-    touches (empty with the box). float64 arithmetic: this is per Gaussian, not per pixel. Returns the number
-    of (compositing tile, Gaussian) entries."""
+def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size, tile_w, tile_h, ctile, width,
+                   height, rec, bounds, cbounds, depth64, tiles_per_gauss):
+    """Per (camera, Gaussian), computed once per call instead of once per list entry, in parallel:
+
+    - ``bounds`` [C, N, 4]: gsplat's ``isect_tiles`` squares (x0, x1, y0, y1; half-open, in ``tile_size``
+      tiles of ``tile_w`` x ``tile_h``; empty when culled);
+    - ``rec`` [C, N, 13 + D] (the compositing dtype): the 2D mean, conic, opacity, the ``sigma`` above which ``o
+      exp(-sigma) < 1/255`` for certain (``ln(255 o)`` plus ``SIGMA_MARGIN``; pairs below it take the exact
+      test), ``1 / q0``, the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 ln(255
+      o)`` plus a pixel of margin (the PyTorch renderer enumerates the same boxes; empty when culled or never
+      visible; clipped to the image and to the rectangle of its ``tile_size`` squares, as the PyTorch
+      renderer's tiles clip it) and its features;
+    - ``cbounds`` [C, N, 4] = the compositing tiles (side ``ctile``) the box touches (empty with the box);
+    - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits);
+    - ``tiles_per_gauss`` [C, N] = the number of ``tile_size`` squares (the API's ``meta``).
+
+    float64 arithmetic: this is per Gaussian, not per pixel. Returns the number of (``tile_size`` tile,
+    Gaussian) intersections and of (compositing tile, Gaussian) entries."""
     n_cam, n = radii.shape
     n_feat = colors.shape[2]
     total = 0
+    n_isects = 0
     for c in range(n_cam):
         for g in numba.prange(n):
+            depth64[c, g] = depths[c, g]
+            bx0 = bx1 = by0 = by1 = 0
+            if radii[c, g] > 0:
+                tr = radii[c, g] / tile_size
+                tx, ty = means2d[c, g, 0] / tile_size, means2d[c, g, 1] / tile_size
+                bx0 = min(max(math.floor(tx - tr), 0), tile_w)
+                bx1 = min(max(math.ceil(tx + tr), 0), tile_w)
+                by0 = min(max(math.floor(ty - tr), 0), tile_h)
+                by1 = min(max(math.ceil(ty + tr), 0), tile_h)
+                n_isects += (bx1 - bx0) * (by1 - by0)
+            bounds[c, g, 0], bounds[c, g, 1], bounds[c, g, 2], bounds[c, g, 3] = bx0, bx1, by0, by1
+            tiles_per_gauss[c, g] = (bx1 - bx0) * (by1 - by0)
             o = float(opacities[c, g])
             q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
             rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
@@ -570,10 +570,10 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, bounds, tile_size,
                 half_w = math.sqrt(extent * q2 * inv_det) + 1.0
                 half_h = math.sqrt(extent * q0 * inv_det) + 1.0
                 u, v = float(means2d[c, g, 0]) - 0.5, float(means2d[c, g, 1]) - 0.5
-                x0 = max(min(max(math.floor(u - half_w), 0), width), bounds[c, g, 0] * tile_size)
-                x1 = min(min(max(math.floor(u + half_w) + 1, 0), width), bounds[c, g, 1] * tile_size)
-                y0 = max(min(max(math.floor(v - half_h), 0), height), bounds[c, g, 2] * tile_size)
-                y1 = min(min(max(math.floor(v + half_h) + 1, 0), height), bounds[c, g, 3] * tile_size)
+                x0 = max(min(max(math.floor(u - half_w), 0), width), bx0 * tile_size)
+                x1 = min(min(max(math.floor(u + half_w) + 1, 0), width), bx1 * tile_size)
+                y0 = max(min(max(math.floor(v - half_h), 0), height), by0 * tile_size)
+                y1 = min(min(max(math.floor(v + half_h) + 1, 0), height), by1 * tile_size)
             if x0 < x1 and y0 < y1:
                 rec[c, g, R_X0], rec[c, g, R_X1], rec[c, g, R_Y0], rec[c, g, R_Y1] = x0, x1, y0, y1
                 cx0, cx1, cy0, cy1 = x0 // ctile, (x1 - 1) // ctile + 1, y0 // ctile, (y1 - 1) // ctile + 1
@@ -582,7 +582,7 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, bounds, tile_size,
             else:
                 rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
                 cbounds[c, g, 0] = cbounds[c, g, 1] = cbounds[c, g, 2] = cbounds[c, g, 3] = 0
-    return total
+    return n_isects, total
 
 
 @_pjit

@@ -243,7 +243,9 @@ class _ProjectQS(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, Ks, width, height, eps2d, near, far, radius_clip):
         dt = _dt(means)
-        m, q, sc = _np_native(means, dt), _np_native(quats, _dt(quats)), _np_native(scales, _dt(scales))
+        # read in place where they already are float32 / float64 and contiguous (no copies of the biggest
+        # inputs); saved for backward, so an in-place change before it is caught by autograd's version check
+        m, q, sc = _np_view(means, dt), _np_view(quats, _dt(quats)), _np_view(scales, _dt(scales))
         vm, k = _np(viewmats), _np(Ks)
         n_cam, n = vm.shape[0], m.shape[0]
         means2d, depths = np.empty((n_cam, n, 2), dt), np.empty((n_cam, n), dt)
@@ -252,25 +254,26 @@ class _ProjectQS(torch.autograd.Function):
         with _LOCK:
             K.project_qs_forward(m, q, sc, vm, k, width, height, eps2d, near, far, radius_clip,
                                  means2d, depths, conics, radii, comps)
-        ctx.arrays = (m, q, sc, vm, k)
+        ctx.save_for_backward(means, quats, scales)
+        ctx.arrays = (vm, k)
         ctx.scalars = (width, height, eps2d, near, far)
-        ctx.likes = (means, quats, scales)
         radii_t = torch.from_numpy(radii).to(means.device)
         ctx.mark_non_differentiable(radii_t)
         return _out(means2d, means), _out(depths, means), _out(conics, means), _out(comps, means), radii_t
 
     @staticmethod
     def backward(ctx, v_means2d, v_depths, v_conics, v_comps, _v_radii):
-        m, q, sc, vm, k = ctx.arrays
+        means, quats, scales = ctx.saved_tensors
+        m, q, sc = _np_view(means, _dt(means)), _np_view(quats, _dt(quats)), _np_view(scales, _dt(scales))
+        vm, k = ctx.arrays
         n_cam, n, dt = vm.shape[0], m.shape[0], m.dtype
         v_means, v_quats, v_scales = np.empty((n, 3), dt), np.empty((n, 4), q.dtype), np.empty((n, 3), sc.dtype)
         with _LOCK:
             K.project_qs_backward(m, q, sc, vm, k, *ctx.scalars, _grad_np(v_means2d, (n_cam, n, 2), dt),
                                   _grad_np(v_depths, (n_cam, n), dt), _grad_np(v_conics, (n_cam, n, 3), dt),
                                   _grad_np(v_comps, (n_cam, n), dt), v_comps is not None, v_means, v_quats, v_scales)
-        lm, lq, ls = ctx.likes
-        return (_out(v_means, lm), _out(v_quats, lq), _out(v_scales, ls), None, None, None, None, None, None, None,
-                None)
+        return (_out(v_means, means), _out(v_quats, quats), _out(v_scales, scales), None, None, None, None, None, None,
+                None, None)
 
 
 def project_gaussians_qs(means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int,
@@ -312,12 +315,14 @@ class _Composite(torch.autograd.Function):
         ctile = K.composite_tile_size(width, height)
         ctw, cth = -(-width // ctile), -(-height // ctile)
         offsets = _SCRATCH.get("offsets", n_cam * ctw * cth + 1, np.int64)
+        depth64 = _SCRATCH.get("depth64", (n_cam, n), np.float64)
+        tiles_per_gauss = np.empty((n_cam, n), np.int64)  # handed out in info: not a reused array
         with _LOCK:
-            n_isects = K.tile_bounds(m2, rad, tile_size, tile_w, tile_h, bounds)
-            n_ent = K.pack_gaussians(m2, con, opa, col, rad, bounds, tile_size, ctile, width, height, rec, cbounds)
+            n_isects, n_ent = K.pack_gaussians(m2, con, opa, col, rad, depths.numpy(), tile_size, tile_w, tile_h,
+                                               ctile, width, height, rec, bounds, cbounds, depth64, tiles_per_gauss)
             gids, epos = _SCRATCH.get("gids", n_ent, np.int64), _SCRATCH.get("epos", n_ent, np.int64)
             order, roff = _SCRATCH.get("order", (n_cam, n), np.int64), _SCRATCH.get("roff", n_cam * n + 1, np.int64)
-            K.bin_gaussians(cbounds, K.depth_keys(depths.numpy()), ctw, cth, offsets, gids, order, roff, epos)
+            K.bin_gaussians(cbounds, depth64.view(np.uint64), ctw, cth, offsets, gids, order, roff, epos)
             ent = _SCRATCH.get("ent", (n_ent, rec.shape[2]), dt)
             cap = _SCRATCH.get("cap", n_cam * ctw * cth, np.int64)
             K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap)
@@ -337,8 +342,7 @@ class _Composite(torch.autograd.Function):
         ctx.scalars = (width, height, ctile, ctw, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
         info.update({"tile_width": tile_w, "tile_height": tile_h, "n_isects": int(n_isects),
-                    "tiles_per_gauss": torch.from_numpy((bounds[..., 1] - bounds[..., 0])
-                                                        * (bounds[..., 3] - bounds[..., 2]))})
+                     "tiles_per_gauss": torch.from_numpy(tiles_per_gauss)})
         alphas = 1.0 - t_final
         return _out(render, means2d), _out(alphas[..., None], means2d)
 
