@@ -121,9 +121,10 @@ class PlanConfig(_Section):
         "counts exp(-max(0, s - cell) / (this x d0)), s its distance to the nearest occupied cell, since a video "
         "model copies what its cloud shows and invents the rest (0: every unknown cell counts fully).")
     explore_revisit: float = Field(
-        0.0, ge=0, description="explorer: weight of the accuracy gained on known content: an occupied cell seen "
+        1.0, ge=0, description="explorer: weight of the accuracy gained on known content: an occupied cell seen "
         "nearer than before counts this x (erf at the new range - erf at the nearest earlier one) (0: off, the "
-        "explorer before it; development seeds 0-2: 1 raised cov 5 cm in every kind, 2 and 4 did not).")
+        "explorer before it; development seeds 0-5, 18 scenes: cov 5 cm +0.016 (11/18 scenes), 2 and 4 did not help on "
+        "seeds 0-2; benchmarks/results/planning-explore5-dev).")
 
     # added after stores existed: keys the plan step only when set (schemas.keys)
     keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
