@@ -116,6 +116,15 @@ class PlanConfig(_Section):
     explore_anchor_tolerance: float = Field(
         0.08, gt=0, description="explorer: relative depth agreement for a generated pixel to count as anchored (the "
         "geometry model's per-clip depth error of 3-5 %, VGGT / MoGe / DUSt3R, plus the cloud's voxel size).")
+    explore_anchor_falloff: float = Field(
+        0.0, ge=0, description="explorer: expected anchoring of unknown content, as a length in d0: an unknown cell "
+        "counts exp(-max(0, s - cell) / (this x d0)), s its distance to the nearest occupied cell, since a video "
+        "model copies what its cloud shows and invents the rest (0: every unknown cell counts fully).")
+    explore_revisit: float = Field(
+        1.0, ge=0, description="explorer: weight of the accuracy gained on known content: an occupied cell seen "
+        "nearer than before counts this x (erf at the new range - erf at the nearest earlier one) (0: off, the "
+        "explorer before it; development seeds 0-5, 18 scenes: cov 5 cm +0.016 (11/18 scenes), 2 and 4 did not help on "
+        "seeds 0-2; benchmarks/results/planning-explore5-dev).")
 
     # added after stores existed: keys the plan step only when set (schemas.keys)
     keyed_when_set: ClassVar[dict[str, Any]] = {"trajectory": None, "trajectory_extent": 0.5,
@@ -126,7 +135,8 @@ class PlanConfig(_Section):
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
                                                 "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
-                                                "explore_reach": 1.0, "explore_sky": "free"}
+                                                "explore_reach": 1.0, "explore_sky": "free",
+                                                "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")
     @classmethod

@@ -13,6 +13,12 @@ with three levers:
    several frames counts once (the union over the clip). The **anchor term**: each frame must keep known content
    (rays ending on an occupied cell) in a share ``m`` of its view: the score is multiplied by the smallest
    min(1, m / ``explore_anchor``) over the scored frames, so the video model always has something to copy.
+   **Accuracy of known content** (``explore_revisit``): the first occupied cell each ray meets adds
+   ``explore_revisit`` x max(0, erf weight at this range - erf weight at the nearest range any earlier view saw it
+   at, ``VoxelMap.zmin``): a view that comes nearer to lifted content re-lifts it with a smaller depth error, and
+   that content is anchored, so the video model copies it (issue 30: most of the 5 cm coverage lost on seen surface
+   is hallucination and range-grown depth error). Optionally unknown cells count less the farther they lie from
+   known content (``explore_anchor_falloff``: what a video model invents far from its cloud is not the truth).
 2. **Many more candidate trajectories** for the same synthesis budget (one clip of the same length per
    iteration): end positions on a grid over the search space S (azimuth x elevation x radius), each looking at
    ``o`` or turned by +-``explore_yaw_deg``, joined to the current pose by three shapes (``arc``: the spherical
@@ -61,7 +67,7 @@ from navcrafter.models.planning.planners import (
     search_space,
     space_positions,
 )
-from navcrafter.models.planning.voxel_kernels import FREE, OCCUPIED, UNKNOWN, carve, march
+from navcrafter.models.planning.voxel_kernels import FREE, OCCUPIED, UNKNOWN, carve, march, observe
 from navcrafter.models.reconstruction.pointrender import render_points
 
 SHAPES = ("arc", "dolly", "orbit")
@@ -77,6 +83,8 @@ class VoxelMap:
     state: np.ndarray  # [size**3] uint8 (UNKNOWN, FREE, OCCUPIED), flat index (i * size + j) * size + k
     occluded: np.ndarray  # [size**3] bool: behind a surface some view observed
     to_free: np.ndarray | None = None  # [size**3] distance (cells) to the nearest free cell
+    to_occupied: np.ndarray | None = None  # [size**3] distance (cells) to the nearest occupied cell
+    zmin: np.ndarray | None = None  # [size**3] nearest z-depth any view saw the (occupied) cell at; inf: none
 
     @classmethod
     def build(cls, state: PlanningState, points: np.ndarray, cells: int, side_d0: float = 3.0) -> VoxelMap:
@@ -100,7 +108,20 @@ class VoxelMap:
         from scipy.ndimage import distance_transform_edt
 
         to_free = distance_transform_edt(grid.reshape(cells, cells, cells) != FREE).reshape(-1)
-        return cls(origin, voxel, cells, grid, behind & (grid != FREE), to_free)
+        to_occ = distance_transform_edt(grid.reshape(cells, cells, cells) != OCCUPIED).reshape(-1)
+        zmin = np.full(len(centres), np.inf)
+        if len(occ):
+            zo = np.full(len(occ), np.inf)
+            for v in state.views:  # the nearest range each occupied cell was seen at (copied content only)
+                depth = np.ascontiguousarray(v.depth, dtype=np.float64)
+                anchored = np.ones((1, 1), dtype=bool) if v.anchored is None else \
+                    np.ascontiguousarray(v.anchored, bool)
+                R = np.ascontiguousarray(v.c2w[:3, :3], dtype=np.float64)
+                t = np.ascontiguousarray(v.c2w[:3, 3], dtype=np.float64)
+                observe(centres, occ.astype(np.int64), R, t, float(v.K[0, 0]), float(v.K[1, 1]), float(v.K[0, 2]),
+                        float(v.K[1, 2]), depth, anchored, v.anchored is not None, voxel, zo)
+            zmin[occ] = zo
+        return cls(origin, voxel, cells, grid, behind & (grid != FREE), to_free, to_occ, zmin)
 
     def reach(self, x: np.ndarray) -> np.ndarray:
         """Distance (world units) from positions to the nearest free cell (0 inside free space; inf outside)."""
@@ -258,15 +279,30 @@ class _Scorer:
         norm = np.linalg.norm(dirs, axis=1)
         self.unit = np.ascontiguousarray(dirs / norm[:, None])
         z = self.dist[None, :] / norm[:, None]  # z-depth of each sample [R, S]
-        self.weight = np.ascontiguousarray(
-            erf(cfg.explore_accuracy * state.d0 / (np.sqrt(2.0) * cfg.explore_depth_error * np.maximum(z, 1e-6))))
+        self.weight = np.ascontiguousarray(self.accuracy(z))
+        n_cells = vmap.size ** 3
+        if cfg.explore_anchor_falloff > 0 and vmap.to_occupied is not None:
+            s = np.maximum(0.0, vmap.to_occupied - 1.0) * vmap.voxel
+            self.prox = np.ascontiguousarray(np.exp(-s / (cfg.explore_anchor_falloff * state.d0)))
+        else:
+            self.prox = np.ones(n_cells)
+        self.revisit = float(cfg.explore_revisit)
+        if self.revisit > 0 and vmap.zmin is not None:
+            self.acc = np.ascontiguousarray(np.where(np.isfinite(vmap.zmin), self.accuracy(vmap.zmin), 0.0))
+        else:
+            self.acc = np.zeros(n_cells)
+
+    def accuracy(self, z: np.ndarray) -> np.ndarray:
+        """The chance that a depth measured at z-depth ``z`` lands within ``explore_accuracy`` x d0."""
+        cfg = self.cfg
+        return erf(cfg.explore_accuracy * self.d0 / (np.sqrt(2.0) * cfg.explore_depth_error * np.maximum(z, 1e-6)))
 
     def _march(self, poses: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
         v = self.vmap
         return march(v.state, v.size, np.asarray(v.origin, dtype=np.float64), float(v.voxel),
                      np.ascontiguousarray(poses[:, :3, :3], dtype=np.float64),
                      np.ascontiguousarray(poses[:, :3, 3], dtype=np.float64), self.unit, self.dist, self.weight,
-                     group.astype(np.int64), n_groups)
+                     group.astype(np.int64), n_groups, self.prox, self.acc, self.revisit)
 
     def last_frames(self, ends: np.ndarray) -> np.ndarray:
         """Score of each end pose ``[E, 4, 4]`` on its own (one frame each; cells counted once per frame)."""

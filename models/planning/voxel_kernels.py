@@ -45,15 +45,47 @@ def carve(centres: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: floa
 
 
 @_jit
+def observe(centres: np.ndarray, cells: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float,
+            cy: float, depth: np.ndarray, anchored: np.ndarray, use_anchored: bool, margin: float,
+            zmin: np.ndarray) -> None:
+    """For one view (as ``carve``): the smallest z-depth ``zmin`` [C] at which it saw each of the (occupied) cells
+    ``cells`` [C] (flat indices into ``centres``): the cell projects onto a pixel whose depth is within ``margin``
+    of the cell's (only pixels that are ``anchored`` when ``use_anchored``: copied, not invented, content)."""
+    H, W = depth.shape
+    for m in range(cells.shape[0]):
+        n = cells[m]
+        a0, a1, a2 = centres[n, 0] - t[0], centres[n, 1] - t[1], centres[n, 2] - t[2]
+        z = R[0, 2] * a0 + R[1, 2] * a1 + R[2, 2] * a2
+        if z <= 1e-6 or z >= zmin[m]:
+            continue
+        x = R[0, 0] * a0 + R[1, 0] * a1 + R[2, 0] * a2
+        y = R[0, 1] * a0 + R[1, 1] * a1 + R[2, 1] * a2
+        u = math.floor(fx * x / z + cx)
+        w = math.floor(fy * y / z + cy)
+        if u < 0 or u >= W or w < 0 or w >= H:
+            continue
+        d = depth[w, u]
+        if d <= 0 or abs(z - d) > margin:
+            continue
+        if use_anchored and not anchored[w, u]:
+            continue
+        zmin[m] = z
+
+
+@_jit
 def march(state: np.ndarray, size: int, origin: np.ndarray, voxel: float, rot: np.ndarray, pos: np.ndarray,
           unit: np.ndarray, dist: np.ndarray, weight: np.ndarray, group: np.ndarray,
-          n_groups: int) -> tuple[np.ndarray, np.ndarray]:
+          n_groups: int, prox: np.ndarray, acc: np.ndarray, revisit: float) -> tuple[np.ndarray, np.ndarray]:
     """Rays ``unit`` [R, 3] (camera frame, unit length) of the frames (``rot`` [F, 3, 3], ``pos`` [F, 3]) sampled
     at distances ``dist`` [S] through the map (``state``, flat, ``size`` cells a side from ``origin``; outside it
     nothing blocks a ray). Per group of frames (``group`` [F], ids 0..n_groups-1, each group's frames contiguous):
     the sum over the
     unknown cells seen before each ray's first occupied cell of the largest ``weight`` [R, S] any of its samples
-    gave that cell (a cell counts once per group); per frame: the share of rays that end on an occupied cell."""
+    gave that cell, times the cell's ``prox`` [N] (how anchored its content will be: 1 everywhere = plain
+    information gain; a cell counts once per group), plus ``revisit`` times the accuracy gained on the first
+    occupied cell each ray meets: max(0, weight - ``acc`` [N]), ``acc`` the accuracy the cell was seen with so far
+    (the largest over the group's rays, likewise once per group); per frame: the share of rays that end on an
+    occupied cell."""
     F, Rn, S = rot.shape[0], unit.shape[0], dist.shape[0]
     gain = np.zeros(n_groups)
     hit = np.zeros(F)
@@ -75,9 +107,20 @@ def march(state: np.ndarray, size: int, origin: np.ndarray, voxel: float, rot: n
                 st = state[c]
                 if st == OCCUPIED:
                     hit[f] += 1.0
+                    if revisit > 0.0:
+                        w = weight[r, s] - acc[c]
+                        if w > 0.0:
+                            w *= revisit
+                            if stamp[c] != g:
+                                stamp[c] = g
+                                best[c] = w
+                                gain[g] += w
+                            elif w > best[c]:
+                                gain[g] += w - best[c]
+                                best[c] = w
                     break
                 if st == UNKNOWN:
-                    w = weight[r, s]
+                    w = weight[r, s] * prox[c]
                     if stamp[c] != g:
                         stamp[c] = g
                         best[c] = w

@@ -76,7 +76,9 @@ def test_scene_nodes_gaussians_clouds_frustums_candidates(viewer_store, viser_se
         assert len(cands) == len(data.iterations[k - 1].candidates)
         assert sum(c.startswith("chosen") for c in cands) == 1
     assert f"{ROOT}/iter_1/candidates/rejected_{rej:03d}" in n
-    assert not any("rejected" in x for x in n if x.startswith(f"{ROOT}/iter_2/"))
+    it2 = data.iterations[1]  # iteration 2 shows exactly the candidates its plan stored as rejected by G
+    assert {x.rsplit("/", 1)[1] for x in n if x.startswith(f"{ROOT}/iter_2/candidates/rejected_")} == \
+        {f"rejected_{c:03d}" for c in range(len(it2.candidates)) if it2.collides[c] and c != it2.chosen}
     # the latest cloud shows; an earlier iteration adds and shows its own, hiding later cameras
     assert n[f"{ROOT}/cloud/iter_2"].visible
     view.show_iteration(0)

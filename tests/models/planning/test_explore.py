@@ -279,8 +279,11 @@ def test_the_optimisation_is_not_tried_on_paths_it_cannot_repair():
 # The numba kernels against the numpy arithmetic they replaced
 # --------------------------------------------------------------------------------------------------
 def _reference_gain(vmap: VoxelMap, poses: np.ndarray, unit: np.ndarray, dist: np.ndarray, weight: np.ndarray,
-                    per_frame: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Every sample of every ray at once (the explorer's former numpy ``_cast``), reduced per frame or over all."""
+                    per_frame: bool, prox: np.ndarray | None = None, acc: np.ndarray | None = None,
+                    revisit: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Every sample of every ray at once (the explorer's former numpy ``_cast``), reduced per frame or over all;
+    unknown cells weighted by ``prox``, plus ``revisit`` x the accuracy gained (over ``acc``) on each ray's first
+    occupied cell."""
     d_world = np.einsum("rj,fij->fri", unit, poses[:, :3, :3])
     pts = poses[:, None, None, :3, 3] + dist[None, None, :, None] * d_world[:, :, None, :]
     idx, st = vmap.lookup(pts)
@@ -289,12 +292,21 @@ def _reference_gain(vmap: VoxelMap, poses: np.ndarray, unit: np.ndarray, dist: n
     first = np.where(hit, occ.argmax(2), len(dist))
     unk = (st == UNKNOWN) & (np.arange(len(dist))[None, None, :] < first[..., None])
     w = np.broadcast_to(weight[None], unk.shape)
+    if prox is not None:
+        w = w * prox[np.maximum(idx, 0)]
+    at_first = hit[..., None] & (np.arange(len(dist))[None, None, :] == first[..., None])
+    w_occ = np.broadcast_to(weight[None], unk.shape)
+    if acc is not None:
+        w_occ = revisit * np.maximum(0.0, w_occ - acc[np.maximum(idx, 0)])
     frames = range(len(poses)) if per_frame else [slice(None)]
     gain = []
     for f in frames:
         best: dict[int, float] = {}
         for c, x in zip(idx[f][unk[f]].ravel(), w[f][unk[f]].ravel()):
             best[int(c)] = max(best.get(int(c), 0.0), float(x))
+        if revisit > 0:
+            for c, x in zip(idx[f][at_first[f]].ravel(), w_occ[f][at_first[f]].ravel()):
+                best[int(c)] = max(best.get(int(c), 0.0), float(x))
         gain.append(sum(best.values()))
     return np.array(gain), hit.mean(1)
 
@@ -331,10 +343,38 @@ def test_the_ray_march_and_carving_kernels_agree_with_the_numpy_arithmetic():
         group = np.arange(6) if per_frame else np.zeros(6, dtype=np.int64)
         gain, hit = march(vmap.state, vmap.size, vmap.origin, float(vmap.voxel),
                           np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3]),
-                          np.ascontiguousarray(unit), dist, weight, group, len(ref_gain))
+                          np.ascontiguousarray(unit), dist, weight, group, len(ref_gain), np.ones(24 ** 3),
+                          np.zeros(24 ** 3), 0.0)
         assert ref_gain.sum() > 1
         np.testing.assert_allclose(gain, ref_gain, rtol=1e-9)
         np.testing.assert_allclose(hit, ref_hit)
+    # the accuracy-aware utility: unknown cells weighted by their expected anchoring, known ones gain by accuracy
+    n = 24 ** 3
+    prox, acc = rng.random(n), rng.random(n)
+    for per_frame in (True, False):
+        group = np.arange(6) if per_frame else np.zeros(6, dtype=np.int64)
+        plain, _ = _reference_gain(vmap, poses, unit, dist, weight, per_frame)
+        ref_gain, _ = _reference_gain(vmap, poses, unit, dist, weight, per_frame, prox, acc, 1.7)
+        gain, _ = march(vmap.state, vmap.size, vmap.origin, float(vmap.voxel),
+                        np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3]),
+                        np.ascontiguousarray(unit), dist, weight, group, len(ref_gain), prox, acc, 1.7)
+        assert not np.allclose(ref_gain, plain)
+        np.testing.assert_allclose(gain, ref_gain, rtol=1e-9)
+
+
+def test_the_voxel_map_keeps_the_nearest_range_each_occupied_cell_was_seen_at():
+    """``VoxelMap.zmin``: the input view sees the room's far wall at its depth; cells it never saw stay at inf."""
+    scene, state = room_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 24)
+    occ = np.flatnonzero(vmap.state == OCCUPIED)
+    seen = np.isfinite(vmap.zmin[occ])
+    assert seen.mean() > 0.5  # the cloud comes from the views: most occupied cells were seen
+    assert np.isinf(vmap.zmin[vmap.state != OCCUPIED]).all()
+    v = state.views[0]
+    idx = np.stack(np.unravel_index(occ[seen], (24, 24, 24)), -1)
+    centres = vmap.origin + (idx + 0.5) * vmap.voxel
+    z = (centres - v.c2w[:3, 3]) @ v.c2w[:3, 2]  # z-depth in the (only / nearest) view
+    np.testing.assert_allclose(vmap.zmin[occ[seen]], z)
 
 
 def test_the_retrace_goes_back_along_the_earlier_cameras_past_what_their_clip_put_on_the_path():
