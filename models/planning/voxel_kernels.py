@@ -17,6 +17,24 @@ UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 
 
 @_jit
+def _pixel(c: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float, cy: float, H: int,
+           W: int) -> tuple[float, int, int]:
+    """The z-depth of the point ``c`` [3] in the view (camera-to-world ``R``, position ``t``) and the pixel (u, w)
+    it falls in; u = -1 when it is behind the camera or outside the image."""
+    a0, a1, a2 = c[0] - t[0], c[1] - t[1], c[2] - t[2]
+    z = R[0, 2] * a0 + R[1, 2] * a1 + R[2, 2] * a2
+    if z <= 1e-6:
+        return z, -1, -1
+    x = R[0, 0] * a0 + R[1, 0] * a1 + R[2, 0] * a2
+    y = R[0, 1] * a0 + R[1, 1] * a1 + R[2, 1] * a2
+    u = math.floor(fx * x / z + cx)
+    w = math.floor(fy * y / z + cy)
+    if u < 0 or u >= W or w < 0 or w >= H:
+        return z, -1, -1
+    return z, u, w
+
+
+@_jit
 def carve(centres: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float, cy: float,
           depth: np.ndarray, anchored: np.ndarray, use_anchored: bool, margin: float, free: np.ndarray,
           behind: np.ndarray) -> None:
@@ -25,15 +43,8 @@ def carve(centres: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: floa
     (only where ``anchored`` when ``use_anchored``) and those more than ``margin`` behind it as ``behind``."""
     H, W = depth.shape
     for n in range(centres.shape[0]):
-        a0, a1, a2 = centres[n, 0] - t[0], centres[n, 1] - t[1], centres[n, 2] - t[2]
-        z = R[0, 2] * a0 + R[1, 2] * a1 + R[2, 2] * a2
-        if z <= 1e-6:
-            continue
-        x = R[0, 0] * a0 + R[1, 0] * a1 + R[2, 0] * a2
-        y = R[0, 1] * a0 + R[1, 1] * a1 + R[2, 1] * a2
-        u = math.floor(fx * x / z + cx)
-        w = math.floor(fy * y / z + cy)
-        if u < 0 or u >= W or w < 0 or w >= H:
+        z, u, w = _pixel(centres[n], R, t, fx, fy, cx, cy, H, W)
+        if u < 0:
             continue
         d = depth[w, u]
         if d <= 0:
@@ -53,16 +64,8 @@ def observe(centres: np.ndarray, cells: np.ndarray, R: np.ndarray, t: np.ndarray
     of the cell's (only pixels that are ``anchored`` when ``use_anchored``: copied, not invented, content)."""
     H, W = depth.shape
     for m in range(cells.shape[0]):
-        n = cells[m]
-        a0, a1, a2 = centres[n, 0] - t[0], centres[n, 1] - t[1], centres[n, 2] - t[2]
-        z = R[0, 2] * a0 + R[1, 2] * a1 + R[2, 2] * a2
-        if z <= 1e-6 or z >= zmin[m]:
-            continue
-        x = R[0, 0] * a0 + R[1, 0] * a1 + R[2, 0] * a2
-        y = R[0, 1] * a0 + R[1, 1] * a1 + R[2, 1] * a2
-        u = math.floor(fx * x / z + cx)
-        w = math.floor(fy * y / z + cy)
-        if u < 0 or u >= W or w < 0 or w >= H:
+        z, u, w = _pixel(centres[cells[m]], R, t, fx, fy, cx, cy, H, W)
+        if u < 0 or z >= zmin[m]:
             continue
         d = depth[w, u]
         if d <= 0 or abs(z - d) > margin:
