@@ -35,6 +35,18 @@ def _pixel(c: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: float, cx
 
 
 @_jit
+def _credit(c: int, g: int, w: float, stamp: np.ndarray, best: np.ndarray, gain: np.ndarray) -> None:
+    """Cell ``c`` counts once per group ``g``, with the best weight any of the group's rays gave it."""
+    if stamp[c] != g:
+        stamp[c] = g
+        best[c] = w
+        gain[g] += w
+    elif w > best[c]:
+        gain[g] += w - best[c]
+        best[c] = w
+
+
+@_jit
 def carve(centres: np.ndarray, R: np.ndarray, t: np.ndarray, fx: float, fy: float, cx: float, cy: float,
           depth: np.ndarray, anchored: np.ndarray, use_anchored: bool, margin: float, free: np.ndarray,
           behind: np.ndarray) -> None:
@@ -113,22 +125,8 @@ def march(state: np.ndarray, size: int, origin: np.ndarray, voxel: float, rot: n
                     if revisit > 0.0:
                         w = weight[r, s] - acc[c]
                         if w > 0.0:
-                            w *= revisit
-                            if stamp[c] != g:
-                                stamp[c] = g
-                                best[c] = w
-                                gain[g] += w
-                            elif w > best[c]:
-                                gain[g] += w - best[c]
-                                best[c] = w
+                            _credit(c, g, revisit * w, stamp, best, gain)
                     break
                 if st == UNKNOWN:
-                    w = weight[r, s] * prox[c]
-                    if stamp[c] != g:
-                        stamp[c] = g
-                        best[c] = w
-                        gain[g] += w
-                    elif w > best[c]:
-                        gain[g] += w - best[c]
-                        best[c] = w
+                    _credit(c, g, weight[r, s] * prox[c], stamp, best, gain)
     return gain, hit / max(Rn, 1)
