@@ -83,7 +83,6 @@ class VoxelMap:
     state: np.ndarray  # [size**3] uint8 (UNKNOWN, FREE, OCCUPIED), flat index (i * size + j) * size + k
     occluded: np.ndarray  # [size**3] bool: behind a surface some view observed
     to_free: np.ndarray | None = None  # [size**3] distance (cells) to the nearest free cell
-    to_occupied: np.ndarray | None = None  # [size**3] distance (cells) to the nearest occupied cell
     zmin: np.ndarray | None = None  # [size**3] nearest z-depth any view saw the (occupied) cell at; inf: none
 
     @classmethod
@@ -95,12 +94,7 @@ class VoxelMap:
         free = np.zeros(len(centres), dtype=bool)
         behind = np.zeros(len(centres), dtype=bool)
         for v in state.views:  # every depth map carves free space in front of what it saw
-            depth = np.ascontiguousarray(v.depth, dtype=np.float64)
-            anchored = np.ones((1, 1), dtype=bool) if v.anchored is None else np.ascontiguousarray(v.anchored, bool)
-            R = np.ascontiguousarray(v.c2w[:3, :3], dtype=np.float64)
-            t = np.ascontiguousarray(v.c2w[:3, 3], dtype=np.float64)
-            carve(centres, R, t, float(v.K[0, 0]), float(v.K[1, 1]), float(v.K[0, 2]), float(v.K[1, 2]), depth,
-                  anchored, v.anchored is not None, voxel, free, behind)
+            carve(centres, *cls._view_args(v), voxel, free, behind)
         grid = np.full(len(centres), UNKNOWN, dtype=np.uint8)
         grid[free] = FREE
         occ = cls._cells(origin, voxel, cells, points)
@@ -108,20 +102,30 @@ class VoxelMap:
         from scipy.ndimage import distance_transform_edt
 
         to_free = distance_transform_edt(grid.reshape(cells, cells, cells) != FREE).reshape(-1)
-        to_occ = distance_transform_edt(grid.reshape(cells, cells, cells) != OCCUPIED).reshape(-1)
         zmin = np.full(len(centres), np.inf)
         if len(occ):
             zo = np.full(len(occ), np.inf)
             for v in state.views:  # the nearest range each occupied cell was seen at (copied content only)
-                depth = np.ascontiguousarray(v.depth, dtype=np.float64)
-                anchored = np.ones((1, 1), dtype=bool) if v.anchored is None else \
-                    np.ascontiguousarray(v.anchored, bool)
-                R = np.ascontiguousarray(v.c2w[:3, :3], dtype=np.float64)
-                t = np.ascontiguousarray(v.c2w[:3, 3], dtype=np.float64)
-                observe(centres, occ.astype(np.int64), R, t, float(v.K[0, 0]), float(v.K[1, 1]), float(v.K[0, 2]),
-                        float(v.K[1, 2]), depth, anchored, v.anchored is not None, voxel, zo)
+                observe(centres, occ.astype(np.int64), *cls._view_args(v), voxel, zo)
             zmin[occ] = zo
-        return cls(origin, voxel, cells, grid, behind & (grid != FREE), to_free, to_occ, zmin)
+        return cls(origin, voxel, cells, grid, behind & (grid != FREE), to_free, zmin)
+
+    @staticmethod
+    def _view_args(v) -> tuple:
+        """A view as the voxel kernels take it: rotation, position, fx, fy, cx, cy, depth, anchored mask, whether
+        the mask applies."""
+        anchored = np.ones((1, 1), dtype=bool) if v.anchored is None else np.ascontiguousarray(v.anchored, bool)
+        return (np.ascontiguousarray(v.c2w[:3, :3], dtype=np.float64),
+                np.ascontiguousarray(v.c2w[:3, 3], dtype=np.float64), float(v.K[0, 0]), float(v.K[1, 1]),
+                float(v.K[0, 2]), float(v.K[1, 2]), np.ascontiguousarray(v.depth, dtype=np.float64), anchored,
+                v.anchored is not None)
+
+    def to_occupied(self) -> np.ndarray:
+        """[size**3] distance (cells) to the nearest occupied cell (only ``explore_anchor_falloff`` needs it)."""
+        from scipy.ndimage import distance_transform_edt
+
+        n = self.size
+        return distance_transform_edt(self.state.reshape(n, n, n) != OCCUPIED).reshape(-1)
 
     def reach(self, x: np.ndarray) -> np.ndarray:
         """Distance (world units) from positions to the nearest free cell (0 inside free space; inf outside)."""
@@ -281,8 +285,8 @@ class _Scorer:
         z = self.dist[None, :] / norm[:, None]  # z-depth of each sample [R, S]
         self.weight = np.ascontiguousarray(self.accuracy(z))
         n_cells = vmap.size ** 3
-        if cfg.explore_anchor_falloff > 0 and vmap.to_occupied is not None:
-            s = np.maximum(0.0, vmap.to_occupied - 1.0) * vmap.voxel
+        if cfg.explore_anchor_falloff > 0:
+            s = np.maximum(0.0, vmap.to_occupied() - 1.0) * vmap.voxel
             self.prox = np.ascontiguousarray(np.exp(-s / (cfg.explore_anchor_falloff * state.d0)))
         else:
             self.prox = np.ones(n_cells)

@@ -137,10 +137,11 @@ def test_the_clips_first_frames_may_stand_within_one_map_cell_of_the_start():
     assert not flags[8].any()  # all within one 1.1-unit cell of the start
 
 
-def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying():
+@pytest.mark.parametrize("falloff", [0.0, 0.05])  # 0.05: unknown cells weighted by their distance to known content
+def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying(falloff):
     scene, state = room_state()
     assert PLANNERS["explorer"] is ExplorerPlanner
-    cfg = PlanConfig(explore_candidates=30)
+    cfg = PlanConfig(explore_candidates=30, explore_anchor_falloff=falloff)
     res = ExplorerPlanner(cfg).plan(state, np.random.default_rng(0))
     assert res.trajectory.shape == (21, 4, 4) and np.array_equal(res.trajectory[0], state.current)
     assert res.masks is None and len(res.candidates) == len(res.scores) == len(res.collides)
