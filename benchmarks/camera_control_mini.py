@@ -123,7 +123,7 @@ CONDITIONS = ("first", "all")  # the I2V condition video: frame 0 then zeros, or
 CONDITION = "first"
 FLIP = False  # training clips also mirrored left-right (flipped_clip)
 FLOW_SHIFT = 3.0  # the sampler's flow shift (the training loss's timestep shift is the product's own)
-CAMERA_GUIDANCE = 3.0  # sampling: classifier-free guidance weight on the camera (CameraGuided); chosen on dev seeds
+CAMERA_GUIDANCE = 7.0  # sampling: classifier-free guidance weight on the camera (CameraGuided); chosen on dev seeds
 
 SIZES = {  # training scenes (8 clips each), held-out scenes (8 clips each), steps of the two stages
     "quick": dict(train_scenes=12, eval_scenes=3, base_steps=2000, control_steps=1500),
