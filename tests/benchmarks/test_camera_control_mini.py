@@ -180,3 +180,36 @@ def test_condition_all_gives_frame_0_to_every_latent_frame(mini, held):
         np.testing.assert_array_equal(every[:, f], every[:, 0])
     with pytest.raises(ValueError, match="condition"):
         mini.make_clip(enc, c["truth"], c["poses"], K, "x", "middle")
+
+
+def test_saved_models_load_bit_for_bit_and_only_with_the_same_training_settings(mini, tmp_path):
+    import argparse
+
+    import torch
+
+    from navcrafter.models.synthesis.camcontrol import build_camera_wan
+
+    args = argparse.Namespace(heads=2, head_dim=8, layers=1, ffn=16, adapter_channels=4, reference_frames=1,
+                              seed=10, resolution=16, frames=5, lr=1e-3, warmup=10, condition="first", flip=False,
+                              texture_scale=4.0, autoencoder="pca", latent_channels=4)
+    size = {"train_scenes": 2, "base_steps": 3, "control_steps": 2}
+    base_cfg, control_cfg = mini.model_configs(args, 4)
+    model, base = build_camera_wan(base_cfg, control_cfg, seed=0), build_camera_wan(base_cfg, control_cfg, seed=1)
+    sig = mini.training_signature(args, size)
+    path = tmp_path / "m.safetensors"
+    mini.save_models(path, model, base, sig, {"base_final_loss": 0.5})
+    m2, b2 = build_camera_wan(base_cfg, control_cfg, seed=2), build_camera_wan(base_cfg, control_cfg, seed=3)
+    assert mini.load_models(path, m2, b2, sig) == {"base_final_loss": 0.5}
+    for a, b in ((model, m2), (base, b2)):
+        for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+            assert ka == kb and torch.equal(va, vb)
+    assert any(not torch.equal(va, vb) for va, vb in zip(model.state_dict().values(), base.state_dict().values()))
+    with pytest.raises(ValueError, match="base_steps"):
+        mini.load_models(path, m2, b2, mini.training_signature(args, {**size, "base_steps": 4}))
+
+
+def test_parse_sweep(mini):
+    assert mini.parse_sweep("3:0.7:40, 5:1:20:5") == [(3.0, 0.7, 40, mini.FLOW_SHIFT), (5.0, 1.0, 20, 5.0)]
+    assert mini.parse_sweep(None) == []
+    with pytest.raises(ValueError, match="camera_guidance:lora_scale:sampling_steps"):
+        mini.parse_sweep("3:0.7")
