@@ -156,14 +156,22 @@ def demo_photos(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def export_cache(request):
+def export_cache(request, tmp_path_factory):
     """``export_cache(dest, name, args, export)``: the files of ``export(folder)`` in ``dest`` (see
     ``helpers.cached_export``). The tiny ONNX exports take about 2 minutes of a session on 2 cores, so they
     are kept in pytest's cache folder (.pytest_cache) under a hash of the package's models/ code, the calling
     test file, ``args`` and the torch/ONNX versions, and made again only when one of those changes.
-    ``pytest --cache-clear`` or ``-p no:cacheprovider`` exports afresh."""
+    ``pytest --cache-clear`` or ``-p no:cacheprovider`` exports afresh: then into the run's own temporary
+    folder, made once per run however many pytest-xdist workers ask (each worker has its own session
+    fixtures; the run's base temp folder, the parent of a worker's, is shared by them)."""
     cache = getattr(request.config, "cache", None)
-    return functools.partial(cached_export, cache.mkdir("navcrafter-onnx-exports") if cache else None)
+    if cache is not None:
+        folder = cache.mkdir("navcrafter-onnx-exports")
+    else:
+        base = tmp_path_factory.getbasetemp()
+        run = base.parent if hasattr(request.config, "workerinput") else base  # xdist worker: the run's folder
+        folder = run / "navcrafter-onnx-exports"
+    return functools.partial(cached_export, folder)
 
 
 @pytest.fixture(scope="session")

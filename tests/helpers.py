@@ -82,29 +82,33 @@ def cached_export(cache: Path | None, dest: Path, name: str, args: dict, export:
 
     With a ``cache`` folder the files come from an export made earlier by the same code (same models/ tree,
     same calling test file, same ``args``, same torch/ONNX stack: see ``_export_key``), and a missing one is
-    made once and kept. ``cache=None`` exports into ``dest`` every time. ``args`` must name every value the
-    export depends on that is not in those files (sizes, seeds, configs).
+    made once and kept. A lock file beside the entry makes concurrent callers (the pytest-xdist workers of one
+    run, or two sessions sharing pytest's cache) wait for the one that exports instead of exporting again.
+    ``cache=None`` exports into ``dest`` every time. ``args`` must name every value the export depends on that
+    is not in those files (sizes, seeds, configs).
     """
     if cache is None:
         return json.loads(json.dumps(export(Path(dest))))
+    from filelock import FileLock
+
     caller = Path(sys._getframe(1).f_code.co_filename)  # the fixture that asks (conftest's is a partial)
     cache = Path(cache)
+    cache.mkdir(parents=True, exist_ok=True)
     entry = cache / f"{name}-{_export_key(name, args, caller)}"
-    if not (entry / "result.json").is_file():
-        cache.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(dir=cache, prefix=f".{name}-"))
-        try:
-            (tmp / "result.json").write_text(json.dumps(export(tmp / "files")))
-            os.replace(tmp, entry)  # complete or absent; a concurrent session may have put it there first
-        except OSError:
-            if not (entry / "result.json").is_file():
-                raise
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-        versions = sorted(cache.glob(f"{name}-*"), key=lambda p: p.stat().st_mtime, reverse=True)
-        for old in versions[_KEEP_PER_NAME:]:
-            shutil.rmtree(old, ignore_errors=True)
-    shutil.copytree(entry / "files", Path(dest), dirs_exist_ok=True)  # a copy: no test can change the cached files
+    with FileLock(str(entry) + ".lock"):
+        if not (entry / "result.json").is_file():
+            tmp = Path(tempfile.mkdtemp(dir=cache, prefix=f".{name}-"))
+            try:
+                (tmp / "result.json").write_text(json.dumps(export(tmp / "files")))
+                os.replace(tmp, entry)  # complete or absent
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+            versions = sorted((p for p in cache.glob(f"{name}-*") if p.is_dir()),
+                              key=lambda p: p.stat().st_mtime, reverse=True)
+            for old in versions[_KEEP_PER_NAME:]:
+                shutil.rmtree(old, ignore_errors=True)
+                Path(str(old) + ".lock").unlink(missing_ok=True)
+        shutil.copytree(entry / "files", Path(dest), dirs_exist_ok=True)  # a copy: no test can change the cached files
     return json.loads((entry / "result.json").read_text())
 
 
