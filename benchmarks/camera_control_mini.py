@@ -109,6 +109,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -738,19 +739,19 @@ def main(argv: list[str] | None = None) -> int:
         mean_videos(untrained, held_clips, enc, seed=args.eval_seed, device=args.device), held_flat)]))
     print(f"base mean video {base_mean:.2f} dB on frames 1.. (copy frame 0: {copy0:.2f} dB)", flush=True)
 
+    fixed = dict(seed=args.eval_seed, device=args.device, base=untrained)  # every sampling call below
     sweep = []  # development only: the trained control under other sampling settings
     for w, lora_s, steps_s, shift_s in parse_sweep(args.sweep):
         t1 = time.perf_counter()
         m = measure(sample_videos(model, held_clips, enc, plucker_from=None, steps=steps_s, lora=lora_s,
-                                  shift=shift_s, seed=args.eval_seed, device=args.device, base=untrained,
-                                  camera_guidance=w), held)
+                                  shift=shift_s, camera_guidance=w, **fixed), held)
         sweep.append({"camera_guidance": w, "lora_scale": lora_s, "sampling_steps": steps_s, "flow_shift": shift_s,
                       **{k: m[k] for k in ("direction_accuracy", "direction_accuracy_se", "r_err", "t_err", "psnr",
                                            "ssim", "by_family")}, "seconds": time.perf_counter() - t1})
         print(f"sweep w {w:g} lora {lora_s:g} steps {steps_s} shift {shift_s:g}: direction "
               f"{m['direction_accuracy']:.3f} ± {m['direction_accuracy_se']:.3f}, R_err {m['r_err']:.2f}, "
               f"T_err {m['t_err']:.3f}, PSNR "
-              f"{m['psnr']:.2f} ({time.perf_counter() - t1:.0f} s, load {__import__('os').getloadavg()[0]:.1f})",
+              f"{m['psnr']:.2f} ({time.perf_counter() - t1:.0f} s, load {os.getloadavg()[0]:.1f})",
               flush=True)
         (out / "sweep.json").write_text(json.dumps(sweep, indent=1))
     if args.sweep_only:
@@ -758,8 +759,7 @@ def main(argv: list[str] | None = None) -> int:
 
     t0 = time.perf_counter()
     lora, shift = args.lora_scale, FLOW_SHIFT
-    kw = dict(steps=args.sampling_steps, lora=lora, shift=shift, seed=args.eval_seed, device=args.device,
-              base=untrained, camera_guidance=args.camera_guidance)
+    kw = dict(steps=args.sampling_steps, lora=lora, shift=shift, camera_guidance=args.camera_guidance, **fixed)
     v_trained = sample_videos(model, held_clips, enc, plucker_from=None, **kw)
     # the untrained control is zero, so it equals the base exactly and guidance against the base changes nothing
     v_untrained = sample_videos(untrained, held_clips, enc, plucker_from=None, **{**kw, "camera_guidance": 1.0})
@@ -806,7 +806,7 @@ def main(argv: list[str] | None = None) -> int:
             "sampling_steps": args.sampling_steps, "lora_scale_inference": lora, "flow_shift": shift,
             "guidance_scale": 1.0, "camera_guidance": args.camera_guidance, "texture_scale": args.texture_scale,
             "condition": args.condition, "flip": args.flip, "quick": bool(args.quick), "device": args.device,
-            "threads": args.threads, "load_average_at_end": list(__import__("os").getloadavg()),
+            "threads": args.threads, "load_average_at_end": list(os.getloadavg()),
             "base_trainable_parameters": trainable_parameters(model, base_cfg),
             "control_trainable_parameters": trainable_parameters(model, control_cfg),
             **losses,
