@@ -52,6 +52,43 @@ def pytest_collection_modifyitems(config, items):
     if unmarked:
         raise pytest.UsageError("tests that start a server must be marked @pytest.mark.system:\n  "
                                 + "\n  ".join(unmarked))
+    schedule_for_xdist(items)
+
+
+def module_fixture_modules(items) -> set[str]:
+    """The test modules that define a module-scoped fixture of their own (a server, a built image, a scene run
+    once): their tests must stay on one pytest-xdist worker, or the fixture is set up again on the other."""
+    modules = set()
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        for defs in item._fixtureinfo.name2fixturedefs.values():
+            if any(d.scope == "module" and d.baseid == module for d in defs):
+                modules.add(module)
+    return modules
+
+
+def schedule_for_xdist(items) -> None:
+    """Orders the run for ``--dist loadgroup --no-loadscope-reorder`` (deploy/local/run-tests.sh): each module
+    with module fixtures becomes one work unit (an ``xdist_group`` named after it), and the long units are handed
+    out first (those modules when they hold a slow or system test, then every other slow or system test, then the
+    other modules with module fixtures), the short ones last, so that neither core idles at the end while the
+    other finishes a long module alone. Stable: the order inside each rank is the collection's, the same in every
+    worker (xdist requires it)."""
+    grouped = module_fixture_modules(items)
+    long_modules = {it.nodeid.split("::")[0] for it in items
+                    if it.get_closest_marker("slow") or it.get_closest_marker("system")}
+
+    def rank(item) -> int:
+        module = item.nodeid.split("::")[0]
+        if module in grouped:
+            return 0 if module in long_modules else 2
+        return 1 if item.get_closest_marker("slow") or item.get_closest_marker("system") else 3
+
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        if module in grouped:
+            item.add_marker(pytest.mark.xdist_group(module))
+    items.sort(key=rank)
 
 
 # Processes of our own that a test may start only when marked ``subprocess`` (or ``system``): Python (the CLI, a

@@ -8,4 +8,5 @@ bash deploy/local/setup.sh test
 export PREFECT_SERVER_ANALYTICS_ENABLED="${PREFECT_SERVER_ANALYTICS_ENABLED:-false}"
 .venv/bin/ruff check --quiet .
 .venv/bin/lint-imports --no-cache --no-logo  # the layers and no cycles ([tool.importlinter] in pyproject.toml)
-exec .venv/bin/python -m pytest -n "${NAVCRAFTER_TEST_WORKERS:-2}" --dist worksteal "$@"
+# loadgroup: each module with module fixtures runs on one worker, long units first (tests/conftest.py)
+exec .venv/bin/python -m pytest -n "${NAVCRAFTER_TEST_WORKERS:-2}" --dist loadgroup --no-loadscope-reorder "$@"
