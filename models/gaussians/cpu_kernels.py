@@ -762,7 +762,8 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
     own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
     front over the pairs forward recorded (``composite_forward``'s ``record``), so each pixel sees its
     contributions in reverse order (transmittance recovered by division from forward's final transmittance).
-    Per-entry sums are float64."""
+    Per-entry sums are in the compositing dtype (float32 in a fit; float64 for the features of counts other than
+    3 and 4); :func:`gather_slots` adds the entries of a Gaussian in float64."""
     alpha_clamp, half, one, zero = cst[0], cst[3], cst[4], cst[5]
     n_cam = v_render.shape[0]
     n_feat = v_render.shape[3]
@@ -795,8 +796,10 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                     behind[p * n_feat + f] = T[p] * backgrounds[c, f] if use_bg else zero
                     vr[p * n_feat + f] = v_render[c, py, px, f]
         for k in range(hi - 1, lo - 1, -1):
-            g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
-            g0 = g1 = g2 = g3 = 0.0  # the unrolled features' sums (gcol otherwise)
+            # per-entry sums in the compositing dtype (float32 in a fit: ~12 pairs per entry at 100k x 256²; no
+            # float64 conversion and add per term), summed over entries in float64 by gather_slots
+            g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = zero
+            g0 = g1 = g2 = g3 = zero  # the unrolled features' sums (gcol otherwise)
             for f in range(n_feat):
                 gcol[f] = 0.0
             j0 = pend[k - 1] if k > lo else pbase[t]
