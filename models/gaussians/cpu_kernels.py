@@ -496,7 +496,13 @@ def bin_gaussians(bounds, depth_bits, tile_w, tile_h, offsets, gids, order_out, 
 # no float64 literal promotes the per-pixel arithmetic. Fast-math without ``nnan``/``ninf`` (the code compares
 # and clamps; no infinities or NaNs are assumed away); the per-tile code is the same on any thread count.
 SIGMA_MARGIN = 1e-3  # a sigma cut's margin above ln(255 o): far above float32 rounding of the row spans
-NARROW_BOX = 4  # boxes this wide (pixels) or narrower skip the row spans: testing each pixel costs less
+NARROW_BOX = 8  # boxes this wide (pixels) or narrower skip the row spans: testing each pixel costs less
+# The pixel boxes bound the ellipse sigma <= ln(255 o) + SIGMA_MARGIN (the compositing's cut) plus this margin
+# (pixels) against rounding: every pixel the compositing can accept, not a pixel of slack around it (the PyTorch
+# renderer enumerates boxes with a whole pixel of margin: same pixels accepted, more candidates). Tiny splats
+# composite ~2 pixels per row, so rows and entries, not pixels, are the forward pass's cost: the pixel of margin
+# on every side made ~1.5 rows and ~1.2 entries of work per Gaussian for nothing.
+BOX_MARGIN = 1e-3
 
 
 def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
@@ -527,9 +533,9 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
       tiles of ``tile_w`` x ``tile_h``; empty when culled);
     - ``rec`` [C, N, 13 + D] (the compositing dtype): the 2D mean, conic, opacity, the ``sigma`` above which ``o
       exp(-sigma) < 1/255`` for certain (``ln(255 o)`` plus ``SIGMA_MARGIN``; pairs below it take the exact
-      test), ``1 / q0``, the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 ln(255
-      o)`` plus a pixel of margin (the PyTorch renderer enumerates the same boxes; empty when culled or never
-      visible; clipped to the image and to the rectangle of its ``tile_size`` squares, as the PyTorch
+      test), ``1 / q0``, the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 (ln(255
+      o) + SIGMA_MARGIN)`` plus ``BOX_MARGIN`` (the pixels the PyTorch renderer's boxes can accept; empty when
+      culled or never visible; clipped to the image and to the rectangle of its ``tile_size`` squares, as the PyTorch
       renderer's tiles clip it) and its features;
     - ``cbounds`` [C, N, 4] = the compositing tiles (side ``ctile``) the box touches (empty with the box);
     - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits);
@@ -563,12 +569,12 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
             rec[c, g, R_INVQ0] = 1.0 / q0 if q0 > 0.0 else 0.0
             for f in range(n_feat):
                 rec[c, g, R_FEAT + f] = colors[c, g, f]
-            extent = 2.0 * math.log(max(o * 255.0, 1.0))
+            extent = 2.0 * (math.log(max(o * 255.0, 1.0)) + SIGMA_MARGIN)
             x0 = x1 = y0 = y1 = 0
-            if radii[c, g] > 0 and extent > 0.0:
+            if radii[c, g] > 0 and o * 255.0 > 1.0:
                 inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
-                half_w = math.sqrt(extent * q2 * inv_det) + 1.0
-                half_h = math.sqrt(extent * q0 * inv_det) + 1.0
+                half_w = math.sqrt(extent * q2 * inv_det) + BOX_MARGIN
+                half_h = math.sqrt(extent * q0 * inv_det) + BOX_MARGIN
                 u, v = float(means2d[c, g, 0]) - 0.5, float(means2d[c, g, 1]) - 0.5
                 x0 = max(min(max(math.floor(u - half_w), 0), width), bx0 * tile_size)
                 x1 = min(min(max(math.floor(u + half_w) + 1, 0), width), bx1 * tile_size)
@@ -756,7 +762,8 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
     own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to
     front over the pairs forward recorded (``composite_forward``'s ``record``), so each pixel sees its
     contributions in reverse order (transmittance recovered by division from forward's final transmittance).
-    Per-entry sums are float64."""
+    Per-entry sums are in the compositing dtype (float32 in a fit; float64 for the features of counts other than
+    3 and 4); :func:`gather_slots` adds the entries of a Gaussian in float64."""
     alpha_clamp, half, one, zero = cst[0], cst[3], cst[4], cst[5]
     n_cam = v_render.shape[0]
     n_feat = v_render.shape[3]
@@ -789,8 +796,10 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
                     behind[p * n_feat + f] = T[p] * backgrounds[c, f] if use_bg else zero
                     vr[p * n_feat + f] = v_render[c, py, px, f]
         for k in range(hi - 1, lo - 1, -1):
-            g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = 0.0
-            g0 = g1 = g2 = g3 = 0.0  # the unrolled features' sums (gcol otherwise)
+            # per-entry sums in the compositing dtype (float32 in a fit: ~12 pairs per entry at 100k x 256²; no
+            # float64 conversion and add per term), summed over entries in float64 by gather_slots
+            g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = zero
+            g0 = g1 = g2 = g3 = zero  # the unrolled features' sums (gcol otherwise)
             for f in range(n_feat):
                 gcol[f] = 0.0
             j0 = pend[k - 1] if k > lo else pbase[t]

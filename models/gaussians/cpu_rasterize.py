@@ -354,7 +354,7 @@ class _Composite(torch.autograd.Function):
         dt = ent.dtype
         vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_view(v_render, dt)
         va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_view(v_alphas[..., 0], dt)
-        slots = _SCRATCH.get("slots", (len(gids), 6 + d), dt)  # per-entry sums (float64 in the kernel), in the dtype
+        slots = _SCRATCH.get("slots", (len(gids), 6 + d), dt)  # per-entry sums, in the dtype
         # the gradients in the inputs' dtype (float64 sums), handed to PyTorch as views of one array
         grads = np.zeros((n_cam, n, 6 + d), dt)
         with _LOCK:
