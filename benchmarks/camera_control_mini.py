@@ -60,9 +60,10 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   accuracy 0.81 / 0.88 / 0.91 and R_err 10.8 / 10.0 / 9.2 °/frame (PSNR 15.3 / 15.3 / 15.0 dB); LoRA 1.0 instead
   of the product's 0.7 was not better (w 5: 0.88, w 7: 0.88), so the LoRA stays 0.7. Larger w (outside the
   cited range) was not tried. The results report the trained control without guidance too. Also measured on the
-  same development clips (not adopted): 20 or 10 sampling steps instead of 40 keep 0.91 (R_err 9.3 / 9.4) at half
-  / a quarter of the sampling time; a base stage of 4000 instead of 2000 steps lowers R_err to 7.3 °/frame but
-  gives 0.81 direction accuracy at w = 7 (results README).
+  same development clips (not adopted then; 20 steps are, with the longer stages below): 20 or 10 sampling
+  steps instead of 40 keep 0.91 (R_err 9.3 / 9.4) at half / a quarter of the sampling time; a base stage of
+  4000 instead of 2000 steps alone lowers R_err to 7.3 °/frame but gives 0.81 direction accuracy at w = 7
+  (results README).
 * **Longer stages, 20 sampling steps** (the ``--quick`` preset since 2026-12-03 evening: base 4000 + control 3000
   steps, ``SAMPLING_STEPS`` = 20; before: 2000 + 1500, 40 steps). Development run (training scenes 10–21,
   development scenes 0–7 = 64 clips, guidance 7, LoRA 0.7, 20 steps, the same clips and sampling seeds for
@@ -100,9 +101,9 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 19.4 min at load 8-10
-                          # (results: benchmarks/results/camera-control-mini/quick; with guidance 3 the same
-                          # training and sampling took 8.0 min on near-idle cores; guidance 7 costs as much)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 16.0 min at load 4.6-7.6
+                          # (results: benchmarks/results/camera-control-mini/quick; base 4000 + control 3000
+                          # steps; ~9 min estimated from step times at load 1.4-4, not measured idle)
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
                           # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
                           # (results: benchmarks/results/camera-control-mini/full)
