@@ -414,6 +414,8 @@ def markdown(result: dict) -> str:
     lines += [f"**Seeds {a}-{b}** ({len(rows)} scene{'' if len(rows) == 1 else 's'}: {', '.join(kinds)}). "
               + ("This range overlaps the development range 0-9 (tuning happens there): not an evaluation."
                  if dev else "A held-out range (development: seeds 0-9)."), "", _setup(result), "",
+              *([f"'ours' is a variant of the explorer: plan settings {result['ours_plan']} (--ours-plan).", ""]
+                if result.get("ours_plan") else []),
               "| Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 10 cm ↑ | cov 1 % d0 ↑ | AUC ↑ | precision ↑ | "
               "F 2 cm ↑ | collisions ↓ | close ↓ | planner s/it |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

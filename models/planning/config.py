@@ -112,9 +112,15 @@ class PlanConfig(_Section):
         "pixel with a depth of a frame at least explore_invented_share of whose pixels are anchored; a frame's empty "
         "pixels stay unknown) or 'all' (every pixel, as the input photo's, its empty pixels opened as sky too).")
     explore_invented_share: float = Field(
-        0.3, ge=0, le=1, description="explorer, explore_free_space 'share': the anchored share of a generated frame "
-        "from which its invented pixels carve free space too (0.3 = explore_anchor, the share of known content the "
-        "scorer asks each frame to keep: a frame below it is mostly the video model's invention).")
+        0.0, ge=0, le=1, description="explorer, explore_free_space 'share': the anchored share of a generated frame "
+        "from which its invented pixels carve free space too (0: every generated frame carves with every pixel that "
+        "has a depth; development seeds 0-9: 0 with explore_follow_error 0.15 saw more than 0.3, 0.4 and 0.5 in "
+        "rooms and table-tops, benchmarks/results/planning-explore7-dev; not the default: see there).")
+    explore_follow_error: float | None = Field(
+        None, ge=0, description="explorer: the follow error its G allows per unit of path (None: plan.follow_error). "
+        "0.15 with explore_free_space 'share' (threshold 0) was measured on development seeds: the longer moves into "
+        "generated free space met the drift's tail (development rooms 0 and 4: true cameras drifted 14 % and 22 % of "
+        "the path into surfaces the plan cleared by 0.4-0.6 m; benchmarks/results/planning-explore7-dev).")
     explore_sky: Literal["free", "unknown"] = Field(
         "free", description="explorer: what the input photo's pixels of no depth (sky: the geometry found no "
         "surface on their ray) tell: 'free' (free space without end along the ray) or 'unknown'.")
@@ -140,7 +146,7 @@ class PlanConfig(_Section):
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
                                                 "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
-                                                "explore_invented_share": 0.3,
+                                                "explore_invented_share": 0.0, "explore_follow_error": None,
                                                 "explore_reach": 1.0, "explore_sky": "free",
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 

@@ -411,7 +411,8 @@ class ExplorerPlanner:
         free_views = carving_views(seen.views, cfg.explore_free_space, cfg.explore_invented_share)
         vmap = VoxelMap.build(seen, points, cfg.explore_voxels, free_views=free_views)
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
-                               follow_error=cfg.follow_error, vmap=vmap, prefix=cfg.explore_prefix,
+                               follow_error=cfg.follow_error if cfg.explore_follow_error is None
+                               else cfg.explore_follow_error, vmap=vmap, prefix=cfg.explore_prefix,
                                reach=cfg.explore_reach, visibility_views=free_views)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
