@@ -45,7 +45,7 @@ def planning_state(scene: SceneStore, k: int, config: RunConfig) -> PlanningStat
     for j in range(1, k):
         lifted = scene.read_all(LIFT, j)
         anchored = [None] * len(lifted["c2w"])
-        if cfg.strategy == "explorer" and cfg.explore_free_space == "anchored":  # what clip j copied from the cloud
+        if cfg.strategy == "explorer" and cfg.explore_free_space != "all":  # what clip j copied from the cloud
             prior = load_cloud(scene, j - 1).points
             anchored = [anchored_pixels(d, c, K, prior, point_size, cfg.explore_anchor_tolerance)
                         for c, K, d in zip(lifted["c2w"], lifted["K"], lifted["depth"])]

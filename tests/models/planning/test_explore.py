@@ -20,6 +20,7 @@ from navcrafter.models.planning.explore import (
     ExplorerPlanner,
     VoxelMap,
     anchored_pixels,
+    carving_views,
     open_sky,
     repairable,
     shaped_trajectory,
@@ -176,6 +177,35 @@ def test_a_generated_frame_carves_free_space_only_where_it_copied_the_cloud_it_w
     assert det_all._visibility(inside_box)[0][0]
     assert VoxelMap.build(dataclasses.replace(state, views=trusting), state.cloud_points, 48).lookup(inside_box)[1][0] \
         == FREE
+
+
+def test_share_a_mostly_anchored_frame_carves_with_every_pixel_a_mostly_invented_one_with_its_anchored_pixels():
+    """``explore_free_space: share``: the same invented frame (it leaves out the box at x = 2.3) carves the box's
+    place free only when at least ``explore_invented_share`` of its pixels are anchored; its empty pixels stay
+    unknown (not sky) either way, and the input photo is untouched."""
+    state = wall_state()
+    right = look_at(np.zeros(3), np.array([5.0, 0.0, 0.0]))
+    invented = scene_of(box(-3, -3, 4.0, 6, 6, 0.2), box(5, -3, -3, 0.2, 6, 8))
+    _, (gen,) = observe(invented, [right], K)
+    depth = gen.depth.copy()
+    depth[: depth.shape[0] // 4] = 0.0  # the top quarter empty: no depth there
+    inside_box, up_ahead = np.array([[2.3, 0.0, 0.0]]), np.array([[4.0, -3.0, 0.0]])
+    mask = np.zeros(depth.shape, bool)
+    mask[-depth.shape[0] // 3:] = True  # its lower third anchored (a third of its pixels: 0.33)
+    views = [state.views[0], SeenView(right, K.K, depth, mask)]
+    for share, freed in ((0.3, True), (0.5, False)):
+        carving = carving_views(views, "share", share)
+        assert carving[0] is views[0] and (carving[1].anchored.all() if freed else carving[1] is views[1])
+        vmap = VoxelMap.build(dataclasses.replace(state, views=views), state.cloud_points, 48, free_views=carving)
+        det = ExplorerDetector(state.cloud_points, 0.25, views, thin=False, vmap=vmap, visibility_views=carving)
+        assert det._visibility(inside_box)[0][0] == freed
+        assert (vmap.lookup(inside_box)[1][0] == FREE) == freed
+        opened = open_sky(carving)
+        assert not np.isinf(opened[1].depth).any()  # a generated frame's empty pixels stay unknown
+        assert not CollisionDetector(state.cloud_points, 0.25, views, thin=False,
+                                     visibility_views=opened)._visibility(up_ahead)[0][0]
+    for mode in ("anchored", "all"):
+        assert carving_views(views, mode, 0.0) is views
 
 
 def test_a_clip_that_starts_too_near_a_surface_may_back_away_but_not_stay_or_come_closer():

@@ -1,0 +1,23 @@
+"""benchmarks/planning.py's configuration: the settings of an explorer variant (``--ours-plan``) reach 'ours' alone,
+and a bad one fails before any scene is run."""
+
+from __future__ import annotations
+
+import pytest
+
+
+def test_ours_plan_settings_reach_the_config_and_a_bad_one_fails_at_once(tmp_path):
+    from benchmarks import planning
+
+    variant = {"explore_free_space": "share", "explore_invented_share": "0.5", "explore_follow_error": "0.15"}
+    cfg = planning.bench_config("explorer", True, None, variant)
+    assert (cfg.plan.explore_free_space, cfg.plan.explore_invented_share) == ("share", 0.5)
+    assert cfg.plan.explore_follow_error == 0.15 and cfg.synthesis.num_frames == 25
+    default = planning.bench_config("explorer", True).plan
+    assert (default.explore_free_space, default.explore_follow_error) == ("anchored", None)
+    with pytest.raises(Exception, match="explore_free_space"):
+        planning.main(["--out", str(tmp_path / "x"), "--quick", "--methods", "ours",
+                       "--ours-plan", "explore_free_space=bogus"])
+    with pytest.raises(SystemExit):
+        planning.main(["--out", str(tmp_path / "y"), "--quick", "--ours-plan", "explore_free_space"])
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
