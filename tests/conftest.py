@@ -60,11 +60,19 @@ def module_fixture_modules(items) -> set[str]:
     once): their tests must stay on one pytest-xdist worker, or the fixture is set up again on the other."""
     modules = set()
     for item in items:
-        module = item.nodeid.split("::")[0]
+        module = _module(item)
         for defs in item._fixtureinfo.name2fixturedefs.values():
             if any(d.scope == "module" and d.baseid == module for d in defs):
                 modules.add(module)
     return modules
+
+
+def _module(item) -> str:
+    return item.nodeid.split("::")[0]
+
+
+def _long(item) -> bool:
+    return bool(item.get_closest_marker("slow") or item.get_closest_marker("system"))
 
 
 def schedule_for_xdist(items) -> None:
@@ -75,19 +83,16 @@ def schedule_for_xdist(items) -> None:
     other finishes a long module alone. Stable: the order inside each rank is the collection's, the same in every
     worker (xdist requires it)."""
     grouped = module_fixture_modules(items)
-    long_modules = {it.nodeid.split("::")[0] for it in items
-                    if it.get_closest_marker("slow") or it.get_closest_marker("system")}
+    long_modules = {_module(it) for it in items if _long(it)}
 
     def rank(item) -> int:
-        module = item.nodeid.split("::")[0]
-        if module in grouped:
-            return 0 if module in long_modules else 2
-        return 1 if item.get_closest_marker("slow") or item.get_closest_marker("system") else 3
+        if _module(item) in grouped:
+            return 0 if _module(item) in long_modules else 2
+        return 1 if _long(item) else 3
 
     for item in items:
-        module = item.nodeid.split("::")[0]
-        if module in grouped:
-            item.add_marker(pytest.mark.xdist_group(module))
+        if _module(item) in grouped:
+            item.add_marker(pytest.mark.xdist_group(_module(item)))
     items.sort(key=rank)
 
 
