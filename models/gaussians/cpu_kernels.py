@@ -606,9 +606,10 @@ RADIX_BITS = 11  # 2048 bins (L1-resident); the passes over digits all keys shar
 
 
 @_jit
-def bin_gaussians(bounds, depth_bits, tile_w, tile_h, offsets, gids, order_out, roff, epos):
-    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose tile range ``bounds`` [C, N, 4]
-    (x0, x1, y0, y1; :func:`pack_gaussians`' ``cbounds`` for the compositing tiles) covers it, in depth order
+def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, roff, epos):
+    """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose tile range ``cbox`` [C, N]
+    (:func:`pack_gaussians`' packed x0 | x1 << 16 | y0 << 32 | y1 << 48 of the compositing tiles, 0 = none)
+    covers it, in depth order
     (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
     sort of each camera's visible Gaussians by their depths (``depth_bits`` [C, N]: the float64 depths' bits,
     keyed by :func:`_depth_key`; each Gaussian's tile square packed
@@ -616,14 +617,16 @@ def bin_gaussians(bounds, depth_bits, tile_w, tile_h, offsets, gids, order_out, 
     sequentially), instead of a sort per tile. Also, per camera, the visible Gaussians in depth order
     ``order_out`` [C, N] (-1 past the last) and, per rank ``idx = camera * N + rank``, the list positions of its
     entries in row-major tile order ``epos[roff[idx]:roff[idx + 1]]`` (for :func:`gather_slots`)."""
-    n_cam, n = bounds.shape[0], bounds.shape[1]
+    n_cam, n = cbox.shape[0], cbox.shape[1]
     n_tiles = tile_w * tile_h
     counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
     for c in range(n_cam):
         for g in range(n):
-            for ty in range(bounds[c, g, 2], bounds[c, g, 3]):
-                for tx in range(bounds[c, g, 0], bounds[c, g, 1]):
-                    counts[c * n_tiles + ty * tile_w + tx] += 1
+            box = cbox[c, g]
+            if box != 0:
+                for ty in range((box >> 32) & 0xFFFF, box >> 48):
+                    for tx in range(box & 0xFFFF, (box >> 16) & 0xFFFF):
+                        counts[c * n_tiles + ty * tile_w + tx] += 1
     offsets[0] = 0
     for t in range(n_cam * n_tiles):
         offsets[t + 1] = offsets[t] + counts[t]
@@ -641,10 +644,10 @@ def bin_gaussians(bounds, depth_bits, tile_w, tile_h, offsets, gids, order_out, 
     for c in range(n_cam):
         m = 0
         for g in range(n):
-            if bounds[c, g, 1] > bounds[c, g, 0] and bounds[c, g, 3] > bounds[c, g, 2]:
+            if cbox[c, g] != 0:
                 order[m] = g
                 okey[m] = _depth_key(depth_bits[c, g])
-                obox[m] = bounds[c, g, 0] | (bounds[c, g, 1] << 16) | (bounds[c, g, 2] << 32) | (bounds[c, g, 3] << 48)
+                obox[m] = cbox[c, g]
                 m += 1
         for shift in range(0, 64, RADIX_BITS):
             sh = np.uint64(shift)
@@ -725,18 +728,19 @@ def composite_tile_size(width: int, height: int) -> int:
 
 @_pfjit
 def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size, tile_w, tile_h, ctile, width,
-                   height, rec, bounds, cbounds, depth64, tiles_per_gauss):
-    """Per (camera, Gaussian), computed once per call instead of once per list entry, in parallel:
+                   height, rec, cbox, depth64, tiles_per_gauss):
+    """Per (camera, Gaussian), computed once per call instead of once per list entry, in parallel (gsplat's
+    ``isect_tiles`` squares, half-open in ``tile_size`` tiles of ``tile_w`` x ``tile_h``, empty when culled,
+    decide ``n_isects`` and clip the pixel box):
 
-    - ``bounds`` [C, N, 4]: gsplat's ``isect_tiles`` squares (x0, x1, y0, y1; half-open, in ``tile_size``
-      tiles of ``tile_w`` x ``tile_h``; empty when culled);
     - ``rec`` [C, N, 13 + D] (the compositing dtype): the 2D mean, conic, opacity, the ``sigma`` above which ``o
       exp(-sigma) < 1/255`` for certain (``ln(255 o)`` plus ``SIGMA_MARGIN``; pairs below it take the exact
       test), ``1 / q0``, the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 (ln(255
       o) + SIGMA_MARGIN)`` plus ``BOX_MARGIN`` (the pixels the PyTorch renderer's boxes can accept; empty when
       culled or never visible; clipped to the image and to the rectangle of its ``tile_size`` squares, as the PyTorch
       renderer's tiles clip it) and its features;
-    - ``cbounds`` [C, N, 4] = the compositing tiles (side ``ctile``) the box touches (empty with the box);
+    - ``cbox`` [C, N] = the compositing tiles (side ``ctile``) the box touches, packed into one integer
+      ``x0 | x1 << 16 | y0 << 32 | y1 << 48`` (0 with an empty box; :func:`bin_gaussians` reads it);
     - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits);
     - ``tiles_per_gauss`` [C, N] = the number of ``tile_size`` squares (the API's ``meta``).
 
@@ -762,7 +766,6 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 by0 = min(max(math.floor(ty - tr), 0), tile_h)
                 by1 = min(max(math.ceil(ty + tr), 0), tile_h)
                 n_isects += (bx1 - bx0) * (by1 - by0)
-            bounds[c, g, 0], bounds[c, g, 1], bounds[c, g, 2], bounds[c, g, 3] = bx0, bx1, by0, by1
             tiles_per_gauss[c, g] = (bx1 - bx0) * (by1 - by0)
             o = float(opacities[c, g])
             q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
@@ -789,11 +792,11 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                     cx0, cx1, cy0, cy1 = x0 >> csh, ((x1 - 1) >> csh) + 1, y0 >> csh, ((y1 - 1) >> csh) + 1
                 else:
                     cx0, cx1, cy0, cy1 = x0 // ctile, (x1 - 1) // ctile + 1, y0 // ctile, (y1 - 1) // ctile + 1
-                cbounds[c, g, 0], cbounds[c, g, 1], cbounds[c, g, 2], cbounds[c, g, 3] = cx0, cx1, cy0, cy1
+                cbox[c, g] = cx0 | (cx1 << 16) | (cy0 << 32) | (cy1 << 48)
                 total += (cx1 - cx0) * (cy1 - cy0)
             else:
                 rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
-                cbounds[c, g, 0] = cbounds[c, g, 1] = cbounds[c, g, 2] = cbounds[c, g, 3] = 0
+                cbox[c, g] = 0
     return n_isects, total
 
 
@@ -1097,10 +1100,15 @@ def gather_slots(order, roff, epos, slots, grads):
         r = idx0 - c * n
         for idx in range(idx0, min(idx0 + CHUNK, total)):
             g = order[c, r]
-            if g >= 0:
+            i0, i1 = roff[idx], roff[idx + 1]
+            if g >= 0 and i1 == i0 + 1:  # one entry (most Gaussians at 64-px tiles): its row as the sum
+                k = epos[i0]
+                for j in range(n_s):
+                    grads[c, g, j] = 0.0 + slots[k, j]  # what the float64 sum from zero gives (-0.0 -> +0.0)
+            elif g >= 0:
                 for j in range(n_s):
                     acc[j] = 0.0
-                for i in range(roff[idx], roff[idx + 1]):
+                for i in range(i0, i1):
                     k = epos[i]
                     for j in range(n_s):
                         acc[j] += slots[k, j]

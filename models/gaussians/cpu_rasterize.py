@@ -316,8 +316,7 @@ class _Composite(torch.autograd.Function):
         bg = _np_native(backgrounds, dt) if use_bg else np.zeros((n_cam, d), dt)
         cst = K.composite_constants(alpha_clamp, dt)
         rad = np.ascontiguousarray(radii.cpu().numpy())
-        bounds = _SCRATCH.get("bounds", (n_cam, n, 4), np.int64)
-        cbounds = _SCRATCH.get("cbounds", (n_cam, n, 4), np.int64)
+        cbox = _SCRATCH.get("cbox", (n_cam, n), np.int64)
         rec = _SCRATCH.get("rec", (n_cam, n, K.R_FEAT + d), dt)
         render = np.empty((n_cam, height, width, d), dt)
         t_final = np.empty((n_cam, height, width), dt)
@@ -330,10 +329,10 @@ class _Composite(torch.autograd.Function):
         tiles_per_gauss = np.empty((n_cam, n), np.int64)  # handed out in info: not a reused array
         with _LOCK:
             n_isects, n_ent = K.pack_gaussians(m2, con, opa, col, rad, depths.numpy(), tile_size, tile_w, tile_h,
-                                               ctile, width, height, rec, bounds, cbounds, depth64, tiles_per_gauss)
+                                               ctile, width, height, rec, cbox, depth64, tiles_per_gauss)
             gids, epos = _SCRATCH.get("gids", n_ent, np.int64), _SCRATCH.get("epos", n_ent, np.int64)
             order, roff = _SCRATCH.get("order", (n_cam, n), np.int64), _SCRATCH.get("roff", n_cam * n + 1, np.int64)
-            K.bin_gaussians(cbounds, depth64.view(np.uint64), ctw, cth, offsets, gids, order, roff, epos)
+            K.bin_gaussians(cbox, depth64.view(np.uint64), ctw, cth, offsets, gids, order, roff, epos)
             ent = _SCRATCH.get("ent", (n_ent, rec.shape[2]), dt)
             cap = _SCRATCH.get("cap", n_cam * ctw * cth, np.int64)
             K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap)
