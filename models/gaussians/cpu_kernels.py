@@ -1240,12 +1240,14 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     n_k = v_coeffs.shape[1]
+    one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
         vco = np.empty((n_k, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
-            for k in range(n_k):
-                vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
+            if not one_cam:
+                for k in range(n_k):
+                    vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
             vm0 = vm1 = vm2 = 0.0  # float64 sums over the cameras, written once in the output's dtype
             for c in range(n_cam):
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
@@ -1258,11 +1260,19 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
                 v0 = float(v_rgb[c, g, 0]) if not a0 + 0.5 < 0.0 else 0.0
                 v1 = float(v_rgb[c, g, 1]) if not a1 + 0.5 < 0.0 else 0.0
                 v2 = float(v_rgb[c, g, 2]) if not a2 + 0.5 < 0.0 else 0.0
-                for k in range(nb):
-                    vco[k, 0] += b[k] * v0
-                    vco[k, 1] += b[k] * v1
-                    vco[k, 2] += b[k] * v2
-                    w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
+                if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
+                    for k in range(nb):
+                        bk = b[k]
+                        v_coeffs[g, k, 0] = 0.0 + bk * v0
+                        v_coeffs[g, k, 1] = 0.0 + bk * v1
+                        v_coeffs[g, k, 2] = 0.0 + bk * v2
+                        w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
+                else:
+                    for k in range(nb):
+                        vco[k, 0] += b[k] * v0
+                        vco[k, 1] += b[k] * v1
+                        vco[k, 2] += b[k] * v2
+                        w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
                 vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
@@ -1270,5 +1280,9 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
                 vm1 += (vd1 - y * dot) / nrm
                 vm2 += (vd2 - z * dot) / nrm
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
-            for k in range(n_k):
-                v_coeffs[g, k, 0], v_coeffs[g, k, 1], v_coeffs[g, k, 2] = vco[k, 0], vco[k, 1], vco[k, 2]
+            if one_cam:
+                for k in range(nb, n_k):  # coefficients above the degree: zero gradient
+                    v_coeffs[g, k, 0] = v_coeffs[g, k, 1] = v_coeffs[g, k, 2] = 0.0
+            else:
+                for k in range(n_k):
+                    v_coeffs[g, k, 0], v_coeffs[g, k, 1], v_coeffs[g, k, 2] = vco[k, 0], vco[k, 1], vco[k, 2]
