@@ -1198,11 +1198,15 @@ def sh_forward(degree, means, campos, coeffs, rgb):
             for c in range(n_cam):
                 x, y, z, _ = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
-                for j in range(3):
-                    acc = 0.0
-                    for k in range(nb):
-                        acc += b[k] * coeffs[g, k, j]
-                    rgb[c, g, j] = max(acc + 0.5, 0.0)
+                a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
+                for k in range(nb):
+                    bk = b[k]
+                    a0 += bk * coeffs[g, k, 0]
+                    a1 += bk * coeffs[g, k, 1]
+                    a2 += bk * coeffs[g, k, 2]
+                rgb[c, g, 0] = max(a0 + 0.5, 0.0)
+                rgb[c, g, 1] = max(a1 + 0.5, 0.0)
+                rgb[c, g, 2] = max(a2 + 0.5, 0.0)
 
 
 @_ifjit
