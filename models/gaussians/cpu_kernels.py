@@ -619,18 +619,9 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
     entries in row-major tile order ``epos[roff[idx]:roff[idx + 1]]`` (for :func:`gather_slots`)."""
     n_cam, n = cbox.shape[0], cbox.shape[1]
     n_tiles = tile_w * tile_h
-    counts = np.zeros(n_cam * n_tiles, dtype=np.int64)
-    for c in range(n_cam):
-        for g in range(n):
-            box = cbox[c, g]
-            if box != 0:
-                for ty in range((box >> 32) & 0xFFFF, box >> 48):
-                    for tx in range(box & 0xFFFF, (box >> 16) & 0xFFFF):
-                        counts[c * n_tiles + ty * tile_w + tx] += 1
+    counts = np.empty(n_tiles, dtype=np.int64)
+    fill = np.empty(n_tiles, dtype=np.int64)
     offsets[0] = 0
-    for t in range(n_cam * n_tiles):
-        offsets[t + 1] = offsets[t] + counts[t]
-    fill = offsets[:-1].copy()
     order = np.empty(n, dtype=np.int64)
     tmp = np.empty(n, dtype=np.int64)
     okey = np.empty(n, dtype=np.uint64)  # the keys and squares travel with the indices: each pass reads them in
@@ -643,12 +634,20 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
     j = 0
     for c in range(n_cam):
         m = 0
-        for g in range(n):
-            if cbox[c, g] != 0:
+        counts[:] = 0
+        for g in range(n):  # the visible Gaussians in index order, and the entries per tile (one pass)
+            box = cbox[c, g]
+            if box != 0:
                 order[m] = g
                 okey[m] = _depth_key(depth_bits[c, g])
-                obox[m] = cbox[c, g]
+                obox[m] = box
                 m += 1
+                for ty in range((box >> 32) & 0xFFFF, box >> 48):
+                    for tx in range(box & 0xFFFF, (box >> 16) & 0xFFFF):
+                        counts[ty * tile_w + tx] += 1
+        for t in range(n_tiles):
+            fill[t] = offsets[c * n_tiles + t]
+            offsets[c * n_tiles + t + 1] = offsets[c * n_tiles + t] + counts[t]
         for shift in range(0, 64, RADIX_BITS):
             sh = np.uint64(shift)
             hist[:] = 0
@@ -679,7 +678,7 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
             roff[c * n + i] = j
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
-                    t = c * n_tiles + ty * tile_w + tx
+                    t = ty * tile_w + tx
                     gids[fill[t]] = g
                     epos[j] = fill[t]
                     fill[t] += 1
