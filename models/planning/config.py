@@ -106,21 +106,24 @@ class PlanConfig(_Section):
         1.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
         "unknown space an earlier frame of its clip looked at (0: only seen free space).")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
-        "anchored", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
+        "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
         "model invented may hide an object it drew elsewhere or not at all), 'share' (the anchored pixels, and every "
         "pixel with a depth of a frame at least explore_invented_share of whose pixels are anchored; a frame's empty "
-        "pixels stay unknown) or 'all' (every pixel, as the input photo's, its empty pixels opened as sky too).")
+        "pixels stay unknown; the default, with explore_invented_share 0 and explore_follow_error 0.15: the decision "
+        "was taken on development numbers only, benchmarks/results/planning-explore7-dev) "
+        "or 'all' (every pixel, as the input photo's, its empty pixels opened as sky too).")
     explore_invented_share: float = Field(
         0.0, ge=0, le=1, description="explorer, explore_free_space 'share': the anchored share of a generated frame "
         "from which its invented pixels carve free space too (0: every generated frame carves with every pixel that "
         "has a depth; development seeds 0-9: 0 with explore_follow_error 0.15 saw more than 0.3, 0.4 and 0.5 in "
-        "rooms and table-tops, benchmarks/results/planning-explore7-dev; not the default: see there).")
+        "rooms and table-tops, benchmarks/results/planning-explore7-dev).")
     explore_follow_error: float | None = Field(
-        None, ge=0, description="explorer: the follow error its G allows per unit of path (None: plan.follow_error). "
-        "0.15 with explore_free_space 'share' (threshold 0) was measured on development seeds: the longer moves into "
-        "generated free space met the drift's tail (development rooms 0 and 4: true cameras drifted 14 % and 22 % of "
-        "the path into surfaces the plan cleared by 0.4-0.6 m; benchmarks/results/planning-explore7-dev).")
+        0.15, ge=0, description="explorer: the follow error its G allows per unit of path (None: plan.follow_error). "
+        "The default 0.15, with explore_free_space 'share' (threshold 0), was measured on development seeds: the "
+        "longer moves into generated free space met the drift's tail (development rooms 0 and 4: true cameras "
+        "drifted 14 % and 22 % of the path into surfaces the plan cleared by 0.4-0.6 m; "
+        "benchmarks/results/planning-explore7-dev).")
     explore_sky: Literal["free", "unknown"] = Field(
         "free", description="explorer: what the input photo's pixels of no depth (sky: the geometry found no "
         "surface on their ray) tell: 'free' (free space without end along the ray) or 'unknown'.")

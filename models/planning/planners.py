@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at, project
 from navcrafter.models.planning.config import PlanConfig
@@ -541,23 +542,30 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
     levels = [[base]] + [[base + a * scale * bump * n for n in ring] for a in (0.25, 0.5, 1.0, 2.0)]
     least_bad: OptimisationResult | None = None
     tried = 0
-    for level in levels:
-        best: OptimisationResult | None = None
-        for start in level:
-            tried += 1
-            res = minimize(fun, start[1:-1].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
-            x = A @ knots_of(res.x)
-            x[0], x[-1] = x0[0], x0[-1]
-            traj = poses_looking_at(x, centre, trajectory[0], trajectory[-1])
-            ok = not detector.trajectory_collides(traj)
-            cand = OptimisationResult(traj, ok, True, 0, int(res.nit), float(res.fun))
-            if ok and (best is None or cand.cost < best.cost):
-                best = cand
-            if least_bad is None or cand.cost < least_bad.cost:
-                least_bad = cand
-        if best is not None:
-            best.starts = tried
-            return best
+    # One BLAS thread for the starts: every array here is tiny (45 unknowns, 33 samples), and with OpenBLAS's two
+    # threads L-BFGS-B's own BLAS calls and the products in ``fun`` waited on each other: on one plan (66 starts
+    # that all failed) the explorer's iteration took 17.4 s, with one thread 4.2 s, the same plan bit for bit
+    # (benchmarks/results/planning-explore8-speed). The collection flows already run the
+    # whole scene so (flows/blas.py); a planner called outside them (the benchmark, a scene deployment) did not.
+    with threadpool_limits(limits=1, user_api="blas"):
+        for level in levels:
+            best: OptimisationResult | None = None
+            for start in level:
+                tried += 1
+                res = minimize(fun, start[1:-1].ravel(), jac=True, method="L-BFGS-B",
+                               options={"maxiter": max_iter})
+                x = A @ knots_of(res.x)
+                x[0], x[-1] = x0[0], x0[-1]
+                traj = poses_looking_at(x, centre, trajectory[0], trajectory[-1])
+                ok = not detector.trajectory_collides(traj)
+                cand = OptimisationResult(traj, ok, True, 0, int(res.nit), float(res.fun))
+                if ok and (best is None or cand.cost < best.cost):
+                    best = cand
+                if least_bad is None or cand.cost < least_bad.cost:
+                    least_bad = cand
+            if best is not None:
+                best.starts = tried
+                return best
     assert least_bad is not None
     least_bad.collision_free = False
     least_bad.starts = tried

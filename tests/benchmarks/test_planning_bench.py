@@ -9,12 +9,13 @@ import pytest
 def test_ours_plan_settings_reach_the_config_and_a_bad_one_fails_at_once(tmp_path):
     from benchmarks import planning
 
-    variant = {"explore_free_space": "share", "explore_invented_share": "0.5", "explore_follow_error": "0.15"}
+    variant = {"explore_free_space": "anchored", "explore_invented_share": "0.5", "explore_follow_error": "0.2"}
     cfg = planning.bench_config("explorer", True, None, variant)
-    assert (cfg.plan.explore_free_space, cfg.plan.explore_invented_share) == ("share", 0.5)
-    assert cfg.plan.explore_follow_error == 0.15 and cfg.synthesis.num_frames == 25
+    assert (cfg.plan.explore_free_space, cfg.plan.explore_invented_share) == ("anchored", 0.5)
+    assert cfg.plan.explore_follow_error == 0.2 and cfg.synthesis.num_frames == 25
     default = planning.bench_config("explorer", True).plan
-    assert (default.explore_free_space, default.explore_follow_error) == ("anchored", None)
+    assert (default.explore_free_space, default.explore_invented_share, default.explore_follow_error) == (
+        "share", 0.0, 0.15)
     with pytest.raises(Exception, match="explore_free_space"):
         planning.main(["--out", str(tmp_path / "x"), "--quick", "--methods", "ours",
                        "--ours-plan", "explore_free_space=bogus"])

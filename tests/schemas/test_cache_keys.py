@@ -40,6 +40,9 @@ def configs(model_dir: Path) -> dict[str, RunConfig]:
         "paper+fit+refine": RunConfig.load(overrides=BOTH),
         # Algorithm 1, the default until the explorer replaced it: its stores keep their keys when it is chosen
         "paper-collision-aware": RunConfig.load(overrides={"plan.strategy": "collision_aware"}),
+        # the explorer's free-space rule before `share` became its default: stores made then keep their keys
+        "paper-explorer-anchored": RunConfig.load(overrides={"plan.explore_free_space": "anchored",
+                                                             "plan.explore_follow_error": None}),
         "tiny": RunConfig.load(preset="tiny"),
         "tiny+fit": RunConfig.load(preset="tiny", overrides={"fit.enabled": True}),
         "tiny-orbit-seed7": RunConfig.load(preset="tiny", overrides={"plan.strategy": "orbit", "seed": 7}),

@@ -196,7 +196,12 @@ def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
 
     # the honest preset without hallucination: the subject is whether the fit learns from its frames; each clip's
     # hallucinated content differs from the next clip's (tests/models/simulation), which caps held-out PSNR
-    cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "simulation.hallucinate": False})
+    # the explorer's free-space rule before `share` became its default (issue 30), pinned: the subject here is the
+    # fit, and with `share` the tiny table-top's paths reach further from the input, held-out PSNR 20.47 -> 18.72 dB
+    # (init 15.36 -> 15.00; measured 2026-12-04 on this scene; the demo table-top likewise 22.32 -> 20.36 dB)
+    cfg = RunConfig.load(preset="tiny", overrides={"fit.enabled": True, "simulation.hallucinate": False,
+                                                   "plan.explore_free_space": "anchored",
+                                                   "plan.explore_follow_error": None})
     store = str(tmp_path / "store")
     res = ingest(store, str(demo_photos / "tabletop-0.png"), cfg, "t")
     refs = run_scene(store, res.scene_id, cfg, "t")

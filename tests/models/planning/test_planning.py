@@ -239,6 +239,43 @@ def test_straight_path_through_a_wall_is_bent_around_it_keeping_r_safe():
         assert T[:3, 2] @ to_o > 1 - 1e-9
 
 
+def test_optimiser_runs_on_one_blas_thread_with_the_same_result_and_restores_the_limit(monkeypatch):
+    """The L-BFGS starts run with one BLAS thread (with OpenBLAS's two they waited on each other: 17.4 s against
+    4.2 s for one plan, benchmarks/results/planning-explore8-speed); the result is the one without the limit,
+    bit for bit, and the caller's BLAS threads are restored."""
+    import contextlib
+
+    from threadpoolctl import threadpool_info
+
+    from navcrafter.models.planning import planners as planners_mod
+
+    def blas_threads():
+        return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    _, cloud, views = panel_world()
+    det = CollisionDetector(cloud, 0.25, views)
+    centre = np.array([0.0, 0.0, 8.0])
+    straight = interpolate_poses(look_at(np.array([-1.5, 0.0, 4.0]), centre),
+                                 look_at(np.array([1.5, 0.0, 4.0]), centre), 41)
+    before = blas_threads()
+    assert before, "numpy has no BLAS library threadpoolctl can see"
+    seen, real_minimize = [], planners_mod.minimize
+
+    def minimize(*args, **kwargs):
+        seen.append(blas_threads())
+        return real_minimize(*args, **kwargs)
+
+    monkeypatch.setattr(planners_mod, "minimize", minimize)
+    limited = optimise_trajectory(straight, det, centre)
+    assert seen and all(t == [1] * len(before) for t in seen)
+    assert blas_threads() == before
+    monkeypatch.setattr(planners_mod, "threadpool_limits", lambda **kw: contextlib.nullcontext())
+    free = optimise_trajectory(straight, det, centre)
+    assert limited.optimised and limited.collision_free
+    assert np.array_equal(limited.trajectory, free.trajectory)
+    assert (limited.starts, limited.iterations, limited.cost) == (free.starts, free.iterations, free.cost)
+
+
 def test_optimiser_leaves_a_collision_free_path_unchanged():
     scene, cloud, views = panel_world()
     det = CollisionDetector(cloud, 0.25, views)
