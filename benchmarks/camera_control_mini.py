@@ -633,7 +633,7 @@ def training_signature(args, size: dict) -> dict:
     """Everything that decides the trained weights bit for bit (same code): a saved pair of models is loaded
     only by a run whose signature is equal (``load_models``)."""
     keys = ("seed", "resolution", "frames", "heads", "head_dim", "layers", "ffn", "adapter_channels", "lr",
-            "warmup", "batch", "reference_frames", "condition", "flip", "texture_scale", "autoencoder",
+            "warmup", "batch", "control_batch", "reference_frames", "condition", "flip", "texture_scale", "autoencoder",
             "latent_channels")
     return {**{k: getattr(args, k) for k in keys}, "train_scenes": size["train_scenes"],
             "base_steps": size["base_steps"], "control_steps": size["control_steps"]}
@@ -661,6 +661,7 @@ def load_models(path: Path, model: torch.nn.Module, base: torch.nn.Module, signa
         meta = f.metadata() or {}
     stored = json.loads(meta.get("signature", "{}"))
     stored.setdefault("batch", 1)  # files saved before --batch existed trained at batch 1
+    stored.setdefault("control_batch", stored["batch"])
     want = json.loads(json.dumps(signature, sort_keys=True))
     if stored != want:
         diff = sorted(k for k in set(stored) | set(want) if stored.get(k) != want.get(k))
@@ -714,6 +715,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=int, default=200, help="linear warmup steps of each stage")
     ap.add_argument("--batch", type=int, default=BATCH, help="training clips per step, in one model call when > 1 "
                     "(cosine_trainer, batch_flow_loss)")
+    ap.add_argument("--control-batch", type=int, help="the control stage's batch (default: --batch)")
     ap.add_argument("--reference-frames", type=int, default=1,
                     help="the control's num_reference_frames in training (1: frame 0 only, as at inference)")
     ap.add_argument("--sampling-steps", type=int, default=SAMPLING_STEPS,
@@ -744,6 +746,8 @@ def main(argv: list[str] | None = None) -> int:
     if (args.frames - 1) % TEMPORAL or args.resolution % (2 * SPATIAL):
         ap.error(f"--frames must be 1 + a multiple of {TEMPORAL} and --resolution a multiple of {2 * SPATIAL}")
     size = dict(SIZES["quick" if args.quick else "full"])
+    if args.control_batch is None:
+        args.control_batch = args.batch
     for k in ("base_steps", "control_steps", "train_scenes", "eval_scenes"):
         if getattr(args, k) is not None:
             size[k] = getattr(args, k)
@@ -793,8 +797,8 @@ def main(argv: list[str] | None = None) -> int:
 
     base_config, control_config = model_configs(args, enc.latent_channels)
     model = build_camera_wan(base_config, control_config, seed=args.seed).to(args.device)
-    cfg = dict(frames=T, resolution=R, lr=args.lr, warmup=args.warmup, batch=args.batch)
-    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, **cfg)
+    cfg = dict(frames=T, resolution=R, lr=args.lr, warmup=args.warmup)
+    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, batch=args.batch, **cfg)
     t0 = time.perf_counter()
 
     def progress(name, every=100):
@@ -804,7 +808,8 @@ def main(argv: list[str] | None = None) -> int:
                       flush=True)
         return f
 
-    control_cfg = training_config(stage="control", steps=size["control_steps"], seed=args.seed + 1, **cfg)
+    control_cfg = training_config(stage="control", steps=size["control_steps"], seed=args.seed + 1,
+                                  batch=args.control_batch, **cfg)
     signature = training_signature(args, size)
     copy0 = float(np.mean([video_psnr(np.repeat(c["truth"][:1], T, axis=0), c["truth"]) for c in held_flat]))
     if args.load_models is not None:  # the same trained weights, no training (sampling sweeps)
@@ -895,7 +900,7 @@ def main(argv: list[str] | None = None) -> int:
             "amplitudes": AMPLITUDES, "estimator_grid": {"per_direction": GRID, "range": GRID_RANGE},
             "width": {"heads": args.heads, "head_dim": args.head_dim, "layers": args.layers, "ffn": args.ffn},
             "base_steps": size["base_steps"], "control_steps": size["control_steps"], "lr": args.lr,
-            "batch": args.batch,
+            "batch": args.batch, "control_batch": args.control_batch,
             "lr_schedule": f"linear warmup {args.warmup} steps, cosine decay to 0 (benchmark-local)",
             "reference_frames_in_training": args.reference_frames,
             "sampling_steps": args.sampling_steps, "lora_scale_inference": lora, "flow_shift": shift,
@@ -940,7 +945,8 @@ def markdown(r: dict) -> str:
         f"{s['train_scene_seeds'][0]}–{s['train_scene_seeds'][1]}), {s['heldout_clips']} held-out clips (scene "
         f"seeds {s['heldout_scene_seeds'][0]}–{s['heldout_scene_seeds'][1]}, never trained on; each scene with all "
         f"4 families × 2 directions). Width {s['width']}; base {s['base_steps']} steps, control "
-        f"{s['control_steps']} steps (base frozen), lr {s['lr']:g}, batch {s.get('batch', 1)}; sampling DPM-solver "
+        f"{s['control_steps']} steps (base frozen), lr {s['lr']:g}, batch {s.get('batch', 1)} (base) / "
+        f"{s.get('control_batch', s.get('batch', 1))} (control); sampling DPM-solver "
         f"{s['sampling_steps']} steps, LoRA {s['lora_scale_inference']}, no text CFG, camera guidance {w:g} against "
         f"the frozen base; material textures ×{s.get('texture_scale', 1.0):g} in size. "
         f"Total {s['total_minutes']:.1f} min.",

@@ -190,8 +190,8 @@ def test_saved_models_load_bit_for_bit_and_only_with_the_same_training_settings(
     from navcrafter.models.synthesis.camcontrol import build_camera_wan
 
     args = argparse.Namespace(heads=2, head_dim=8, layers=1, ffn=16, adapter_channels=4, reference_frames=1,
-                              seed=10, resolution=16, frames=5, lr=1e-3, warmup=10, batch=1, condition="first",
-                              flip=False, texture_scale=4.0, autoencoder="pca", latent_channels=4)
+                              seed=10, resolution=16, frames=5, lr=1e-3, warmup=10, batch=1, control_batch=1,
+                              condition="first", flip=False, texture_scale=4.0, autoencoder="pca", latent_channels=4)
     size = {"train_scenes": 2, "base_steps": 3, "control_steps": 2}
     base_cfg, control_cfg = mini.model_configs(args, 4)
     model, base = build_camera_wan(base_cfg, control_cfg, seed=0), build_camera_wan(base_cfg, control_cfg, seed=1)
