@@ -78,6 +78,13 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   frozen base; a file is loaded only by a run whose training settings are equal, ``training_signature``) and a
   development ``--sweep`` of sampling settings (``w:lora:steps[:shift]``, ``sweep.json``; ``--sweep-only``): the
   sampling knobs are chosen on development clips without retraining.
+* **Batched steps and more training scenes: measured, not adopted** (``--batch`` / ``--control-batch``: a step's
+  clips in one model call, ``batch_flow_loss``, the same loss and update as the product's one-clip-at-a-time
+  accumulation; ``--train-scenes``). On 1 thread a batch of 4 trains on 1.6–2.1× the clips per second; at equal
+  wall time (development run 2026-12-04, the 64 development clips of the row above) a batch-4 base (1700 steps)
+  gave R_err 9.0–9.3 °/frame, a batch-4 control (1300 steps) on the preset's base 0.875 / 7.75 (preset 0.875 /
+  7.88), 24 training scenes 0.875 / 7.82 with a base above copying frame 0 (mean video 18.19 vs 17.98 dB) and
+  PSNR +0.5 dB: none better in both direction and R_err (results README, "Batch size, torch threads").
 * **The product's model and training flow, at tiny width.** ``build_camera_wan`` (diffusers'
   ``WanTransformer3DModel`` + NavCrafter's control: the Plücker 3D-conv adapter, dual branch, and the camera
   LoRA on Q/K/V), ``CameraTrainer`` with its flow-matching loss and defaults, in the product's two stages
