@@ -108,9 +108,9 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 16.0 min at load 4.6-7.6
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 7.3 min at load 0.4-1.9
                           # (results: benchmarks/results/camera-control-mini/quick; base 4000 + control 3000
-                          # steps; ~9 min estimated from step times at load 1.4-4, not measured idle)
+                          # steps; 16.0 min at load 4.6-7.6 beside other jobs; the same numbers both times)
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
                           # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
                           # (results: benchmarks/results/camera-control-mini/full)
