@@ -78,6 +78,13 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   frozen base; a file is loaded only by a run whose training settings are equal, ``training_signature``) and a
   development ``--sweep`` of sampling settings (``w:lora:steps[:shift]``, ``sweep.json``; ``--sweep-only``): the
   sampling knobs are chosen on development clips without retraining.
+* **Batched steps and more training scenes: measured, not adopted** (``--batch`` / ``--control-batch``: a step's
+  clips in one model call, ``batch_flow_loss``, the same loss and update as the product's one-clip-at-a-time
+  accumulation; ``--train-scenes``). On 1 thread a batch of 4 trains on 1.6–2.1× the clips per second; at equal
+  wall time (development run 2026-12-04, the 64 development clips of the row above) a batch-4 base (1700 steps)
+  gave R_err 9.0–9.3 °/frame, a batch-4 control (1300 steps) on the preset's base 0.875 / 7.75 (preset 0.875 /
+  7.88), 24 training scenes 0.875 / 7.82 with a base above copying frame 0 (mean video 18.19 vs 17.98 dB) and
+  PSNR +0.5 dB: none better in both direction and R_err (results README, "Batch size, torch threads").
 * **The product's model and training flow, at tiny width.** ``build_camera_wan`` (diffusers'
   ``WanTransformer3DModel`` + NavCrafter's control: the Plücker 3D-conv adapter, dual branch, and the camera
   LoRA on Q/K/V), ``CameraTrainer`` with its flow-matching loss and defaults, in the product's two stages
@@ -101,9 +108,9 @@ trained control given the mirrored cameras:
 * PSNR / SSIM against the truth (frames 1..T-1) and the camera gap (the product's ``camera_gap``: flow loss
   with another clip's cameras minus with the clip's own).
 
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 16.0 min at load 4.6-7.6
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 7.3 min at load 0.4-1.9
                           # (results: benchmarks/results/camera-control-mini/quick; base 4000 + control 3000
-                          # steps; ~9 min estimated from step times at load 1.4-4, not measured idle)
+                          # steps; 16.0 min at load 4.6-7.6 beside other jobs; the same numbers both times)
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
                           # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
                           # (results: benchmarks/results/camera-control-mini/full)
@@ -151,6 +158,7 @@ CAMERA_GUIDANCE = 7.0  # sampling: classifier-free guidance weight on the camera
 # DPM-solver steps when sampling (the product's SynthesisConfig has 40): 20 kept the development direction accuracy
 # and R_err of 40 at half the time (results README, "Fewer sampling steps"), which pays for the longer stages
 SAMPLING_STEPS = 20
+BATCH = 1  # training clips per step (cosine_trainer)
 # held-out scenes start here: 7000 since the frozen settings of 2026-12-03 evening (6000-6002 measured the earlier
 # defaults and were seen when these were chosen; results README)
 EVAL_SEED = 7000
@@ -410,13 +418,13 @@ def model_configs(args, latent_channels: int):
 
 
 def training_config(*, stage: str, steps: int, lr: float, seed: int, frames: int, resolution: int,
-                    warmup: int = 50):
+                    warmup: int = 50, batch: int = 1):
     from navcrafter.schemas.training import CameraTrainingConfig, OptimConfig, TrainingDataConfig
 
     data = TrainingDataConfig(sources=(), num_frames=frames, resolution=resolution, frame_stride=1,
                               clips_per_source=None, validation_clips=0, render_condition=False,
                               extra_reference=False)
-    return CameraTrainingConfig(data=data, optim=OptimConfig(learning_rate=lr, batch_size=1, warmup_steps=warmup),
+    return CameraTrainingConfig(data=data, optim=OptimConfig(learning_rate=lr, batch_size=batch, warmup_steps=warmup),
                                 steps=steps, seed=seed, text_dropout=0.0, trainable=stage,
                                 camera_dropout=1.0 if stage == "base" else 0.0, gradient_checkpointing=False,
                                 random_base=None)
@@ -426,15 +434,83 @@ def cosine_trainer(model, clips, config, **kw):
     """``CameraTrainer`` with the benchmark's learning-rate schedule (not the product's): the trainer's linear
     warmup, then a cosine decay to zero at the stage's last step (``config.steps``). A miniature trained from
     scratch at batch 1 and a high learning rate needs the decay for its samples to settle; the product's trainer
-    and defaults (constant lr 1e-4 after warmup) are untouched: the subclass overrides ``lr_at`` only."""
-    from navcrafter.models.synthesis.training import CameraTrainer
+    and defaults (constant lr 1e-4 after warmup) are untouched: the subclass overrides ``lr_at`` only.
+
+    With ``config.optim.batch_size > 1`` a step also runs its clips through the model in **one** call
+    (``batch_flow_loss``) instead of the product's one-clip-at-a-time gradient accumulation: the same loss and
+    gradient (each clip's σ, noise and dropout from its own generator, the mean of the clips' losses; tested
+    against the product's ``flow_loss``), several times the clips per second of a small model on a CPU."""
+    from navcrafter.models.synthesis.training import CameraTrainer, StepLog, clip_conditions, sample_generator
 
     class CosineTrainer(CameraTrainer):
         def lr_at(self, step: int) -> float:
             total = max(1, self.config.steps)
             return super().lr_at(step) * 0.5 * (1.0 + float(np.cos(np.pi * min(1.0, step / total))))
 
-    return CosineTrainer(model, clips, config, **kw)
+    class BatchedCosineTrainer(CosineTrainer):
+        def train_step(self) -> StepLog:
+            if self.world_size != 1:
+                raise ValueError("the benchmark's batched step runs in one process (world_size 1)")
+            step = self.state.step
+            t0 = time.perf_counter()
+            lr = self.lr_at(step)
+            for g in self.opt.param_groups:
+                g["lr"] = lr
+            self.opt.zero_grad(set_to_none=True)
+            indices = self.local_indices()
+            cs = [clip_conditions(self.model, self.clips[self.clip_of(i)], self.device) for i in indices]
+            loss = batch_flow_loss(self.wrapped, self.model, cs,
+                                   [sample_generator(self.config.seed, i) for i in indices], self.config)
+            loss.backward()
+            if self.config.optim.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(self.params, self.config.optim.grad_clip)
+            self.opt.step()
+            mean = float(loss.detach())
+            self.state.step = step + 1
+            self.state.position += len(indices)
+            self.state.history.append({"step": step + 1, "loss": mean, "lr": lr})
+            return StepLog(step + 1, mean, lr, len(indices) / max(time.perf_counter() - t0, 1e-9))
+
+    cls = BatchedCosineTrainer if config.optim.batch_size > 1 else CosineTrainer
+    return cls(model, clips, config, **kw)
+
+
+def batch_flow_loss(model, inner, cs: list[dict], generators: list, config) -> torch.Tensor:
+    """The product's ``flow_loss`` (``models/synthesis/training.py``) of several clips in one model call: each
+    clip's σ, noise, text / camera dropout and reference seed drawn from its own generator in ``flow_loss``'s
+    order, σ per clip as the timestep ``[B]``, the loss the mean of the clips' mean squared errors (= the product's
+    gradient accumulation over the batch). Only what the miniature uses: no text dropout, the camera dropped for
+    all clips or for none, one reference frame (frame 0), no render condition, no extra reference image."""
+    from navcrafter.models.synthesis.training import TRAINING_LORA_SCALE, shift_sigma
+
+    if inner.config.num_reference_frames != 1:
+        raise ValueError("batch_flow_loss: one reference frame (frame 0) only; random clean reference frames are "
+                         "drawn per clip in the product's flow_loss")
+    sig, noise, drops = [], [], set()
+    for c, g in zip(cs, generators):
+        if c["cond"] is not None or c["image_reference"] is not None:
+            raise ValueError("batch_flow_loss: no render condition or extra reference image in the miniature")
+        u = torch.rand((), generator=g)
+        sig.append(shift_sigma(u, config.flow_shift))
+        noise.append(torch.randn(c["x0"].shape, generator=g))
+        if bool(torch.rand((), generator=g) < config.text_dropout):
+            raise ValueError("batch_flow_loss: text dropout is not supported (the miniature trains with 0)")
+        drops.add(bool(torch.rand((), generator=g) < config.camera_dropout))
+        int(torch.randint(0, 2**62, (), generator=g))  # flow_loss's reference seed (one reference frame: unused)
+    if len(drops) != 1:
+        raise ValueError("batch_flow_loss: the camera must be dropped for all clips or none (camera_dropout 0 or 1)")
+    x0 = torch.cat([c["x0"] for c in cs])
+    device = x0.device
+    s = torch.stack(sig).to(device)
+    sb = s.view(-1, *([1] * (x0.ndim - 1)))
+    eps = torch.cat(noise).to(device)
+    x_t = (1.0 - sb) * x0 + sb * eps
+    plucker = None if drops.pop() else torch.cat([c["plucker"] for c in cs])
+    inner.seed_reference_frames(0)
+    pred = model(torch.cat([x_t, torch.cat([c["hidden_cond"] for c in cs])], dim=1), 1000.0 * s,
+                 torch.cat([c["text"] for c in cs]), torch.cat([c["image"] for c in cs]), plucker, None,
+                 torch.tensor(TRAINING_LORA_SCALE, device=device), reference_latents=x0)
+    return torch.mean((pred.float() - (eps - x0).float()) ** 2)
 
 
 class CameraGuided(torch.nn.Module):
@@ -564,7 +640,8 @@ def training_signature(args, size: dict) -> dict:
     """Everything that decides the trained weights bit for bit (same code): a saved pair of models is loaded
     only by a run whose signature is equal (``load_models``)."""
     keys = ("seed", "resolution", "frames", "heads", "head_dim", "layers", "ffn", "adapter_channels", "lr",
-            "warmup", "reference_frames", "condition", "flip", "texture_scale", "autoencoder", "latent_channels")
+            "warmup", "batch", "control_batch", "reference_frames", "condition", "flip", "texture_scale", "autoencoder",
+            "latent_channels")
     return {**{k: getattr(args, k) for k in keys}, "train_scenes": size["train_scenes"],
             "base_steps": size["base_steps"], "control_steps": size["control_steps"]}
 
@@ -590,6 +667,8 @@ def load_models(path: Path, model: torch.nn.Module, base: torch.nn.Module, signa
     with safe_open(str(path), framework="pt") as f:
         meta = f.metadata() or {}
     stored = json.loads(meta.get("signature", "{}"))
+    stored.setdefault("batch", 1)  # files saved before --batch existed trained at batch 1
+    stored.setdefault("control_batch", stored["batch"])
     want = json.loads(json.dumps(signature, sort_keys=True))
     if stored != want:
         diff = sorted(k for k in set(stored) | set(want) if stored.get(k) != want.get(k))
@@ -641,6 +720,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=1e-3, help="peak lr of both stages (from-scratch tiny model; "
                     "the benchmark's cosine schedule, cosine_trainer)")
     ap.add_argument("--warmup", type=int, default=200, help="linear warmup steps of each stage")
+    ap.add_argument("--batch", type=int, default=BATCH, help="training clips per step, in one model call when > 1 "
+                    "(cosine_trainer, batch_flow_loss)")
+    ap.add_argument("--control-batch", type=int, help="the control stage's batch (default: --batch)")
     ap.add_argument("--reference-frames", type=int, default=1,
                     help="the control's num_reference_frames in training (1: frame 0 only, as at inference)")
     ap.add_argument("--sampling-steps", type=int, default=SAMPLING_STEPS,
@@ -671,6 +753,8 @@ def main(argv: list[str] | None = None) -> int:
     if (args.frames - 1) % TEMPORAL or args.resolution % (2 * SPATIAL):
         ap.error(f"--frames must be 1 + a multiple of {TEMPORAL} and --resolution a multiple of {2 * SPATIAL}")
     size = dict(SIZES["quick" if args.quick else "full"])
+    if args.control_batch is None:
+        args.control_batch = args.batch
     for k in ("base_steps", "control_steps", "train_scenes", "eval_scenes"):
         if getattr(args, k) is not None:
             size[k] = getattr(args, k)
@@ -721,7 +805,7 @@ def main(argv: list[str] | None = None) -> int:
     base_config, control_config = model_configs(args, enc.latent_channels)
     model = build_camera_wan(base_config, control_config, seed=args.seed).to(args.device)
     cfg = dict(frames=T, resolution=R, lr=args.lr, warmup=args.warmup)
-    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, **cfg)
+    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, batch=args.batch, **cfg)
     t0 = time.perf_counter()
 
     def progress(name, every=100):
@@ -731,7 +815,8 @@ def main(argv: list[str] | None = None) -> int:
                       flush=True)
         return f
 
-    control_cfg = training_config(stage="control", steps=size["control_steps"], seed=args.seed + 1, **cfg)
+    control_cfg = training_config(stage="control", steps=size["control_steps"], seed=args.seed + 1,
+                                  batch=args.control_batch, **cfg)
     signature = training_signature(args, size)
     copy0 = float(np.mean([video_psnr(np.repeat(c["truth"][:1], T, axis=0), c["truth"]) for c in held_flat]))
     if args.load_models is not None:  # the same trained weights, no training (sampling sweeps)
@@ -822,6 +907,7 @@ def main(argv: list[str] | None = None) -> int:
             "amplitudes": AMPLITUDES, "estimator_grid": {"per_direction": GRID, "range": GRID_RANGE},
             "width": {"heads": args.heads, "head_dim": args.head_dim, "layers": args.layers, "ffn": args.ffn},
             "base_steps": size["base_steps"], "control_steps": size["control_steps"], "lr": args.lr,
+            "batch": args.batch, "control_batch": args.control_batch,
             "lr_schedule": f"linear warmup {args.warmup} steps, cosine decay to 0 (benchmark-local)",
             "reference_frames_in_training": args.reference_frames,
             "sampling_steps": args.sampling_steps, "lora_scale_inference": lora, "flow_shift": shift,
@@ -866,7 +952,8 @@ def markdown(r: dict) -> str:
         f"{s['train_scene_seeds'][0]}–{s['train_scene_seeds'][1]}), {s['heldout_clips']} held-out clips (scene "
         f"seeds {s['heldout_scene_seeds'][0]}–{s['heldout_scene_seeds'][1]}, never trained on; each scene with all "
         f"4 families × 2 directions). Width {s['width']}; base {s['base_steps']} steps, control "
-        f"{s['control_steps']} steps (base frozen), lr {s['lr']:g}, batch 1; sampling DPM-solver "
+        f"{s['control_steps']} steps (base frozen), lr {s['lr']:g}, batch {s.get('batch', 1)} (base) / "
+        f"{s.get('control_batch', s.get('batch', 1))} (control); sampling DPM-solver "
         f"{s['sampling_steps']} steps, LoRA {s['lora_scale_inference']}, no text CFG, camera guidance {w:g} against "
         f"the frozen base; material textures ×{s.get('texture_scale', 1.0):g} in size. "
         f"Total {s['total_minutes']:.1f} min.",

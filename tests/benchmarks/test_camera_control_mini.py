@@ -190,8 +190,8 @@ def test_saved_models_load_bit_for_bit_and_only_with_the_same_training_settings(
     from navcrafter.models.synthesis.camcontrol import build_camera_wan
 
     args = argparse.Namespace(heads=2, head_dim=8, layers=1, ffn=16, adapter_channels=4, reference_frames=1,
-                              seed=10, resolution=16, frames=5, lr=1e-3, warmup=10, condition="first", flip=False,
-                              texture_scale=4.0, autoencoder="pca", latent_channels=4)
+                              seed=10, resolution=16, frames=5, lr=1e-3, warmup=10, batch=1, control_batch=1,
+                              condition="first", flip=False, texture_scale=4.0, autoencoder="pca", latent_channels=4)
     size = {"train_scenes": 2, "base_steps": 3, "control_steps": 2}
     base_cfg, control_cfg = mini.model_configs(args, 4)
     model, base = build_camera_wan(base_cfg, control_cfg, seed=0), build_camera_wan(base_cfg, control_cfg, seed=1)
@@ -206,6 +206,50 @@ def test_saved_models_load_bit_for_bit_and_only_with_the_same_training_settings(
     assert any(not torch.equal(va, vb) for va, vb in zip(model.state_dict().values(), base.state_dict().values()))
     with pytest.raises(ValueError, match="base_steps"):
         mini.load_models(path, m2, b2, mini.training_signature(args, {**size, "base_steps": 4}))
+
+
+@pytest.mark.parametrize("stage", ["base", "control"])
+def test_batched_step_is_the_products_accumulated_step(mini, held, stage):
+    """One step of the benchmark's batched trainer (one model call for the batch) against the product's trainer
+    (one clip at a time, gradients accumulated): the same loss and the same updated weights."""
+    import argparse
+    import copy
+
+    import torch
+
+    from navcrafter.models.synthesis.camcontrol import build_camera_wan
+    from navcrafter.models.synthesis.training import CameraTrainer, flow_loss, sample_generator
+
+    args = argparse.Namespace(heads=2, head_dim=8, layers=1, ffn=16, adapter_channels=4, reference_frames=1)
+    base, control = mini.model_configs(args, 192)
+    model = build_camera_wan(base, control, seed=0)
+    with torch.no_grad():  # a non-zero control, so that the cameras change the prediction
+        for p in model.control.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    clips = [c["clip"] for c in held[0]["clips"][:3]]
+    cfg = mini.training_config(stage=stage, steps=10, lr=1e-3, seed=0, frames=5, resolution=16, warmup=1, batch=3)
+    ours, product = copy.deepcopy(model), copy.deepcopy(model)
+    tr = mini.cosine_trainer(ours, clips, cfg)
+    assert type(tr).__name__ == "BatchedCosineTrainer"
+    ref = CameraTrainer(product, clips, cfg)
+    ref.lr_at = tr.lr_at  # the same schedule: only the step differs
+    a, b = tr.train_step(), ref.train_step()
+    assert a.loss == pytest.approx(b.loss, rel=1e-5)
+    moved = 0  # Adam's first step is ≈ lr·sign(grad): float noise in near-zero gradients moves a weight by up to
+    for (k, p), q, p0 in zip(ours.named_parameters(), product.parameters(), model.parameters()):  # a few % of lr
+        assert torch.allclose(p, q, atol=5e-5, rtol=0), k  # 5 % of the step (lr 1e-3)
+        moved += int(not torch.equal(p, p0))
+    assert moved > 0
+    # per clip: the batched loss is the mean of the product's flow_loss of each clip
+    product.train()
+    from navcrafter.models.synthesis.training import clip_conditions
+
+    cs = [clip_conditions(product, c) for c in clips]
+    want = np.mean([float(flow_loss(product, product, c, sample_generator(7, i), cfg)) for i, c in enumerate(cs)])
+    got = float(mini.batch_flow_loss(product, product, cs, [sample_generator(7, i) for i in range(3)], cfg))
+    assert got == pytest.approx(want, rel=1e-5)
+    assert mini.cosine_trainer(model, clips, mini.training_config(stage=stage, steps=10, lr=1e-3, seed=0, frames=5,
+                                                                  resolution=16)).__class__.__name__ == "CosineTrainer"
 
 
 def test_parse_sweep(mini):
