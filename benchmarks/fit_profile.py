@@ -46,11 +46,12 @@ from navcrafter.models.gaussians import rasterize as rasterize_module  # noqa: E
 from navcrafter.models.simulation.backend import SimulationMonoDepth  # noqa: E402
 from navcrafter.models.simulation.demo import write_demo_collection  # noqa: E402
 from navcrafter.schemas.config import RunConfig  # noqa: E402
+from navcrafter.schemas.layout import STEPS  # noqa: E402
 from navcrafter.schemas.store import Store  # noqa: E402
 from navcrafter.tasks import fit as fit_task  # noqa: E402
 from navcrafter.tasks import steps  # noqa: E402
 from navcrafter.tasks.ingest import ingest  # noqa: E402
-from navcrafter.tasks.runner import run_scene  # noqa: E402
+from navcrafter.tasks.runner import body_of, run_scene  # noqa: E402
 
 SECONDS: dict[str, float] = defaultdict(float)
 CALLS: dict[str, int] = defaultdict(int)
@@ -138,10 +139,10 @@ def main(argv: list[str] | None = None) -> int:
         # the step's body under its own seed, always run (a complete fit in --store would make steps.run skip);
         # the group is committed under a key of its own, so a real run recomputes it
         scene = Store(store).scene(res.scene_id)
-        spec = steps.STEPS["fit"]
+        spec = STEPS["fit"]
         seed = steps.seed_from_key(steps.step_key(scene, spec, None, cfg))
         writer = scene.begin(spec, None, f"fit-profile-{time.time_ns()}", cfg.backend)
-        attrs = steps.body_of(spec)(steps.StepContext(scene, None, cfg, seed, writer, "bench", None))
+        attrs = body_of(spec)(steps.StepContext(scene, None, cfg, seed, writer, "bench", None))
         step_s = time.perf_counter() - t0
         writer.commit(step_s, **attrs)
         load_after = os.getloadavg()
