@@ -20,8 +20,8 @@ from prefect import flow, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from navcrafter.flows.blas import one_blas_thread
 from navcrafter.flows.tools.report import read_manifest
+from navcrafter.models.threads import one_blas_thread
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import EVALUATE
 from navcrafter.schemas.tables import to_table, utcnow

@@ -24,7 +24,6 @@ from prefect.runtime import flow_run, task_run
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from navcrafter.flows import dashboard, dispatch
-from navcrafter.flows.blas import one_blas_thread
 from navcrafter.flows.tools.report import (
     SceneResult,
     manifest_rows_for,
@@ -34,6 +33,7 @@ from navcrafter.flows.tools.report import (
     write_manifest,
     write_summary,
 )
+from navcrafter.models.threads import one_blas_thread
 from navcrafter.schemas.config import RunConfig
 from navcrafter.schemas.layout import STEPS, StepSpec
 from navcrafter.schemas.store import StoreFull, StoreUnavailable, store_problem

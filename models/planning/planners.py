@@ -59,12 +59,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
-from threadpoolctl import threadpool_limits
 
 from navcrafter.models.camera.cameras import camera_directions, interpolate_poses, look_at, project
 from navcrafter.models.planning.config import PlanConfig
 from navcrafter.models.reconstruction.pointcloud import thin_points
 from navcrafter.models.reconstruction.pointrender import render_points
+from navcrafter.models.threads import one_blas_thread
 
 WORLD_UP = np.array([0.0, -1.0, 0.0])  # a scene's world is its input camera's OpenCV frame
 MAX_ELEVATION_DEG = 85.0  # look-at is degenerate straight above or below the centre
@@ -546,8 +546,8 @@ def optimise_trajectory(trajectory: np.ndarray, detector: CollisionDetector, cen
     # threads L-BFGS-B's own BLAS calls and the products in ``fun`` waited on each other: on one plan (66 starts
     # that all failed) the explorer's iteration took 17.4 s, with one thread 4.2 s, the same plan bit for bit
     # (benchmarks/results/planning-explore8-speed). The collection flows already run the
-    # whole scene so (flows/blas.py); a planner called outside them (the benchmark, a scene deployment) did not.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # whole scene so (models/threads.py); a planner called outside them (the benchmark, a scene deployment) did not.
+    with one_blas_thread():
         for level in levels:
             best: OptimisationResult | None = None
             for start in level:

@@ -1,12 +1,12 @@
-"""The collection flows run with one BLAS thread (flows/blas.py): scenes run in threads, and numpy's OpenBLAS
+"""The collection flows run with one BLAS thread (models/threads.py): scenes run in threads, and numpy's OpenBLAS
 pool hung when two of them entered it at once."""
 
 import numpy as np
 from threadpoolctl import threadpool_info
 
-from navcrafter.flows.blas import one_blas_thread
 from navcrafter.flows.evaluate import evaluate_store
 from navcrafter.flows.explore import explore_collection
+from navcrafter.models.threads import one_blas_thread
 
 
 def _blas_threads() -> list[int]:

@@ -269,7 +269,7 @@ def test_optimiser_runs_on_one_blas_thread_with_the_same_result_and_restores_the
     limited = optimise_trajectory(straight, det, centre)
     assert seen and all(t == [1] * len(before) for t in seen)
     assert blas_threads() == before
-    monkeypatch.setattr(planners_mod, "threadpool_limits", lambda **kw: contextlib.nullcontext())
+    monkeypatch.setattr(planners_mod, "one_blas_thread", contextlib.nullcontext)
     free = optimise_trajectory(straight, det, centre)
     assert limited.optimised and limited.collision_free
     assert np.array_equal(limited.trajectory, free.trajectory)
