@@ -440,7 +440,7 @@ def cosine_trainer(model, clips, config, **kw):
     (``batch_flow_loss``) instead of the product's one-clip-at-a-time gradient accumulation: the same loss and
     gradient (each clip's σ, noise and dropout from its own generator, the mean of the clips' losses; tested
     against the product's ``flow_loss``), several times the clips per second of a small model on a CPU."""
-    from navcrafter.models.synthesis.training import CameraTrainer, StepLog, clip_conditions, sample_generator
+    from navcrafter.models.synthesis.training import CameraTrainer, clip_conditions, sample_generator
 
     class CosineTrainer(CameraTrainer):
         def lr_at(self, step: int) -> float:
@@ -448,28 +448,14 @@ def cosine_trainer(model, clips, config, **kw):
             return super().lr_at(step) * 0.5 * (1.0 + float(np.cos(np.pi * min(1.0, step / total))))
 
     class BatchedCosineTrainer(CosineTrainer):
-        def train_step(self) -> StepLog:
+        def step_loss(self, indices: list[int]) -> float:  # the product's step around it (CameraTrainer)
             if self.world_size != 1:
                 raise ValueError("the benchmark's batched step runs in one process (world_size 1)")
-            step = self.state.step
-            t0 = time.perf_counter()
-            lr = self.lr_at(step)
-            for g in self.opt.param_groups:
-                g["lr"] = lr
-            self.opt.zero_grad(set_to_none=True)
-            indices = self.local_indices()
             cs = [clip_conditions(self.model, self.clips[self.clip_of(i)], self.device) for i in indices]
             loss = batch_flow_loss(self.wrapped, self.model, cs,
                                    [sample_generator(self.config.seed, i) for i in indices], self.config)
             loss.backward()
-            if self.config.optim.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(self.params, self.config.optim.grad_clip)
-            self.opt.step()
-            mean = float(loss.detach())
-            self.state.step = step + 1
-            self.state.position += len(indices)
-            self.state.history.append({"step": step + 1, "loss": mean, "lr": lr})
-            return StepLog(step + 1, mean, lr, len(indices) / max(time.perf_counter() - t0, 1e-9))
+            return float(loss.detach())
 
     cls = BatchedCosineTrainer if config.optim.batch_size > 1 else CosineTrainer
     return cls(model, clips, config, **kw)

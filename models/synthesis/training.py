@@ -325,6 +325,26 @@ class CameraTrainer:
             g["lr"] = lr
         self.opt.zero_grad(set_to_none=True)
         indices = self.local_indices()
+        mean = self.step_loss(indices)
+        if self.config.optim.grad_clip is not None:
+            # over sharded DTensor gradients (fsdp) the norm is the global one, as in a single process
+            torch.nn.utils.clip_grad_norm_(self.params, self.config.optim.grad_clip)
+        self.opt.step()
+        if self.world_size > 1:
+            t = torch.tensor([mean], dtype=torch.float64, device=self.device)
+            torch.distributed.all_reduce(t)
+            mean = float(t) / self.world_size
+        self.state.step = step + 1
+        self.state.position += self.config.optim.batch_size * self.world_size
+        self.state.history.append({"step": step + 1, "loss": mean, "lr": lr})
+        dt = time.perf_counter() - t0
+        return StepLog(step + 1, mean, lr, len(indices) * self.world_size / max(dt, 1e-9))
+
+    def step_loss(self, indices: list[int]) -> float:
+        """Forward and backward of one step's clips on this rank (gradients accumulated, each clip's loss over
+        ``len(indices)``); returns the mean of their losses. ``train_step`` wraps it (lr, zero_grad, clipping,
+        optimizer step, state); a subclass may compute the same loss another way (e.g. the clips in one call:
+        ``benchmarks/camera_control_mini.py``)."""
         total = 0.0
         use = None
         if self.sharded:
@@ -347,20 +367,7 @@ class CameraTrainer:
             total += float(loss.detach())
         if use is not None:
             use.drop_unused(self.params)
-        if self.config.optim.grad_clip is not None:
-            # over sharded DTensor gradients (fsdp) the norm is the global one, as in a single process
-            torch.nn.utils.clip_grad_norm_(self.params, self.config.optim.grad_clip)
-        self.opt.step()
-        mean = total / len(indices)
-        if self.world_size > 1:
-            t = torch.tensor([mean], dtype=torch.float64, device=self.device)
-            torch.distributed.all_reduce(t)
-            mean = float(t) / self.world_size
-        self.state.step = step + 1
-        self.state.position += self.config.optim.batch_size * self.world_size
-        self.state.history.append({"step": step + 1, "loss": mean, "lr": lr})
-        dt = time.perf_counter() - t0
-        return StepLog(step + 1, mean, lr, len(indices) * self.world_size / max(dt, 1e-9))
+        return total / len(indices)
 
     # ---- checkpoints --------------------------------------------------------------------------------
     def save_checkpoint(self, run_dir: str | os.PathLike) -> Path:
