@@ -237,6 +237,19 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
 
 
 @_ifjit
+def _conic_grad(q00, q01, q11, vc0, vc1, vc2):
+    """The gradient (m00, m01, m11) of the symmetric 2D covariance M = [[a, b], [b, d]] from its conic's
+    (Q = M^-1 = [[q00, q01], [q01, q11]]) gradient (vc0, vc1, vc2) as the conic's three stored entries (the
+    off-diagonal one counted once): dL/dM = -Q G Q with G = [[vc0, vc1 / 2], [vc1 / 2, vc2]]."""
+    g00, g01, g11 = vc0, 0.5 * vc1, vc2
+    t00 = q00 * g00 + q01 * g01
+    t01 = q00 * g01 + q01 * g11
+    t10 = q01 * g00 + q11 * g01
+    t11 = q01 * g01 + q11 * g11
+    return -(t00 * q00 + t01 * q01), -(t00 * q01 + t01 * q11), -(t10 * q01 + t11 * q11)
+
+
+@_ifjit
 def _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d, v_depths, v_conics,
                       v_comps, use_comps, c, g, Sc, v_mean, v_cov):
     """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_mean`` [3] and ``v_cov`` [3, 3]
@@ -263,17 +276,9 @@ def _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2
         for k in range(3):
             v_mean[k] += viewmats[c, 2, k] * v_z
         return
-    # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+    # conic = inverse(M), M = [[a, b], [b, d]]
     q00, q01, q11 = d / det, -b0 / det, a / det
-    g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
-    # Q G Q (symmetric 2x2)
-    t00 = q00 * g00 + q01 * g01
-    t01 = q00 * g01 + q01 * g11
-    t10 = q01 * g00 + q11 * g01
-    t11 = q01 * g01 + q11 * g11
-    m00 = -(t00 * q00 + t01 * q01)
-    m01 = -(t00 * q01 + t01 * q11)
-    m11 = -(t10 * q01 + t11 * q11)
+    m00, m01, m11 = _conic_grad(q00, q01, q11, v_conics[c, g, 0], v_conics[c, g, 1], v_conics[c, g, 2])
     if use_comps:
         det_orig = a0 * d0 - b0 * b0
         ratio = det_orig / det
@@ -491,16 +496,9 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
                 vm2 += viewmats[c, 2, 2] * vz_d
                 continue
             idet = 1.0 / det
-            # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+            # conic = inverse(M), M = [[a, b], [b, d]]
             q00, q01, q11 = d * idet, -b0 * idet, a * idet
-            h00, h01, h11 = vc0, 0.5 * vc1, vc2
-            t00 = q00 * h00 + q01 * h01
-            t01 = q00 * h01 + q01 * h11
-            t10 = q01 * h00 + q11 * h01
-            t11 = q01 * h01 + q11 * h11
-            m00 = -(t00 * q00 + t01 * q01)
-            m01 = -(t00 * q01 + t01 * q11)
-            m11 = -(t10 * q01 + t11 * q11)
+            m00, m01, m11 = _conic_grad(q00, q01, q11, vc0, vc1, vc2)
             if use_comps:
                 det_orig = a0 * d0 - b0 * b0
                 ratio = det_orig * idet
