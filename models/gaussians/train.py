@@ -180,6 +180,7 @@ class GaussianTrainer:
         if self.renderer == "cpu":
             # the compiled SH reads sh_dc and sh_rest as they are (no [N, K, 3] copy forward, none of it back):
             # per-camera colours, bit for bit those of the concatenated coefficients
+            # deferred: numba and the compiled CPU kernels load only when the CPU renderer is chosen
             from navcrafter.models.gaussians.cpu_rasterize import sh_colors
 
             colors, degree = sh_colors(p["means"], p["sh_dc"], p["sh_rest"], viewmats, degree), None
