@@ -78,11 +78,17 @@ def timed(name: str, fn):
 def instrument() -> None:
     """Wrap the fit's parts in timers (this process only)."""
     train.rasterize = timed("rasterization forward", train.rasterize)  # the renderer call, SH charged apart
-    for cls in (cpu_rasterize._Covar, cpu_rasterize._Project, cpu_rasterize._Composite):
-        cls.backward = staticmethod(timed("rasterization backward", cls.backward))
+    # every autograd function of the compiled renderer but the SH (charged to "other backward"); _ProjectQS, the
+    # default projection since raster21, was missing here until raster22 (its backward went to "other backward")
+    for name in ("_Covar", "_Project", "_ProjectQS", "_Composite"):
+        if hasattr(cpu_rasterize, name):
+            cls = getattr(cpu_rasterize, name)
+            cls.backward = staticmethod(timed("rasterization backward", cls.backward))
     rasterize_module.resolve_colors = timed("SH evaluation (forward)", rasterize_module.resolve_colors)
     if hasattr(cpu_rasterize, "resolve_colors"):  # the compiled SH (its backward is in "other backward")
         cpu_rasterize.resolve_colors = timed("SH evaluation (forward)", cpu_rasterize.resolve_colors)
+    if hasattr(cpu_rasterize, "sh_colors"):  # the fit's SH on the compiled kernels (sh_dc, sh_rest apart)
+        cpu_rasterize.sh_colors = timed("SH evaluation (forward)", cpu_rasterize.sh_colors)
     T = train.GaussianTrainer
     T.losses = timed("losses (forward)", T.losses)
     T.step = timed("iteration", T.step)

@@ -237,6 +237,19 @@ def project_forward(means, covars, viewmats, Ks, width, height, eps2d, near, far
 
 
 @_ifjit
+def _conic_grad(q00, q01, q11, vc0, vc1, vc2):
+    """The gradient (m00, m01, m11) of the symmetric 2D covariance M = [[a, b], [b, d]] from its conic's
+    (Q = M^-1 = [[q00, q01], [q01, q11]]) gradient (vc0, vc1, vc2) as the conic's three stored entries (the
+    off-diagonal one counted once): dL/dM = -Q G Q with G = [[vc0, vc1 / 2], [vc1 / 2, vc2]]."""
+    g00, g01, g11 = vc0, 0.5 * vc1, vc2
+    t00 = q00 * g00 + q01 * g01
+    t01 = q00 * g01 + q01 * g11
+    t10 = q01 * g00 + q11 * g01
+    t11 = q01 * g01 + q11 * g11
+    return -(t00 * q00 + t01 * q01), -(t00 * q01 + t01 * q11), -(t10 * q01 + t11 * q11)
+
+
+@_ifjit
 def _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2d, v_depths, v_conics,
                       v_comps, use_comps, c, g, Sc, v_mean, v_cov):
     """Gradients of :func:`_project_one`'s outputs for (c, g): adds into ``v_mean`` [3] and ``v_cov`` [3, 3]
@@ -263,17 +276,9 @@ def _project_grad_one(means, cov, viewmats, Ks, lims, eps2d, near, far, v_means2
         for k in range(3):
             v_mean[k] += viewmats[c, 2, k] * v_z
         return
-    # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+    # conic = inverse(M), M = [[a, b], [b, d]]
     q00, q01, q11 = d / det, -b0 / det, a / det
-    g00, g01, g11 = v_conics[c, g, 0], 0.5 * v_conics[c, g, 1], v_conics[c, g, 2]
-    # Q G Q (symmetric 2x2)
-    t00 = q00 * g00 + q01 * g01
-    t01 = q00 * g01 + q01 * g11
-    t10 = q01 * g00 + q11 * g01
-    t11 = q01 * g01 + q11 * g11
-    m00 = -(t00 * q00 + t01 * q01)
-    m01 = -(t00 * q01 + t01 * q11)
-    m11 = -(t10 * q01 + t11 * q11)
+    m00, m01, m11 = _conic_grad(q00, q01, q11, v_conics[c, g, 0], v_conics[c, g, 1], v_conics[c, g, 2])
     if use_comps:
         det_orig = a0 * d0 - b0 * b0
         ratio = det_orig / det
@@ -491,16 +496,9 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
                 vm2 += viewmats[c, 2, 2] * vz_d
                 continue
             idet = 1.0 / det
-            # conic = inverse(M), M = [[a, b], [b, d]]; dL/dM = -Q G Q with G the symmetric conic gradient
+            # conic = inverse(M), M = [[a, b], [b, d]]
             q00, q01, q11 = d * idet, -b0 * idet, a * idet
-            h00, h01, h11 = vc0, 0.5 * vc1, vc2
-            t00 = q00 * h00 + q01 * h01
-            t01 = q00 * h01 + q01 * h11
-            t10 = q01 * h00 + q11 * h01
-            t11 = q01 * h01 + q11 * h11
-            m00 = -(t00 * q00 + t01 * q01)
-            m01 = -(t00 * q01 + t01 * q11)
-            m11 = -(t10 * q01 + t11 * q11)
+            m00, m01, m11 = _conic_grad(q00, q01, q11, vc0, vc1, vc2)
             if use_comps:
                 det_orig = a0 * d0 - b0 * b0
                 ratio = det_orig * idet
@@ -1184,11 +1182,28 @@ def _unit_dir(means, campos, c, g):
     return dx / nrm, dy / nrm, dz / nrm, nrm
 
 
+@_ifjit
+def _coef(dc, rest, g, k, j):
+    """Coefficient ``k`` of channel ``j`` of Gaussian g: ``dc`` [N, 3] is coefficient 0, ``rest`` [N, K - 1, 3]
+    the others (a fit's ``sh_dc`` / ``sh_rest``, or two views of one [N, K, 3] array)."""
+    return dc[g, j] if k == 0 else rest[g, k - 1, j]
+
+
+@_ifjit
+def _set_coef(v_dc, v_rest, g, k, x, y, z):
+    """Writes coefficient ``k``'s gradient (x, y, z) of Gaussian g into ``v_dc`` (k = 0) or ``v_rest``."""
+    if k == 0:
+        v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = x, y, z
+    else:
+        v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = x, y, z
+
+
 @_pfjit
-def sh_forward(degree, means, campos, coeffs, rgb):
-    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients ``coeffs`` [N, K, 3]
-    (float32 or float64, read as they are; float64 arithmetic)
-    along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``)."""
+def sh_forward(degree, means, campos, dc, rest, rgb, cut):
+    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, ``dc`` [N, 3] (k = 0)
+    and ``rest`` [N, K - 1, 3] (float32 or float64, read as they are; float64 arithmetic)
+    along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``);
+    ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
@@ -1200,12 +1215,13 @@ def sh_forward(degree, means, campos, coeffs, rgb):
                 a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
                 for k in range(nb):
                     bk = b[k]
-                    a0 += bk * coeffs[g, k, 0]
-                    a1 += bk * coeffs[g, k, 1]
-                    a2 += bk * coeffs[g, k, 2]
+                    a0 += bk * _coef(dc, rest, g, k, 0)
+                    a1 += bk * _coef(dc, rest, g, k, 1)
+                    a2 += bk * _coef(dc, rest, g, k, 2)
                 rgb[c, g, 0] = max(a0 + 0.5, 0.0)
                 rgb[c, g, 1] = max(a1 + 0.5, 0.0)
                 rgb[c, g, 2] = max(a2 + 0.5, 0.0)
+                cut[c, g] = (1 if a0 + 0.5 < 0.0 else 0) | (2 if a1 + 0.5 < 0.0 else 0) | (4 if a2 + 0.5 < 0.0 else 0)
 
 
 @_ifjit
@@ -1235,14 +1251,16 @@ def _sh_dir_grad(degree, x, y, z, w):
 
 
 @_pfjit
-def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
-    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and ``v_coeffs`` [N, K, 3] (cameras summed in
-    order, in float64, whatever the dtype of ``coeffs`` / ``v_coeffs``; the clamp passes the gradient where its
-    input is >= 0, as ``torch.clamp_min``). The direction's gradient contracts the basis derivatives with each
-    basis function's coefficient gradient (:func:`_sh_dir_grad`) instead of a [16, 3] table per pair."""
+def sh_backward(degree, means, campos, dc, rest, cut, v_rgb, v_means, v_dc, v_rest):
+    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' ``v_dc`` [N, 3] and
+    ``v_rest`` [N, K - 1, 3] (cameras summed in order, in float64, whatever the dtype of the coefficients and
+    their gradients; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``: where
+    :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again). The direction's gradient
+    contracts the basis derivatives with each basis function's coefficient gradient (:func:`_sh_dir_grad`) instead
+    of a [16, 3] table per pair."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
-    n_k = v_coeffs.shape[1]
+    n_k = v_rest.shape[1] + 1
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
@@ -1255,27 +1273,23 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
             for c in range(n_cam):
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
-                a0 = a1 = a2 = 0.0
-                for k in range(nb):
-                    a0 += b[k] * coeffs[g, k, 0]
-                    a1 += b[k] * coeffs[g, k, 1]
-                    a2 += b[k] * coeffs[g, k, 2]
-                v0 = float(v_rgb[c, g, 0]) if not a0 + 0.5 < 0.0 else 0.0
-                v1 = float(v_rgb[c, g, 1]) if not a1 + 0.5 < 0.0 else 0.0
-                v2 = float(v_rgb[c, g, 2]) if not a2 + 0.5 < 0.0 else 0.0
+                cg = cut[c, g]
+                v0 = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
+                v1 = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
+                v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
                 if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
                     for k in range(nb):
                         bk = b[k]
-                        v_coeffs[g, k, 0] = 0.0 + bk * v0
-                        v_coeffs[g, k, 1] = 0.0 + bk * v1
-                        v_coeffs[g, k, 2] = 0.0 + bk * v2
-                        w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
+                        _set_coef(v_dc, v_rest, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
+                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
+                                + _coef(dc, rest, g, k, 2) * v2)
                 else:
                     for k in range(nb):
                         vco[k, 0] += b[k] * v0
                         vco[k, 1] += b[k] * v1
                         vco[k, 2] += b[k] * v2
-                        w[k] = coeffs[g, k, 0] * v0 + coeffs[g, k, 1] * v1 + coeffs[g, k, 2] * v2
+                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
+                                + _coef(dc, rest, g, k, 2) * v2)
                 vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
@@ -1285,7 +1299,7 @@ def sh_backward(degree, means, campos, coeffs, rgb, v_rgb, v_means, v_coeffs):
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
             if one_cam:
                 for k in range(nb, n_k):  # coefficients above the degree: zero gradient
-                    v_coeffs[g, k, 0] = v_coeffs[g, k, 1] = v_coeffs[g, k, 2] = 0.0
+                    _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
             else:
                 for k in range(n_k):
-                    v_coeffs[g, k, 0], v_coeffs[g, k, 1], v_coeffs[g, k, 2] = vco[k, 0], vco[k, 1], vco[k, 2]
+                    _set_coef(v_dc, v_rest, g, k, vco[k, 0], vco[k, 1], vco[k, 2])

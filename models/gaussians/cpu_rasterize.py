@@ -159,31 +159,53 @@ def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
 
 class _SH(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, degree, means, coeffs, campos):
-        # the coefficients [N, K, 3] are read in their own dtype, not copied (the biggest input of a fit):
-        # saved for backward, so an in-place change before it is caught by autograd's version check
-        co_t = coeffs.detach().contiguous()
-        co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(coeffs)
+    def forward(ctx, degree, means, campos, dc, rest):
+        # the coefficients: ``dc`` [N, K, 3] alone (``rest`` None), or ``dc`` [N, 3] and ``rest`` [N, K - 1, 3]
+        # (a fit's two parameters: no [N, K, 3] concatenation, and contiguous gradients for each); read in their
+        # own dtype, not copied (the biggest input of a fit): saved for backward, so an in-place change before it
+        # is caught by autograd's version check
+        ins = (dc,) if rest is None else (dc, rest)
+        co_t = tuple(t.detach().contiguous() for t in ins)
         dt = _dt(means)
         # the means read in place too (saved for backward: autograd's version check guards them)
-        m, cp = _np_view(means, dt), _np(campos)
-        rgb = np.empty((len(cp), len(m), 3), dt)
+        m = _np_view(means, dt)
+        rgb = np.empty((len(campos), len(m), 3), dt)
+        cut = np.empty((len(campos), len(m)), np.uint8)  # where the clamp stops the gradient (3 bits)
         with _LOCK:
-            K.sh_forward(degree, m, cp, co, rgb)
-        ctx.save_for_backward(co_t, means)
-        ctx.arrays, ctx.degree, ctx.likes = (cp, rgb), degree, (means, coeffs)
+            K.sh_forward(degree, m, campos, *_coef_arrays(co_t), rgb, cut)
+        ctx.save_for_backward(*co_t, means)
+        ctx.arrays, ctx.degree, ctx.likes = (campos, cut), degree, (means,) + ins
         return _out(rgb, means)
 
     @staticmethod
     def backward(ctx, v_rgb):
-        cp, rgb = ctx.arrays
-        co_t, means = ctx.saved_tensors
+        cp, cut = ctx.arrays
+        *co_t, means = ctx.saved_tensors
         m = _np_view(means, _dt(means))
-        co = co_t.numpy() if co_t.dtype in (torch.float32, torch.float64) else _np(co_t)
-        v_m, v_co = np.empty_like(m), np.empty(co.shape, dtype=co.dtype)
+        cos = [_coef_array(t) for t in co_t]
+        v_m, v_cos = np.empty_like(m), [np.empty(c.shape, dtype=c.dtype) for c in cos]
         with _LOCK:  # v_rgb read in place (a view of the compositing's gradients: any strides)
-            K.sh_backward(ctx.degree, m, cp, co, rgb, _as_kernel_dtype(v_rgb, m.dtype), v_m, v_co)
-        return None, _out(v_m, ctx.likes[0]), _out(v_co, ctx.likes[1]), None
+            K.sh_backward(ctx.degree, m, cp, *_coef_arrays(cos), cut, _as_kernel_dtype(v_rgb, m.dtype), v_m,
+                          *_coef_arrays(v_cos))
+        v_co = [_out(v, like) for v, like in zip(v_cos, ctx.likes[1:])]
+        return None, _out(v_m, ctx.likes[0]), None, v_co[0], v_co[1] if len(v_co) > 1 else None
+
+
+def _coef_array(t) -> np.ndarray:
+    """Coefficients as the SH kernels read them: float32 / float64 in place, anything else as float64."""
+    if isinstance(t, np.ndarray):
+        return t
+    return t.numpy() if t.dtype in (torch.float32, torch.float64) else _np(t)
+
+
+def _coef_arrays(co) -> tuple[np.ndarray, np.ndarray]:
+    """The SH kernels' (dc [N, 3], rest [N, K - 1, 3]): two views of one [N, K, 3] array, or the two given."""
+    arrs = [_coef_array(t) for t in co]
+    return (arrs[0][:, 0, :], arrs[0][:, 1:, :]) if len(arrs) == 1 else (arrs[0], arrs[1])
+
+
+def _campos(viewmats: Tensor) -> np.ndarray:
+    return _np(torch.linalg.inv(viewmats.detach())[:, :3, 3])
 
 
 def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: int | None) -> Tensor:
@@ -193,8 +215,22 @@ def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: i
         return torch_resolve_colors(means, colors, viewmats, sh_degree)
     if colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2 or not 0 <= sh_degree <= 3:
         return torch_resolve_colors(means, colors, viewmats, sh_degree)  # its checks name the problem
-    campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]
-    return _SH.apply(int(sh_degree), means, colors, campos)
+    return _SH.apply(int(sh_degree), means, _campos(viewmats), colors, None)
+
+
+def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, viewmats: Tensor, sh_degree: int) -> Tensor:
+    """Per-camera colours [C, N, 3] of SH coefficients held as two tensors, ``sh_dc`` [N, 3] (degree 0) and
+    ``sh_rest`` [N, K - 1, 3] (a fit's parameters), on the compiled kernels: the colours
+    ``resolve_colors(means, torch.cat([sh_dc[:, None], sh_rest], 1), viewmats, sh_degree)`` gives, bit for bit,
+    with their gradients, without the concatenation (a copy of every coefficient forward, and two backward)."""
+    n = means.shape[0]
+    if sh_dc.shape != (n, 3) or sh_rest.dim() != 3 or sh_rest.shape[0] != n or sh_rest.shape[2] != 3:
+        raise ValueError(f"sh_dc must be [N, 3] and sh_rest [N, K - 1, 3] for N={n}, got {tuple(sh_dc.shape)} "
+                         f"and {tuple(sh_rest.shape)}")
+    if not 0 <= sh_degree <= 3 or sh_rest.shape[1] + 1 < (sh_degree + 1) ** 2:
+        raise ValueError(f"sh_degree {sh_degree} needs 0..3 and K >= {(sh_degree + 1) ** 2} coefficients, got "
+                         f"K = {sh_rest.shape[1] + 1}")
+    return _SH.apply(int(sh_degree), means, _campos(viewmats), sh_dc, sh_rest)
 
 
 class _Project(torch.autograd.Function):

@@ -175,11 +175,21 @@ class GaussianTrainer:
         p = self.params
         opac = self.drop(torch.sigmoid(p["opacity_logits"]), step, training=training)
         W, H = view.size
-        coeffs = torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], dim=1)
+        viewmats = view.viewmat[None]
+        degree = self.active_sh_degree(step) if sh_degree is None else sh_degree
+        if self.renderer == "cpu":
+            # the compiled SH reads sh_dc and sh_rest as they are (no [N, K, 3] copy forward, none of it back):
+            # per-camera colours, bit for bit those of the concatenated coefficients
+            # deferred: numba and the compiled CPU kernels load only when the CPU renderer is chosen
+            from navcrafter.models.gaussians.cpu_rasterize import sh_colors
+
+            colors, degree = sh_colors(p["means"], p["sh_dc"], p["sh_rest"], viewmats, degree), None
+        else:
+            colors = torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], dim=1)
         out, alpha, meta = rasterize(
-            p["means"], p["quats"], torch.exp(p["log_scales"]), opac, coeffs, view.viewmat[None], view.K[None],
-            W, H, sh_degree=self.active_sh_degree(step) if sh_degree is None else sh_degree,
-            backgrounds=self.background[None], render_mode="RGB+ED", packed=False, backend=self.renderer)
+            p["means"], p["quats"], torch.exp(p["log_scales"]), opac, colors, viewmats, view.K[None],
+            W, H, sh_degree=degree, backgrounds=self.background[None], render_mode="RGB+ED", packed=False,
+            backend=self.renderer)
         return out[0, ..., :3], out[0, ..., 3], alpha[0, ..., 0], meta
 
     def losses(self, view: TrainView, rgb: Tensor, depth: Tensor, alpha: Tensor | None = None) -> dict[str, Tensor]:

@@ -134,6 +134,28 @@ def test_each_loss_term_is_added_with_its_weight_or_left_out():
     assert "depth" not in trainer.losses(nodepth[0], rgb, depth)
 
 
+def test_cpu_trainer_renders_its_split_sh_as_the_concatenated_coefficients():
+    """On the compiled renderer the trainer evaluates SH from ``sh_dc`` and ``sh_rest`` apart (no concatenation):
+    renders and every parameter's gradient equal, bit for bit, those of the concatenated coefficients."""
+    from navcrafter.models.gaussians.renderer import rasterize
+
+    _, init, views = synthetic_views(n_views=1)
+    trainer = GaussianTrainer(init, views, quick_config(), scene_scale=3.0)
+    assert trainer.renderer == "cpu"
+    view = views[0]
+    rgb, depth, alpha, _ = trainer.render(view, 25, training=True)  # active SH degree 1
+    (rgb.sum() + 0.5 * depth.sum() + alpha.sum()).backward()
+    p = {k: v.detach().clone().requires_grad_() for k, v in trainer.params.items()}
+    out, al, _ = rasterize(p["means"], p["quats"], torch.exp(p["log_scales"]), torch.sigmoid(p["opacity_logits"]),
+                           torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], dim=1), view.viewmat[None],
+                           view.K[None], S, S, sh_degree=1, backgrounds=torch.zeros(1, 3), render_mode="RGB+ED",
+                           backend="cpu")
+    (out[0, ..., :3].sum() + 0.5 * out[0, ..., 3].sum() + al[0, ..., 0].sum()).backward()
+    assert torch.equal(rgb, out[0, ..., :3]) and torch.equal(depth, out[0, ..., 3])
+    for k, v in trainer.params.items():
+        assert v.grad is not None and torch.equal(v.grad, p[k].grad), k
+
+
 def test_depth_term_improves_geometry():
     _, init, views = synthetic_views()
     errs = {}

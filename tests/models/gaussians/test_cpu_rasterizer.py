@@ -478,3 +478,62 @@ def test_interleaved_graphs_do_not_share_work_arrays(dtype):
         for k, g in ref[3].items():
             if k != "backgrounds":
                 assert torch.equal(leaves[k].grad, g), k
+
+
+# --------------------------------------------------------------------------------------------------
+# SH of a fit's two coefficient tensors (sh_dc, sh_rest) without their concatenation
+# --------------------------------------------------------------------------------------------------
+def _sh_grads(colors_fn, leaves: dict, dtype) -> tuple[torch.Tensor, dict]:
+    rgb = colors_fn()
+    (rgb * loss_weights(rgb.shape, 4, dtype)).sum().backward()
+    return rgb.detach(), {k: v.grad for k, v in leaves.items()}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("n_cam", [1, 3])
+def test_sh_colors_of_split_coefficients_equal_the_concatenated_bit_for_bit(degree, n_cam, dtype):
+    """``sh_colors(means, sh_dc, sh_rest, ...)`` (the fit's path) gives the colours and gradients of
+    ``resolve_colors`` on ``cat([sh_dc[:, None], sh_rest], 1)`` bit for bit (float64 means' gradient: to float64
+    rounding; above the active degree: zero
+    gradients, as the concatenation's); against PyTorch's SH to float rounding, with one channel's sum below the
+    clamp (its gradient stopped) beside two above it."""
+    means, _, _, _, coeffs = random_scene(40, seed=5, dtype=dtype, sh_degree=3)
+    dc, rest = coeffs[:, 0].clone(), coeffs[:, 1:].clone()
+    dc[3] = torch.tensor([1.0, -3.0, 0.5], dtype=dtype)  # channel 1 below the clamp at any degree:
+    rest[3] = 0.0  # colour = C0 dc + 0.5
+    viewmats, _ = cameras(dtype, n=n_cam)
+    split = {"means": means.clone().requires_grad_(), "dc": dc.clone().requires_grad_(),
+             "rest": rest.clone().requires_grad_()}
+    rgb, g = _sh_grads(lambda: cpu_rasterize.sh_colors(split["means"], split["dc"], split["rest"], viewmats, degree),
+                       split, dtype)
+    cat = {"means": means.clone().requires_grad_(), "dc": dc.clone().requires_grad_(),
+           "rest": rest.clone().requires_grad_()}
+    rgb_cat, g_cat = _sh_grads(lambda: cpu_rasterize.resolve_colors(
+        cat["means"], torch.cat([cat["dc"][:, None], cat["rest"]], 1), viewmats, degree), cat, dtype)
+    assert rgb.shape == (n_cam, 40, 3) and torch.equal(rgb, rgb_cat)
+    for k in split:
+        assert g[k].is_contiguous(), k
+        if k == "means" and dtype == torch.float64:  # the two layouts' kernels are compiled apart (fast-math):
+            assert rel_err(g[k], g_cat[k]) < 1e-14  # float64 rounding (float32 outputs: bit for bit)
+        else:
+            assert torch.equal(g[k], g_cat[k]), k
+    assert not g["rest"][:, (degree + 1) ** 2 - 1:].any()
+    ref = {"means": means.clone().requires_grad_(), "dc": dc.clone().requires_grad_(),
+           "rest": rest.clone().requires_grad_()}
+    rgb_ref, g_ref = _sh_grads(lambda: cpu_rasterize.torch_resolve_colors(
+        ref["means"], torch.cat([ref["dc"][:, None], ref["rest"]], 1), viewmats, degree), ref, dtype)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    assert rel_err(rgb, rgb_ref) < tol and (rgb[:, 3, 1] == 0).all() and (rgb[:, 3, 0] > 0).all()
+    for k in split:  # PyTorch's SH does not read the coefficients above the degree (no gradient: None)
+        assert rel_err(g[k], torch.zeros_like(g[k]) if g_ref[k] is None else g_ref[k]) < tol, k
+    assert (g["dc"][3, 0] != 0) and (g["dc"][3, 1] == 0)  # above the clamp: passes; below it: stopped
+
+
+def test_sh_colors_refuses_mismatched_coefficients():
+    means, _, _, _, coeffs = random_scene(10, sh_degree=1)
+    viewmats, _ = cameras(n=1)
+    with pytest.raises(ValueError, match="sh_dc must be"):
+        cpu_rasterize.sh_colors(means, coeffs[:, :2, 0], coeffs[:, 1:], viewmats, 1)
+    with pytest.raises(ValueError, match="K >= 9"):
+        cpu_rasterize.sh_colors(means, coeffs[:, 0], coeffs[:, 1:], viewmats, 2)
