@@ -8,9 +8,11 @@ which test pixels can be judged, and how to compare renders with the truth when 
   pixel unprojected with the true depth at the true camera) projects inside a training view, in front of it, and
   its depth there agrees with that view's true depth to ``rel_tol`` (else something nearer hides it).
   Sky pixels (depth 0) are never in the mask.
-* :func:`align_to_estimated`: a similarity (Umeyama) from estimated to true camera centres, and the true test
+* :func:`align_to_estimated`: a similarity (Umeyama) from matched estimated to true points, and the true test
   poses mapped into the estimated frame, so a model fitted on estimated cameras is rendered where the true test
-  camera is (pose error removed); rendered depth times the similarity's scale is in true units.
+  camera is (pose error removed); rendered depth times the similarity's scale is in true units. The points are
+  the training frames' camera centres and :func:`depth_pairs`, their pixels lifted with estimated and true depth
+  and camera: centres alone leave the similarity undetermined when the cameras barely move (turns in place).
 * :func:`masked_psnr`, :func:`masked_ssim`, :func:`depth_absrel`: scores over a pixel mask.
 * :func:`converged`: whether a curve changed less than ``tol`` (relative) over its last fraction.
 """
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from navcrafter.models.camera.cameras import camera_directions, umeyama
+from navcrafter.models.camera.cameras import camera_directions, umeyama, unproject_depth
 from navcrafter.models.metrics.image import SSIM_WINDOW, ssim_map
 
 
@@ -77,7 +79,8 @@ def visibility_mask(depth: np.ndarray, c2w: np.ndarray, K: np.ndarray, train_dep
 
 def align_to_estimated(est_centres: np.ndarray, true_centres: np.ndarray, true_c2w: np.ndarray
                        ) -> tuple[np.ndarray, float, dict]:
-    """Umeyama similarity ``true ~ s R est + t`` from matched camera centres [N, 3], and ``true_c2w`` [M, 4, 4]
+    """Umeyama similarity ``true ~ s R est + t`` from matched points [N, 3] (camera centres, :func:`depth_pairs`),
+    and ``true_c2w`` [M, 4, 4]
     mapped into the estimated frame (rotation ``R^T R_c``, centre ``R^T (t_c - t) / s``). Returns (those poses,
     s, {"scale", "rmse"} with the alignment's residual RMS in true units). Depth rendered at the mapped poses is
     ``1 / s`` of true depth."""
@@ -88,6 +91,26 @@ def align_to_estimated(est_centres: np.ndarray, true_centres: np.ndarray, true_c
     out[:, :3, :3] = R.T @ tc[:, :3, :3]
     out[:, :3, 3] = ((tc[:, :3, 3] - t) @ R) / s
     return out, float(s), {"scale": float(s), "rmse": float(np.sqrt(np.mean(resid**2)))}
+
+
+def depth_pairs(est_depth: np.ndarray, est_c2w: np.ndarray, true_depth: np.ndarray, true_c2w: np.ndarray,
+                K: np.ndarray, valid: np.ndarray | None = None, stride: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's pixels (each ``stride``-th row and column, ``valid`` [H, W], positive finite depth in both)
+    lifted twice: with the estimated z-depth at the estimated camera and with the true z-depth at the true camera
+    (intrinsics ``K`` for both). Returns matched points ``(est [M, 3], true [M, 3])`` for
+    :func:`align_to_estimated`."""
+    est_depth = np.asarray(est_depth, dtype=np.float64)
+    true_depth = np.asarray(true_depth, dtype=np.float64)
+    if est_depth.shape != true_depth.shape:
+        raise ValueError(f"depth_pairs: estimated depth {est_depth.shape} and true depth {true_depth.shape} differ")
+    both = np.isfinite(est_depth) & (est_depth > 0) & np.isfinite(true_depth) & (true_depth > 0)
+    if valid is not None:
+        both &= np.asarray(valid, dtype=bool)
+    pe, ie = unproject_depth(est_depth, est_c2w, K, mask=both, stride=stride)
+    pt, it = unproject_depth(true_depth, true_c2w, K, mask=both, stride=stride)
+    if not np.array_equal(ie, it):  # the same mask and stride select the same pixels
+        raise AssertionError("depth_pairs: the two liftings chose different pixels")
+    return pe, pt
 
 
 def masked_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, data_range: float = 1.0) -> float:
