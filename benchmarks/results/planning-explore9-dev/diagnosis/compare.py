@@ -1,5 +1,8 @@
-"""Paired comparison of the explorer ('ours') between result files: python compare.py OLD.json[,OLD2.json] NEW.json[,...] [label]"""
-import json, sys
+"""Paired comparison of the explorer ('ours') between result files:
+python compare.py OLD.json[,OLD2.json] NEW.json[,...] [OUT.json]"""
+import json
+import sys
+
 import numpy as np
 
 METRICS = ["seen", "coverage_at_0.05", "coverage_rel_0.01", "coverage", "fscore", "collisions", "planner_s",
@@ -33,8 +36,10 @@ def main():
             res[m] = {"old": float(a[ok].mean()), "new": float(b[ok].mean()), "delta": float(d.mean()),
                       "se": float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None,
                       "higher": int((d > 0).sum()), "lower": int((d < 0).sum()), "n": int(len(d))}
-        res["collision_scenes_old"] = {f"{k[0]}-{k[1]}": old[k]["ours"]["collisions"] for k in ks if old[k]["ours"]["collisions"] > 0}
-        res["collision_scenes_new"] = {f"{k[0]}-{k[1]}": new[k]["ours"]["collisions"] for k in ks if new[k]["ours"]["collisions"] > 0}
+        res["collision_scenes_old"] = {f"{k[0]}-{k[1]}": old[k]["ours"]["collisions"] for k in ks
+                                       if old[k]["ours"]["collisions"] > 0}
+        res["collision_scenes_new"] = {f"{k[0]}-{k[1]}": new[k]["ours"]["collisions"] for k in ks
+                                       if new[k]["ours"]["collisions"] > 0}
         out[kind] = res
     for kind, res in out.items():
         print(f"== {kind}")
@@ -43,7 +48,8 @@ def main():
                 print(f"  {m}: {v}")
             else:
                 se = f"{v['se']:.3f}" if v["se"] is not None else "-"
-                print(f"  {m:24s} {v['old']:.4f} -> {v['new']:.4f}  d {v['delta']:+.4f} ± {se}  higher {v['higher']}/{v['n']} lower {v['lower']}")
+                print(f"  {m:24s} {v['old']:.4f} -> {v['new']:.4f}  d {v['delta']:+.4f} ± {se}  "
+                      f"higher {v['higher']}/{v['n']} lower {v['lower']}")
     if len(sys.argv) > 3:
         json.dump(out, open(sys.argv[3], "w"), indent=1)
 

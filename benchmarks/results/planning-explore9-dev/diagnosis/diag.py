@@ -3,13 +3,15 @@ its store, and print per clip: planned path length, the true end drift as a frac
 the planned pose's true clearance against the true camera's."""
 import sys
 from pathlib import Path
+
 import numpy as np
-sys.path.insert(0, "/work/wt/explore9")
-from benchmarks import planning
-from navcrafter.models.simulation.demo import write_demo_collection
-from navcrafter.schemas.store import Store
-from navcrafter.schemas.layout import PLAN, SYNTHESIZE
-from navcrafter.tasks.common import simulation_truth
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[4]))  # the repository root, for `benchmarks`
+from benchmarks import planning  # noqa: E402
+from navcrafter.models.simulation.demo import write_demo_collection  # noqa: E402
+from navcrafter.schemas.layout import PLAN, SYNTHESIZE  # noqa: E402
+from navcrafter.schemas.store import Store  # noqa: E402
+from navcrafter.tasks.common import simulation_truth  # noqa: E402
 
 kind, seed, out = sys.argv[1], int(sys.argv[2]), Path(sys.argv[3])
 variant = dict(a.split("=", 1) for a in sys.argv[4:])
@@ -42,5 +44,6 @@ for k in range(1, cfg.iterations + 1):
           f"min true clearance planned {cp.min():.3f} m / moved {cm.min():.3f} m / true {ct.min():.3f} m")
     hit = np.flatnonzero(ct < r_safe_m)
     for i in hit:
-        print(f"   frame {i}: planned clr {cp[i]:.3f} m, moved-to-true-start clr {cm[i]:.3f} m, true clr {ct[i]:.3f} m, "
+        print(f"   frame {i}: planned clr {cp[i]:.3f} m, moved-to-true-start clr {cm[i]:.3f} m, "
+              f"true clr {ct[i]:.3f} m, "
               f"drift {drift[i]:.3f} u, total offset {offset_total[i]:.3f} u")
