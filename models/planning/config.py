@@ -119,11 +119,12 @@ class PlanConfig(_Section):
         "has a depth; development seeds 0-9: 0 with explore_follow_error 0.15 saw more than 0.3, 0.4 and 0.5 in "
         "rooms and table-tops, benchmarks/results/planning-explore7-dev).")
     explore_follow_error: float | None = Field(
-        0.15, ge=0, description="explorer: the follow error its G allows per unit of path (None: plan.follow_error). "
-        "The default 0.15, with explore_free_space 'share' (threshold 0), was measured on development seeds: the "
-        "longer moves into generated free space met the drift's tail (development rooms 0 and 4: true cameras "
-        "drifted 14 % and 22 % of the path into surfaces the plan cleared by 0.4-0.6 m; "
-        "benchmarks/results/planning-explore7-dev).")
+        0.26, ge=0, description="explorer: the follow error its G allows per unit of path (None: plan.follow_error). "
+        "0.26 is the 99 % quantile of the simulated drift in the worst direction (simulation.drift_trans 0.08 times "
+        "sqrt(pi/2) |N(0,1)| of the path: 0.08 sqrt(pi/2) x 2.576 = 0.258), fixed from that distribution before any "
+        "run; 0.15 (the default before, with explore_free_space 'share') let clips that drifted 18-26 % of their path "
+        "(development rooms 2 and 3, held-out street-51) collide; models/planning/README.md, "
+        "benchmarks/results/planning-explore9-dev).")
     explore_sky: Literal["free", "unknown"] = Field(
         "free", description="explorer: what the input photo's pixels of no depth (sky: the geometry found no "
         "surface on their ray) tell: 'free' (free space without end along the ray) or 'unknown'.")

@@ -15,7 +15,7 @@ def test_ours_plan_settings_reach_the_config_and_a_bad_one_fails_at_once(tmp_pat
     assert cfg.plan.explore_follow_error == 0.2 and cfg.synthesis.num_frames == 25
     default = planning.bench_config("explorer", True).plan
     assert (default.explore_free_space, default.explore_invented_share, default.explore_follow_error) == (
-        "share", 0.0, 0.15)
+        "share", 0.0, 0.26)
     with pytest.raises(Exception, match="explore_free_space"):
         planning.main(["--out", str(tmp_path / "x"), "--quick", "--methods", "ours",
                        "--ours-plan", "explore_free_space=bogus"])

@@ -43,6 +43,8 @@ def configs(model_dir: Path) -> dict[str, RunConfig]:
         # the explorer's free-space rule before `share` became its default: stores made then keep their keys
         "paper-explorer-anchored": RunConfig.load(overrides={"plan.explore_free_space": "anchored",
                                                              "plan.explore_follow_error": None}),
+        # the explorer's follow error before the drift's 99 % quantile (0.26) became its default: stores keep their keys
+        "paper-explorer-share-fe15": RunConfig.load(overrides={"plan.explore_follow_error": 0.15}),
         "tiny": RunConfig.load(preset="tiny"),
         "tiny+fit": RunConfig.load(preset="tiny", overrides={"fit.enabled": True}),
         "tiny-orbit-seed7": RunConfig.load(preset="tiny", overrides={"plan.strategy": "orbit", "seed": 7}),
