@@ -494,7 +494,7 @@ def _sh_grads(colors_fn, leaves: dict, dtype) -> tuple[torch.Tensor, dict]:
 @pytest.mark.parametrize("n_cam", [1, 3])
 def test_sh_colors_of_split_coefficients_equal_the_concatenated_bit_for_bit(degree, n_cam, dtype):
     """``sh_colors(means, sh_dc, sh_rest, ...)`` (the fit's path) gives the colours and gradients of
-    ``resolve_colors`` on ``cat([sh_dc[:, None], sh_rest], 1)`` bit for bit (float64 means' gradient: to float64
+    ``resolve_colors`` on ``cat([sh_dc[:, None], sh_rest], 1)`` bit for bit in float32 (float64: to float64
     rounding; above the active degree: zero
     gradients, as the concatenation's); against PyTorch's SH to float rounding, with one channel's sum below the
     clamp (its gradient stopped) beside two above it."""
@@ -511,13 +511,14 @@ def test_sh_colors_of_split_coefficients_equal_the_concatenated_bit_for_bit(degr
            "rest": rest.clone().requires_grad_()}
     rgb_cat, g_cat = _sh_grads(lambda: cpu_rasterize.resolve_colors(
         cat["means"], torch.cat([cat["dc"][:, None], cat["rest"]], 1), viewmats, degree), cat, dtype)
-    assert rgb.shape == (n_cam, 40, 3) and torch.equal(rgb, rgb_cat)
+    # float32 (the fit's dtype): bit for bit. float64: the two layouts' kernels are compiled apart under fast-math,
+    # and a fresh compile may reorder their sums differently (a fresh clone's CI run: degree-3 colours differed in
+    # the last bits), so float64 rounding
+    same = torch.equal if dtype == torch.float32 else (lambda a, b: rel_err(a, b) < 1e-14)
+    assert rgb.shape == (n_cam, 40, 3) and same(rgb, rgb_cat)
     for k in split:
         assert g[k].is_contiguous(), k
-        if k == "means" and dtype == torch.float64:  # the two layouts' kernels are compiled apart (fast-math):
-            assert rel_err(g[k], g_cat[k]) < 1e-14  # float64 rounding (float32 outputs: bit for bit)
-        else:
-            assert torch.equal(g[k], g_cat[k]), k
+        assert same(g[k], g_cat[k]), k
     assert not g["rest"][:, (degree + 1) ** 2 - 1:].any()
     ref = {"means": means.clone().requires_grad_(), "dc": dc.clone().requires_grad_(),
            "rest": rest.clone().requires_grad_()}
