@@ -360,6 +360,7 @@ class SparseScene:
         self.ws = float(self.truth.world_scale)
         # alignment: the training clips' frames (the frame the fit lives in: its cameras and initial cloud),
         # estimated -> true; the true test poses mapped into the fit's frame
+        self._lifts: dict[int, dict] = {}
         est, true = self.alignment_pairs()
         self.test_c2w, self.align_scale, self.align = align_to_estimated(est, true, self.true_c2w[self.test])
         self.test_rgb, self.test_depth = [], []
@@ -382,16 +383,12 @@ class SparseScene:
         room-10's pool cameras lie within 0.007 of the origin, and a similarity from them mapped the test views
         off the scene: masked PSNR 7.8 dB, rendered depth AbsRel 0.99 in every variant)."""
         from navcrafter.models.gaussians.sparse import depth_pairs
-        from navcrafter.schemas.layout import LIFT
         from navcrafter.tasks.readers import frame_truth
 
         est, true = [self.c2w[self.pool, :3, 3]], [self.true_c2w[self.pool, :3, 3]]
-        lifts: dict[int, dict] = {}
         for f in self.pool:
             k, i = self.refs[f]
-            if k not in lifts:
-                lifts[k] = self.scene.read_all(LIFT, k)
-            lift = lifts[k]
+            lift = self.lift(k)
             at = np.nonzero(np.asarray(lift["view_index"]) == i)[0]
             if not len(at):
                 continue
@@ -405,6 +402,14 @@ class SparseScene:
             est.append(pe)
             true.append(pt)
         return np.concatenate(est), np.concatenate(true)
+
+    def lift(self, k: int) -> dict:
+        """Clip k's lift (read once: the alignment and every depth target of its frames use it)."""
+        from navcrafter.schemas.layout import LIFT
+
+        if k not in self._lifts:
+            self._lifts[k] = self.scene.read_all(LIFT, k)
+        return self._lifts[k]
 
     def frame(self, f: int) -> np.ndarray:
         """Frame f at the synthesis size (uint8)."""
@@ -473,7 +478,6 @@ class SparseScene:
         from navcrafter.models.gaussians.recipe import resize_depth
         from navcrafter.models.reconstruction.depthcalib import CalibrationError, calibrate_depth
         from navcrafter.models.reconstruction.pointrender import render_points
-        from navcrafter.schemas.layout import LIFT
         from navcrafter.tasks.readers import frame_truth
 
         k, i = self.refs[f]
@@ -483,7 +487,7 @@ class SparseScene:
                 raise ValueError("the oracle-depth control needs the synthesize step's true_depth")
             return resize_depth(np.asarray(true_depth[0], dtype=np.float32), self.h, self.w)
         fc = self.cfg.fit
-        lift = self.scene.read_all(LIFT, k)
+        lift = self.lift(k)
         at = np.nonzero(np.asarray(lift["view_index"]) == i)[0]
         if len(at):
             d_v, valid = lift["depth"][at[0]], lift["confidence"][at[0]] >= fc.depth_confidence
