@@ -100,6 +100,9 @@ class PlanConfig(_Section):
         0.3, gt=0, le=1, description="explorer: share of each scored frame's rays that should end on known content; "
         "below it the trajectory's score falls linearly.")
     explore_yaw_deg: float = Field(35.0, ge=0, le=90, description="explorer: end poses also turned by +-this.")
+    explore_yaw_turns: int = Field(
+        1, ge=1, le=4, description="explorer: end poses turned by +-k x explore_yaw_deg for k = 1 .. this (1: "
+        "+-explore_yaw_deg only; 2 adds +-2 x explore_yaw_deg, a turn that looks past the side of the input view).")
     explore_prefix: float = Field(
         0.1, ge=0, le=1, description="explorer: share of the clip's first frames that stay in seen free space.")
     explore_reach: float = Field(
@@ -148,7 +151,8 @@ class PlanConfig(_Section):
                                                 "explore_candidates": 60, "explore_voxels": 48, "explore_rays": 16,
                                                 "explore_frames": 4, "explore_accuracy": 0.01,
                                                 "explore_depth_error": 0.03, "explore_anchor": 0.3,
-                                                "explore_yaw_deg": 35.0, "explore_prefix": 0.1,
+                                                "explore_yaw_deg": 35.0, "explore_yaw_turns": 1,
+                                                "explore_prefix": 0.1,
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
                                                 "explore_invented_share": 0.0, "explore_follow_error": None,
                                                 "explore_reach": 1.0, "explore_sky": "free",

@@ -345,6 +345,14 @@ class _Scorer:
         return float(gain[0]) * factor, float(anchor.min())
 
 
+def end_yaws(yaw_deg: float, turns: int = 1) -> tuple[float, ...]:
+    """The turns (degrees about world up) of each end pose from looking at o: 0, then +-k ``yaw_deg`` for
+    k = 1 .. ``turns``."""
+    if yaw_deg <= 0:
+        return (0.0,)
+    return (0.0, *(s * k * float(yaw_deg) for k in range(1, int(turns) + 1) for s in (1.0, -1.0)))
+
+
 def _end_pose(position: np.ndarray, centre: np.ndarray, yaw_deg: float, forward: np.ndarray) -> np.ndarray:
     """At ``position`` looking at ``centre``, then turned by ``yaw_deg`` about world up."""
     base = look_at_centre(position, centre, forward)
@@ -431,7 +439,7 @@ class ExplorerPlanner:
         ok &= vmap.reach(pos) <= det.max_reach
         pos = pos[ok]
         forward = level_forward(state.current)
-        yaws = (0.0, cfg.explore_yaw_deg, -cfg.explore_yaw_deg) if cfg.explore_yaw_deg > 0 else (0.0,)
+        yaws = end_yaws(cfg.explore_yaw_deg, cfg.explore_yaw_turns)
         ends = [_end_pose(p, state.centre, y, forward) for p in pos for y in yaws]
         # pre-score every end on its last frame alone; the best go on as trajectories of every shape
         T = state.num_frames

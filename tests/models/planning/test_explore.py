@@ -21,6 +21,7 @@ from navcrafter.models.planning.explore import (
     VoxelMap,
     anchored_pixels,
     carving_views,
+    end_yaws,
     open_sky,
     repairable,
     shaped_trajectory,
@@ -152,6 +153,16 @@ def test_explorer_plans_a_safe_clip_that_sees_more_unknown_than_staying(falloff)
         assert res.scores[res.chosen] > 0
     else:
         assert res.fallback in ("retreat", "static")
+
+
+def test_end_poses_turn_by_each_multiple_of_the_yaw_up_to_explore_yaw_turns():
+    assert end_yaws(35.0) == (0.0, 35.0, -35.0)  # the default: the explorer before explore_yaw_turns
+    assert end_yaws(35.0, 2) == (0.0, 35.0, -35.0, 70.0, -70.0)
+    assert end_yaws(0.0, 3) == (0.0,)
+    _, state = room_state()
+    one = ExplorerPlanner(PlanConfig(explore_candidates=30)).plan(state, np.random.default_rng(0))
+    two = ExplorerPlanner(PlanConfig(explore_candidates=30, explore_yaw_turns=2)).plan(state, np.random.default_rng(0))
+    assert two.timings["ends"] == one.timings["ends"] * 5 / 3  # every admitted end position, 5 turns instead of 3
 
 
 def test_a_generated_frame_carves_free_space_only_where_it_copied_the_cloud_it_was_shown():
