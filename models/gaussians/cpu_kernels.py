@@ -854,6 +854,32 @@ def _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1):
     return max(x0, math.floor(lo)), max(min(x1, math.floor(hi) + 1), x0)
 
 
+@_ifjit
+def _pair_weight(p, e, o, alpha_clamp, athr, tstop, one, zero, T, done):
+    """One candidate pair of the compositing (``e = exp(-sigma)``): ``(w, T_i, state)``, state 0 when its alpha is
+    below 1/255 (skipped), 1 when the pixel's transmittance would fall to the stop (marked done, not composited), 2
+    when composited (``T[p]`` updated; ``w = alpha T_i`` is its weight)."""
+    alpha = min(alpha_clamp, o * e)
+    if alpha < athr:
+        return zero, zero, 0
+    tp = T[p]
+    nt = tp * (one - alpha)
+    if nt <= tstop:
+        done[p] = True
+        return zero, tp, 1
+    T[p] = nt
+    return alpha * tp, tp, 2
+
+
+@_ifjit
+def _record_pair(pix, pes, pts, j, q, e, tp):
+    """Keep a contributing pair for the backward pass: its pixel (row << 16 | column: no division to undo it),
+    ``exp(-sigma)`` and the transmittance in front of it (the backward's ``T_i``: no division to recover it)."""
+    pix[j] = q
+    pes[j] = e
+    pts[j] = tp
+
+
 @_pfjit
 def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, render, t_final,
                       pbase, pend, pix, pes, pts, record):
@@ -945,39 +971,49 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                             n += np.uintp((sigma >= zero) & (sigma <= cut) & (not done[p]))
                 for i in range(n):
                     cs[i] = math.exp(-cs[i])
-                for i in range(n):
-                    p = cp[i]
-                    e = cs[i]
-                    alpha = min(alpha_clamp, o * e)
-                    if alpha < athr:
-                        continue
-                    tp = T[p]
-                    nt = tp * (one - alpha)
-                    if nt <= tstop:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    w = alpha * tp
-                    if n_feat == 3:
+                # one loop per feature count (RGB, RGB + depth unrolled): no per-pair test of the count
+                # (measured: 18.1 -> 17.4 ms RGB, 18.0 -> 17.4 ms SH3 + RGB+ED, one thread, medians of 15)
+                if n_feat == 3:
+                    for i in range(n):
+                        p = cp[i]
+                        w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
+                        if state != 2:
+                            n_done += state  # 1: the pixel stopped here
+                            continue
                         b3 = p * _U3
                         acc[b3] += w * c0
                         acc[b3 + _U1] += w * c1
                         acc[b3 + _U2] += w * c2
-                    elif n_feat == 4:
+                        if record:
+                            _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
+                            j += 1
+                elif n_feat == 4:
+                    for i in range(n):
+                        p = cp[i]
+                        w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
+                        if state != 2:
+                            n_done += state  # 1: the pixel stopped here
+                            continue
                         b4 = p * _U4
                         acc[b4] += w * c0
                         acc[b4 + _U1] += w * c1
                         acc[b4 + _U2] += w * c2
                         acc[b4 + _U3] += w * c3
-                    else:
+                        if record:
+                            _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
+                            j += 1
+                else:
+                    for i in range(n):
+                        p = cp[i]
+                        w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
+                        if state != 2:
+                            n_done += state  # 1: the pixel stopped here
+                            continue
                         for f in range(n_feat):
                             acc[p * np.uintp(n_feat) + np.uintp(f)] += w * e_[R_FEAT + f]
-                    T[p] = nt
-                    if record:
-                        pix[np.uintp(j)] = cq[i]  # row << 16 | column: no division to undo it
-                        pes[np.uintp(j)] = e
-                        pts[np.uintp(j)] = tp  # the backward's T_i: no division to recover it
-                        j += 1
+                        if record:
+                            _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
+                            j += 1
             pend[k] = j
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
