@@ -51,7 +51,9 @@ def covariances(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
 
 def outputs(glue, scene: dict, sh, mode: str, dtype, kw: dict) -> dict:
     kw = dict(kw)
-    means, quats, scales, opacities, colors = (p.to(dtype) for p in scene["params"])
+    # fresh leaves per call: ``p.to(dtype)`` of a tensor already in ``dtype`` is that tensor, so both versions
+    # would share the leaves and their ``.grad`` (the second call accumulating into the first's: "equal")
+    means, quats, scales, opacities, colors = (p.detach().to(dtype).clone() for p in scene["params"])
     if kw.pop("covars", False):
         leaves = {"means": means, "covars": covariances(quats, scales), "opacities": opacities, "colors": colors}
         args = (leaves["means"], None, None)

@@ -381,9 +381,10 @@ class _Composite(torch.autograd.Function):
             pend = _SCRATCH.get("pend", n_ent, np.int64)
             pix = _SCRATCH.get("pix", pbase[-1], np.int32)
             pes = _SCRATCH.get("pes", pbase[-1], dt)
+            pts = _SCRATCH.get("pts", pbase[-1], dt)
             K.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
-                                pbase, pend, pix, pes, record)
-        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes)
+                                pbase, pend, pix, pes, pts, record)
+        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes, pts)
         ctx.shape = (n_cam, n, d)
         ctx.scalars = (width, height, ctile, ctw, use_bg)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
@@ -394,7 +395,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes = ctx.arrays
+        ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes, pts = ctx.arrays
         width, height, ctile, ctw, use_bg = ctx.scalars
         n_cam, n, d = ctx.shape
         dt = ent.dtype
@@ -404,8 +405,8 @@ class _Composite(torch.autograd.Function):
         # the gradients in the inputs' dtype (float64 sums), handed to PyTorch as views of one array
         grads = np.zeros((n_cam, n, 6 + d), dt)
         with _LOCK:
-            K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, t_final, vr, va,
-                                 pbase, pend, pix, pes, slots)
+            K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, vr, va,
+                                 pbase, pend, pix, pes, pts, slots)
             K.gather_slots(order, roff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
