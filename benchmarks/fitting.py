@@ -301,6 +301,7 @@ PAIRS = {"depth": ("none", "depth"), "dropgaussian": ("depth", "dropgaussian"), 
 DROP_GAMMA = 0.2  # DropGaussian's paper schedule: r_t = 0.2 t / T over the whole fit
 LAMBDA_GRID = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)  # 3 and 10: the grid went on past 1, its best before
 SPARSE_INIT_FRACTION = 0.1
+DEPTH_SPACES = ("median", "relative")  # the scale-free spaces of fit.depth_space
 CONVERGENCE_TOL = 0.02
 VISIBILITY_TOL = 0.03
 ALIGN_STRIDE = 8  # pixels of a lifted frame used in the test-pose alignment (each 8th row and column)
@@ -318,11 +319,12 @@ def sparse_overrides(quick: bool, clips: int, weights: str | None) -> dict:
     return over
 
 
-def fit_settings(fit, iterations: int, lambda_depth: float, drop_gamma: float):
+def fit_settings(fit, iterations: int, lambda_depth: float, drop_gamma: float, depth_space: str = "median"):
     """The fit's settings at ``iterations`` with 3DGS's schedule scaled to it (density control from 10 % to 75 %
-    every 5 %, SH degree +1 every quarter), the depth term in median-normalised depth (scale-free)."""
+    every 5 %, SH degree +1 every quarter), the depth term in a scale-free space (``depth_space``: median-normalised
+    or per-pixel relative, ``fit.depth_space``)."""
     return fit.model_copy(update={
-        "iterations": iterations, "lambda_depth": lambda_depth, "drop_gamma": drop_gamma, "depth_space": "median",
+        "iterations": iterations, "lambda_depth": lambda_depth, "drop_gamma": drop_gamma, "depth_space": depth_space,
         "densify_start": max(1, iterations // 10), "densify_stop": int(0.75 * iterations),
         "densify_every": max(1, iterations // 20), "reset_every": 0,
         "sh_degree_interval": max(1, iterations // 4)})
@@ -558,15 +560,35 @@ def masked_l1(sc: SparseScene, rgb: np.ndarray, masks: list[np.ndarray]) -> floa
     return float(np.mean([np.abs(rgb[j] - sc.test_rgb[j])[m].mean() for j, m in enumerate(masks) if m.any()]))
 
 
+def grid_name(space: str, lam: float, default_space: str) -> str:
+    """A tuning row's variant name: ``depth@lambda``, with its space where it is not the run's."""
+    return f"depth@{lam:g}" if space == default_space else f"depth@{space}:{lam:g}"
+
+
+def parse_grid(text: str | None, default_space: str) -> tuple:
+    """``--lambda-grid``: comma-separated ``lambda`` or ``space:lambda`` entries (default: LAMBDA_GRID)."""
+    if not text:
+        return tuple((default_space, lam) for lam in LAMBDA_GRID)
+    out = []
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        space, _, lam = item.rpartition(":")
+        space = space or default_space
+        if space not in DEPTH_SPACES:
+            raise SystemExit(f"--lambda-grid {item!r}: the depth space must be one of {DEPTH_SPACES}")
+        out.append((space, float(lam)))
+    return tuple(out)
+
+
 def sparse_fit(sc: SparseScene, train: np.ndarray, masks, *, iterations: int, lambda_depth: float,
-               drop_gamma: float, depth: str | None, init_fraction: float = 1.0, lpips_model=None) -> tuple:
+               drop_gamma: float, depth: str | None, init_fraction: float = 1.0, lpips_model=None,
+               depth_space: str = "median") -> tuple:
     """One fit on the chosen frames; (record, trainer, train views, scene scale)."""
     from navcrafter.models.gaussians.model import GaussianModel
     from navcrafter.models.gaussians.recipe import init_subset, scene_scale
     from navcrafter.models.gaussians.sparse import converged
     from navcrafter.models.gaussians.train import GaussianTrainer
 
-    fc = fit_settings(sc.cfg.fit, iterations, lambda_depth, drop_gamma)
+    fc = fit_settings(sc.cfg.fit, iterations, lambda_depth, drop_gamma, depth_space)
     views = sc.train_views(train, depth if lambda_depth > 0 else None)
     n = min(sc.cfg.fit.max_init_points or len(sc.cloud.points), len(sc.cloud.points))
     pts, cols = init_subset(sc.cloud.points, sc.cloud.colors, max(1, int(round(init_fraction * n))), sc.seed)
@@ -661,7 +683,8 @@ def sparse_continue(sc: SparseScene, trainer, views, masks, scale: float, iterat
 
 def run_sparse(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...], views: list[int], *,
                lambda_depth: float, iterations: int, refine_fraction: float, clips: int, weights: str | None,
-               tune: bool = False, on_scene=None) -> list[dict]:
+               tune: bool = False, on_scene=None, depth_space: str = "median",
+               grid: tuple = ()) -> list[dict]:
     """Every scene x views x variant; one record each (scene, kind, seed, views, variant, scores...)."""
     from navcrafter.models.gaussians.recipe import load_lpips
 
@@ -698,12 +721,13 @@ def run_sparse(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...], view
                           f"AbsRel {rec['depth_absrel']:.3f} conv {rec['converged']} "
                           f"({rec['heldout_l1_change_last20']:.3f}) {rec['train_seconds']:.1f} s", flush=True)
 
-                kw = {"iterations": iterations, "lpips_model": lpips_model}
+                kw = {"iterations": iterations, "lpips_model": lpips_model, "depth_space": depth_space}
                 add("none", sparse_fit(sc, train, masks, lambda_depth=0.0, drop_gamma=0.0, depth=None, **kw)[0])
                 if tune:
-                    for lam in LAMBDA_GRID:
-                        add(f"depth@{lam:g}", sparse_fit(sc, train, masks, lambda_depth=lam, drop_gamma=0.0,
-                                                         depth="mono", **kw)[0])
+                    for space, lam in grid:
+                        add(grid_name(space, lam, depth_space),
+                            sparse_fit(sc, train, masks, lambda_depth=lam, drop_gamma=0.0, depth="mono",
+                                       **{**kw, "depth_space": space})[0])
                     continue
                 add("depth", sparse_fit(sc, train, masks, lambda_depth=lambda_depth, drop_gamma=0.0, depth="mono",
                                         **kw)[0])
@@ -833,6 +857,7 @@ def sparse_main(args, seeds: tuple[int, int], kinds: tuple[str, ...]) -> str:
     views = [int(v) for v in args.views.split(",") if v]
     if args.tune_lambda and not is_development(seeds):
         raise SystemExit("--tune-lambda runs on development seeds only (0-9): pass --seeds within 0-9")
+    grid = parse_grid(args.lambda_grid, args.depth_space)
     iterations = args.fit_iterations or (300 if args.quick else 1500)
     cfg = RunConfig.load(preset="tiny" if args.quick else "paper",
                          overrides=sparse_overrides(args.quick, args.clips, args.eval_weights))
@@ -843,8 +868,8 @@ def sparse_main(args, seeds: tuple[int, int], kinds: tuple[str, ...]) -> str:
         "quick": args.quick, "seeds": list(seeds), "kinds": list(kinds), "development": is_development(seeds),
         "views": views, "clips": args.clips, "label": LABEL, "iterations": iterations,
         "continue_iterations": max(10, int(round(args.refine_fraction * iterations))), "resolution": [w, h],
-        "lambda_depth": args.lambda_depth, "lambda_source": args.lambda_source, "depth_space": "median",
-        "drop_gamma": DROP_GAMMA, "lambda_grid": list(LAMBDA_GRID) if args.tune_lambda else None,
+        "lambda_depth": args.lambda_depth, "lambda_source": args.lambda_source, "depth_space": args.depth_space,
+        "drop_gamma": DROP_GAMMA, "lambda_grid": [list(g) for g in grid] if args.tune_lambda else None,
         "sparse_init_fraction": SPARSE_INIT_FRACTION, "convergence_tol": CONVERGENCE_TOL,
         "visibility_tol": VISIBILITY_TOL, "witness": "seen and shown truthfully",
         "lpips_note": load_lpips(cfg.evaluation)[1], "complete": False,
@@ -864,10 +889,11 @@ def sparse_main(args, seeds: tuple[int, int], kinds: tuple[str, ...]) -> str:
         protocol.update(complete=done, n_scenes=len({r["photo"] for r in rows}))
         res = sparse_results(rows, protocol)
         if args.tune_lambda and rows:
-            score_of = {lam: np.mean([s["psnr"] for vv in res["views"].values() for k, s in vv.items()
-                                      if k == f"depth@{lam:g}"]) for lam in LAMBDA_GRID}
-            protocol["lambda_scores"] = {f"{k:g}": float(v) for k, v in score_of.items()}
-            protocol["lambda_choice"] = float(max(score_of, key=score_of.get))
+            names = [grid_name(space, lam, args.depth_space) for space, lam in grid]
+            score_of = {n: np.mean([s["psnr"] for vv in res["views"].values() for k, s in vv.items() if k == n])
+                        for n in names}
+            protocol["lambda_scores"] = {n.removeprefix("depth@"): float(v) for n, v in score_of.items()}
+            protocol["lambda_choice"] = max(score_of, key=score_of.get).removeprefix("depth@")
             res = sparse_results(rows, protocol)
         (args.out / "results.json").write_text(json.dumps(res, indent=1))
         md = sparse_markdown(res)
@@ -878,7 +904,7 @@ def sparse_main(args, seeds: tuple[int, int], kinds: tuple[str, ...]) -> str:
 
     rows = run_sparse(args.quick, seeds, kinds, views, lambda_depth=args.lambda_depth, iterations=iterations,
                       refine_fraction=args.refine_fraction, clips=args.clips, weights=args.eval_weights,
-                      tune=args.tune_lambda, on_scene=write)
+                      tune=args.tune_lambda, on_scene=write, depth_space=args.depth_space, grid=grid)
     return write(rows, done=True)
 
 
@@ -901,6 +927,10 @@ def main(argv: list[str] | None = None) -> int:
                     "depth term (choose it with --tune-lambda on development seeds)")
     ap.add_argument("--lambda-source", default="the 'light' weighting's value, not tuned by this protocol",
                     help="--views: where --lambda-depth comes from (recorded in the protocol)")
+    ap.add_argument("--depth-space", default="median", choices=DEPTH_SPACES, help="--views: the depth term's "
+                    "scale-free space (fit.depth_space): 'median' |ED - D| / median(D), 'relative' |ED - D| / (ED + D)")
+    ap.add_argument("--lambda-grid", default=None, help="--tune-lambda: comma-separated lambda or space:lambda "
+                    f"entries (default {','.join(f'{x:g}' for x in LAMBDA_GRID)} in --depth-space)")
     ap.add_argument("--tune-lambda", action="store_true", help="--views, development seeds only: fit none and "
                     f"depth at lambda_depth in {LAMBDA_GRID}, and name the best by mean masked PSNR")
     ap.add_argument("--merge", default=None, help="--views: comma-separated output folders of runs of the same "

@@ -62,9 +62,11 @@ class FitConfig(_Section):
         "earlier default; measured effect in models/gaussians/README.md#the-loss).")
     lambda_lpips: float = Field(1.0, ge=0, description="Weight of the LPIPS term (needs the official weights).")
     lambda_depth: float = Field(1.0, ge=0, description="Weight of the calibrated-depth L1 term.")
-    depth_space: Literal["inverse", "median"] = Field(
+    depth_space: Literal["inverse", "median", "relative"] = Field(
         "inverse", description="The depth term's space: 'inverse' |1/ED - 1/D| (world units^-1, where the target "
-        "is valid, not sky, and the render covers the pixel); 'median' |ED - D| / median(D).")
+        "is valid, not sky, and the render covers the pixel); 'median' |ED - D| / median(D); 'relative' "
+        "|ED - D| / (ED + D) per pixel (scale-free and bounded: a pixel whose target is far nearer than the render, "
+        "e.g. generated content at the lens, pulls with a vanishing gradient; same mask as 'inverse').")
     drop_gamma: float = Field(0.1, ge=0, lt=1, description="DropGaussian: drop rate r_t = gamma t / T (0: off).")
     depth_confidence: float = Field(
         0.5, ge=0, le=1, description="Geometry pixels at least this confident take part in the depth calibration.")

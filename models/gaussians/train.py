@@ -9,8 +9,11 @@ with unit weights by default (the paper's loss, ``fit.loss = "paper"``). ``ED`` 
 ``D_cal`` the view's calibrated monocular depth (``models.reconstruction.depthcalib``), compared in inverse depth,
 the space the calibration fits, over pixels where ``D_cal > 0`` (valid, not sky) and the render covers the pixel
 (alpha > 0.5). ``fit.depth_space = "median"`` (the ``"light"`` weighting, 1 : 0.2 : 0.1) compares ``|ED - D_cal|``
-divided by the view's median ``D_cal`` instead. A term with ``lambda = 0`` is neither computed nor
-added; the LPIPS term needs a perceptual model (the official LPIPS weights) and is skipped otherwise.
+divided by the view's median ``D_cal`` instead; ``"relative"`` compares ``|ED - D_cal| / (ED + D_cal)`` per pixel
+(scale-free and bounded in [0, 1): its gradient in ED, 2 D_cal / (ED + D_cal)^2, vanishes where the target is far
+nearer than the render, so a near-field outlier cannot drive the fit; same mask as inverse depth). A term with
+``lambda = 0`` is neither computed nor added; the LPIPS term needs a perceptual model (the official LPIPS weights)
+and is skipped otherwise.
 
 Optimisation is 3DGS's: one Adam (eps 1e-15) per parameter with its own learning rate; the position rate is
 multiplied by the scene scale and decays exponentially from ``lr_means`` to ``lr_means_final`` over the
@@ -202,12 +205,16 @@ class GaussianTrainer:
                                              view.image.permute(2, 0, 1)[None] * 2 - 1).reshape(())
         if c.lambda_depth > 0 and view.depth is not None:
             mask = view.depth > 0  # calibrated depth: 0 = sky or invalid
+            if c.depth_space in ("inverse", "relative") and alpha is not None:
+                mask = mask & (alpha.detach() > 0.5)  # ED is meaningless where the render does not cover the pixel
             if c.depth_space == "inverse":
-                if alpha is not None:  # 1/ED is meaningless where the render does not cover the pixel
-                    mask = mask & (alpha.detach() > 0.5)
                 if mask.any():
                     inv_ref = 1.0 / view.depth[mask]
                     terms["depth"] = (1.0 / depth[mask].clamp(min=1e-6) - inv_ref).abs().mean()
+            elif c.depth_space == "relative":
+                if mask.any():
+                    ref, ed = view.depth[mask], depth[mask].clamp(min=0.0)
+                    terms["depth"] = ((ed - ref).abs() / (ed + ref).clamp(min=1e-8)).mean()
             elif mask.any():
                 ref = view.depth[mask]
                 terms["depth"] = (depth[mask] - ref).abs().mean() / ref.median().clamp(min=1e-8)

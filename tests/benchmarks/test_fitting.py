@@ -114,3 +114,15 @@ def test_hallucinated_training_pixels_witness_nothing(fb, monkeypatch):
     assert not m[:, :4].any() and m[:, 4:].all()
     (m,) = fb.SparseScene.masks(sc, np.array([0, 1]))
     assert m.all()
+
+
+def test_lambda_grid_names_each_space(fb):
+    """``--lambda-grid``: plain entries tune in the run's depth space, ``space:lambda`` in another; an unknown
+    space is refused with the fix."""
+    assert fb.parse_grid(None, "median") == tuple(("median", x) for x in fb.LAMBDA_GRID)
+    grid = fb.parse_grid("1, relative:2", "median")
+    assert grid == (("median", 1.0), ("relative", 2.0))
+    assert [fb.grid_name(s, x, "median") for s, x in grid] == ["depth@1", "depth@relative:2"]
+    assert fb.grid_name("relative", 2.0, "relative") == "depth@2"
+    with pytest.raises(SystemExit, match="depth space"):
+        fb.parse_grid("inverse:1", "median")

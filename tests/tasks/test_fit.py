@@ -167,6 +167,36 @@ def test_depth_term_improves_geometry():
     assert errs[1.0] < 0.8 * errs[0.0]
 
 
+def test_relative_depth_space_is_scale_free_and_ignores_near_outliers():
+    """``depth_space = "relative"``: |ED - D| / (ED + D) over the covered pixels; the same for the scene scaled by
+    any factor; and a pixel whose target sits at the lens (generated content 5 cm from the camera, the render far
+    behind) pulls ED with a vanishing gradient, where the median-normalised term pulls every pixel alike."""
+    _, init, views = synthetic_views(n_views=1)
+    view = views[0]
+    trainer = GaussianTrainer(init, views, quick_config(lambda_depth=1.0, depth_space="relative"), scene_scale=3.0)
+    rgb, depth, alpha, _ = trainer.render(view, 0, training=True)
+    rgb, depth, alpha = rgb.detach(), depth.detach(), alpha.detach()
+    m = (view.depth > 0) & (alpha > 0.5)
+    expected = ((depth[m] - view.depth[m]).abs() / (depth[m] + view.depth[m])).mean()
+    t = trainer.losses(view, rgb, depth, alpha)
+    assert float(t["depth"]) == pytest.approx(float(expected), rel=1e-6) and float(t["depth"]) > 0
+    scaled = TrainView(view.image, view.c2w, view.K, view.depth * 7.0)
+    assert float(trainer.losses(scaled, rgb, depth * 7.0, alpha)["depth"]) == pytest.approx(float(t["depth"]),
+                                                                                           rel=1e-5)
+    # one pixel's target moved to the lens: its gradient in ED, per pixel, against a pixel near its target
+    near = view.depth.clone()
+    i, j = (int(x) for x in torch.nonzero(m)[0])
+    near[i, j] = 0.05
+    grads = {}
+    for space in ("relative", "median"):
+        tr = GaussianTrainer(init, views, quick_config(lambda_depth=1.0, depth_space=space), scene_scale=3.0)
+        d = depth.clone().requires_grad_()
+        tr.losses(TrainView(view.image, view.c2w, view.K, near), rgb, d, alpha)["depth"].backward()
+        g = d.grad.abs()
+        grads[space] = float(g[i, j]) / float(g[m].median())
+    assert grads["relative"] < 0.1 and grads["median"] == pytest.approx(1.0)
+
+
 def test_drop_gaussian_only_while_training():
     _, init, views = synthetic_views(n_views=1)
     trainer = GaussianTrainer(init, views, quick_config(drop_gamma=0.5), scene_scale=3.0)
