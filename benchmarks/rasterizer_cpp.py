@@ -67,13 +67,13 @@ def clock(wall: bool) -> float:
 
 def kernels(got: dict, repeats: int, threads: int, wall: bool) -> dict:
     fa, ba = got["fwd"], got["bwd"]
-    names = ("numba", "cpp4", "cpp3")
+    names = ("numba", "cpp3", "cpp5", "cpp6")
     res: dict = {f"{n}_{p}": [] for n in names for p in ("fwd", "bwd")}
     outs = {}
     for _ in range(repeats):
         for name in names:
             if name != "numba":
-                cpu_ext.set_variant({"cpp": 0, "cpp1": 1, "cpp2": 2, "cpp3": 3, "cpp4": 4}[name])
+                cpu_ext.set_variant({"cpp": 0, "cpp1": 1, "cpp2": 2, "cpp3": 3, "cpp4": 4, "cpp5": 5, "cpp6": 6}[name])
             f = [x.copy() if isinstance(x, np.ndarray) else x for x in fa]
             b = [x.copy() if isinstance(x, np.ndarray) else x for x in ba]
             t0 = clock(wall)
@@ -91,7 +91,7 @@ def kernels(got: dict, repeats: int, threads: int, wall: bool) -> dict:
             res[f"{name}_bwd"].append((t2 - t1) * 1e3)
             outs[name] = (f, b)
     med = {k: statistics.median(v) for k, v in res.items()}
-    (fn, bn), (fc, bc) = outs["numba"], outs[names[-1]]
+    (fn, bn), (fc, bc) = outs["numba"], outs[names[1]]
     # forward outputs: render (9), t_final (10), pend (12), pix/pes/pts (13-15)
     cmp = {}
     for i, nm in ((9, "render"), (10, "t_final")):

@@ -277,7 +277,7 @@ void composite_forward(const T* ent, int64_t n_rec, const int64_t* offsets, int6
                 const T* colf = e_ + R_FEAT;
                 const bool fused = g_variant == 2;
                 if constexpr (std::is_same_v<T, float>) {
-                    if (g_variant >= 3 && narrow) {
+                    if (g_variant >= 3 && g_variant != 4 ? narrow : (g_variant == 4 && narrow)) {
                         n = narrow_candidates_avx2(x0, x1, y0, y1, tl, tw, mx, my, q0, q1, q2, cut, half, yc.data(),
                                                    dn, cpp, cqp, csp);
                         goto candidates_done;
@@ -302,7 +302,7 @@ void composite_forward(const T* ent, int64_t n_rec, const int64_t* offsets, int6
                     const int64_t row = (py - tl.y_lo) * tw - tl.x_lo;
                     const int32_t hq = int32_t((py - tl.y_lo) << 16);
                     if constexpr (std::is_same_v<T, float>) {
-                        if (g_variant == 3) {
+                        if (g_variant == 3 || g_variant >= 5) {
                             n = row_candidates_avx2(rx0, rx1, tl.x_lo, dy, row + tl.x_lo, hq, mx, q0, q1, q2, cut,
                                                     half, dn, cpp, cqp, csp, n);
                             continue;
@@ -348,8 +348,16 @@ void composite_forward(const T* ent, int64_t n_rec, const int64_t* offsets, int6
                     }
                 }
             candidates_done:
+                if (g_variant == 5) {  // timing split only: pass 1 alone
+                    pend[k] = j;
+                    continue;
+                }
 #pragma GCC ivdep
                 for (uint32_t i = 0; i < n; ++i) csp[i] = exp_neg(csp[i]);
+                if (g_variant == 6) {  // timing split only: passes 1 and 2
+                    pend[k] = j;
+                    continue;
+                }
                 const T* col = e_ + R_FEAT;
                 for (uint32_t i = 0; i < n; ++i) {
                     const uint32_t p = cpp[i];
