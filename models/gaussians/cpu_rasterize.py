@@ -24,7 +24,6 @@ other work goes on meanwhile.
 
 from __future__ import annotations
 
-import logging
 import sys
 import threading
 from typing import Literal
@@ -43,39 +42,6 @@ from navcrafter.models.gaussians.rasterize import (
 from navcrafter.models.gaussians.rasterize import resolve_colors as torch_resolve_colors
 
 _LOCK = threading.Lock()
-_LOG = logging.getLogger(__name__)
-# which compositing kernels run: numba's (cpu_kernels) or the C++ ones (cpu_ext); set_kernels chooses
-_KERNELS: dict = {"mode": "auto", "ext": None, "resolved": False}
-
-
-def set_kernels(mode: Literal["auto", "cpp", "numba"] = "auto") -> str:
-    """Choose the compositing kernels (``fit.cpu_kernels``): ``numba`` (:mod:`cpu_kernels`), ``cpp`` (the C++
-    ones of :mod:`cpu_ext`, built on first use with g++; raises when they cannot be built) or ``auto`` (the C++
-    ones when they build, else numba's with a logged warning naming why and the fix: both are complete renderers
-    of the same images). Returns the kernels in use, ``"cpp"`` or ``"numba"``."""
-    if mode not in ("auto", "cpp", "numba"):
-        raise ValueError(f"cpu_kernels must be auto, cpp or numba, got {mode!r}")
-    ext = None
-    if mode != "numba":
-        from navcrafter.models.gaussians import cpu_ext
-
-        try:
-            cpu_ext.load()
-            ext = cpu_ext
-        except cpu_ext.ExtensionUnavailable as err:
-            if mode == "cpp":
-                raise
-            _LOG.warning("cpu_kernels auto: the C++ compositing kernels are unavailable (%s); using numba's "
-                         "(same images, slower). Fix: install g++ (apt-get install g++), or set "
-                         "fit.cpu_kernels: numba to silence this.", err)
-    _KERNELS.update(mode=mode, ext=ext, resolved=True)
-    return "cpp" if ext is not None else "numba"
-
-
-def _composite_kernels():
-    if not _KERNELS["resolved"]:
-        set_kernels(_KERNELS["mode"])
-    return _KERNELS["ext"]
 
 
 def set_threads(threads: int | None) -> int:
@@ -416,13 +382,8 @@ class _Composite(torch.autograd.Function):
             pix = _SCRATCH.get("pix", pbase[-1], np.int32)
             pes = _SCRATCH.get("pes", pbase[-1], dt)
             pts = _SCRATCH.get("pts", pbase[-1], dt)
-            ext = _composite_kernels()
-            if ext is not None:
-                ext.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
-                                      pbase, pend, pix, pes, pts, record, numba.get_num_threads())
-            else:
-                K.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
-                                    pbase, pend, pix, pes, pts, record)
+            K.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
+                                pbase, pend, pix, pes, pts, record)
         ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes, pts)
         ctx.shape = (n_cam, n, d)
         ctx.scalars = (width, height, ctile, ctw, use_bg)
@@ -444,13 +405,8 @@ class _Composite(torch.autograd.Function):
         # the gradients in the inputs' dtype (float64 sums), handed to PyTorch as views of one array
         grads = np.zeros((n_cam, n, 6 + d), dt)
         with _LOCK:
-            ext = _composite_kernels()
-            if ext is not None:
-                ext.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, vr, va,
-                                       pbase, pend, pix, pes, pts, slots, numba.get_num_threads())
-            else:
-                K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, vr, va,
-                                     pbase, pend, pix, pes, pts, slots)
+            K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, vr, va,
+                                 pbase, pend, pix, pes, pts, slots)
             K.gather_slots(order, roff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
