@@ -30,7 +30,8 @@ with three levers:
    observed, and an earlier frame of the same clip (at least ``lag`` frames before) looks at it through cells that
    are free or unknown (nothing observed in the way): the clip then shows that space before the camera enters it.
    The first ``explore_prefix`` of the clip's frames stay in seen free space, a prefix to fall back on. The clearance
-   (r_safe plus the follow error along the path) from every observed surface is G's.
+   (r_safe plus the follow error along the path) from every observed surface is G's. With ``explore_ball`` > 0 such a
+   frame's clearance ball must have been seen or looked at too (``ExplorerDetector.ball_seen``).
 
 The best trajectory that G passes is taken; when none passes, the best few are handed to the collision
 optimisation (with their end poses), then the next ones; with no safe path the camera stays put.
@@ -202,7 +203,9 @@ class ExplorerDetector(CollisionDetector):
         off it), within r_safe of an earlier frame's position in this clip (the camera passed there: G treats earlier
         cameras' surroundings so; without it the ball behind a moving camera, which no frame looks at, refused
         nearly every move: explore11's first version), or looked at by an earlier frame of the clip (at least ``lag``
-        frames before) with no occupied cell in the way; and behind no observed surface. Cameras look at ``o``, so
+        frames before) with no occupied cell in the way (a probe in an observed surface's shadow too: G's clearance
+        already keeps every observed surface out of the ball; refusing shadow probes outright refused nearly every
+        move in explore11's second version). Cameras look at ``o``, so
         the space above a frame high in S (a ceiling) lies outside every frustum of its clip though the position
         itself was in view (explore10: room 0, an unseen ceiling 0.30 m above a dolly's end)."""
         x = trajectory[t, :3, 3]
@@ -215,9 +218,7 @@ class ExplorerDetector(CollisionDetector):
         if t > 0:  # the clip's own camera passed there (G counts space within r_safe of an earlier camera so)
             passed = trajectory[:t, :3, 3]
             free |= np.linalg.norm(probes[:, None] - passed[None], axis=-1).min(1) < self.r_safe
-        if occluded[~free].any():
-            return False
-        pending = np.flatnonzero(~free)
+        pending = np.flatnonzero(~free)  # unknown or in an observed surface's shadow: an earlier frame must look
         earlier = trajectory[:max(t - self.lag + 1, 0)]
         for s in range(len(earlier) - 1, -1, -1):  # the latest first
             if len(pending) == 0:
