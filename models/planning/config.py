@@ -108,6 +108,14 @@ class PlanConfig(_Section):
     explore_reach: float = Field(
         1.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
         "unknown space an earlier frame of its clip looked at (0: only seen free space).")
+    explore_ball: float = Field(
+        0.0, ge=0, le=1, description="explorer: a frame admitted in unknown space (looked at by an earlier frame of "
+        "its clip, not seen free) must also have its clearance ball seen: probes at 0.5 and 1 x this x the clearance "
+        "G demands there (r_safe + the follow error along the path), in 26 directions, each seen free by an earlier "
+        "view or looked at by an earlier frame of the clip with nothing observed in the way; otherwise the frame is "
+        "refused (the path is then shortened or another taken). 0: off, the explorer before it (development room 0 "
+        "with explore_accuracy 0.03 met a ceiling 0.30 m above a dolly's end that no frame looked at; "
+        "benchmarks/results/planning-explore10-dev).")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
         "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
@@ -155,7 +163,7 @@ class PlanConfig(_Section):
                                                 "explore_prefix": 0.1,
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
                                                 "explore_invented_share": 0.0, "explore_follow_error": None,
-                                                "explore_reach": 1.0, "explore_sky": "free",
+                                                "explore_reach": 1.0, "explore_sky": "free", "explore_ball": 0.0,
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")

@@ -30,7 +30,8 @@ with three levers:
    observed, and an earlier frame of the same clip (at least ``lag`` frames before) looks at it through cells that
    are free or unknown (nothing observed in the way): the clip then shows that space before the camera enters it.
    The first ``explore_prefix`` of the clip's frames stay in seen free space, a prefix to fall back on. The clearance
-   (r_safe plus the follow error along the path) from every observed surface is G's.
+   (r_safe plus the follow error along the path) from every observed surface is G's. With ``explore_ball`` > 0 such a
+   frame's clearance ball must have been seen or looked at too (``ExplorerDetector.ball_seen``).
 
 The best trajectory that G passes is taken; when none passes, the best few are handed to the collision
 optimisation (with their end poses), then the next ones; with no safe path the camera stays put.
@@ -57,6 +58,7 @@ from navcrafter.models.planning.planners import (
     PlanningState,
     PlanResult,
     SeenView,
+    _directions26,
     estimate_ground,
     fallback_move,
     forgive_escape,
@@ -160,9 +162,10 @@ class ExplorerDetector(CollisionDetector):
     """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
 
     def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
-                 **kwargs) -> None:
+                 ball: float = 0.0, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
+        self.ball = float(ball)  # ``plan.explore_ball``: share of the clearance whose ball must be seen (0: off)
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
 
     def start_radius(self) -> float:
@@ -185,6 +188,50 @@ class ExplorerDetector(CollisionDetector):
         _, st = self.vmap.lookup(a + s[:, None] * (b - a))
         return not (st == OCCUPIED).any()
 
+    def _sight_many(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Per pair of positions ``a[i]``, ``b[i]``: no occupied cell between them (``_line_of_sight`` for many)."""
+        if len(a) == 0:
+            return np.zeros(0, dtype=bool)
+        n = max(2, int(np.ceil(np.linalg.norm(b - a, axis=1).max() / (self.vmap.voxel / 2))))
+        s = np.linspace(0.0, 1.0, n)[1:]
+        _, st = self.vmap.lookup(a[:, None] + s[None, :, None] * (b - a)[:, None])
+        return ~(st == OCCUPIED).any(1)
+
+    def ball_seen(self, trajectory: np.ndarray, t: int, radius: float) -> bool:
+        """Whether frame ``t``'s clearance ball (probes at 0.5 and 1 x ``radius`` in 26 directions) was seen: each
+        probe seen free by an earlier view, below the ground plane (a known surface: G's clearance keeps the camera
+        off it), within r_safe of an earlier frame's position in this clip (the camera passed there: G treats earlier
+        cameras' surroundings so; without it the ball behind a moving camera, which no frame looks at, refused
+        nearly every move: explore11's first version), or looked at by an earlier frame of the clip (at least ``lag``
+        frames before) with no occupied cell in the way (a probe in an observed surface's shadow too: G's clearance
+        already keeps every observed surface out of the ball; refusing shadow probes outright refused nearly every
+        move in explore11's second version). Cameras look at ``o``, so
+        the space above a frame high in S (a ceiling) lies outside every frustum of its clip though the position
+        itself was in view (explore10: room 0, an unseen ceiling 0.30 m above a dolly's end)."""
+        x = trajectory[t, :3, 3]
+        probes = (x[None, None] + np.array([0.5, 1.0])[:, None, None] * radius * _directions26()[None]).reshape(-1, 3)
+        free, occluded = self._visibility(probes)
+        idx, _ = self.vmap.lookup(probes)
+        occluded = occluded | np.where(idx >= 0, self.vmap.occluded[np.maximum(idx, 0)], False)
+        if self.ground is not None:
+            free |= probes @ self.ground[0] + self.ground[1] < 0
+        if t > 0:  # the clip's own camera passed there (G counts space within r_safe of an earlier camera so)
+            passed = trajectory[:t, :3, 3]
+            free |= np.linalg.norm(probes[:, None] - passed[None], axis=-1).min(1) < self.r_safe
+        pending = np.flatnonzero(~free)  # unknown or in an observed surface's shadow: an earlier frame must look
+        earlier = trajectory[:max(t - self.lag + 1, 0)]
+        for s in range(len(earlier) - 1, -1, -1):  # the latest first
+            if len(pending) == 0:
+                break
+            p = (probes[pending] - earlier[s, :3, 3]) @ earlier[s, :3, :3]
+            z = np.maximum(p[:, 2], 1e-12)
+            look = (p[:, 2] > 1e-6) & (np.abs(p[:, 0] / z) < 0.9) & (np.abs(p[:, 1] / z) < 0.9)
+            if look.any():
+                j = pending[look]
+                ok = self._sight_many(np.repeat(earlier[s, None, :3, 3], len(j), 0), probes[j])
+                pending = np.setdiff1d(pending, j[ok], assume_unique=True)
+        return len(pending) == 0
+
     def path_flags(self, trajectory: np.ndarray, first_only: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per pose: too near an observed surface; not admissible (outside seen free space and not entered the safe
@@ -203,6 +250,7 @@ class ExplorerDetector(CollisionDetector):
         unseen = ~(free | (np.linalg.norm(x - start, axis=1) < self.start_radius()))
         ok_ground = self._above_ground(x)
         reach = self.vmap.reach(x)
+        needed = self.path_clearance(x)
         for t in np.flatnonzero(unseen):
             if t >= fixed and not occluded[t] and ok_ground[t] and reach[t] <= self.max_reach:
                 # an earlier frame of this clip (the latest first) looks at it, nothing in the way
@@ -214,6 +262,8 @@ class ExplorerDetector(CollisionDetector):
                     if self._line_of_sight(earlier[s, :3, 3], x[t]):
                         unseen[t] = False
                         break
+                if not unseen[t] and self.ball > 0:  # its clearance ball must have been seen too
+                    unseen[t] = not self.ball_seen(trajectory, t, self.ball * needed[t])
             if first_only and unseen[t]:
                 unseen[t + 1:] = False
                 break
@@ -421,7 +471,7 @@ class ExplorerPlanner:
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
                                follow_error=cfg.follow_error if cfg.explore_follow_error is None
                                else cfg.explore_follow_error, vmap=vmap, prefix=cfg.explore_prefix,
-                               reach=cfg.explore_reach, visibility_views=free_views)
+                               reach=cfg.explore_reach, visibility_views=free_views, ball=cfg.explore_ball)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S

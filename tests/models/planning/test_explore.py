@@ -105,6 +105,39 @@ def test_unknown_space_is_entered_only_after_the_clip_looked_at_it_and_never_beh
     assert (near_b | unseen_b)[6:].all()
 
 
+def test_a_frame_in_unknown_space_needs_its_whole_clearance_ball_seen_not_only_its_position():
+    """explore_ball (explore11): the clip turns right and looks down 40 deg, then moves level along that heading:
+    each position was in view (40 deg above the axis, inside the 42 deg half field of view), the space above it never
+    was (an unseen ceiling within r_safe would be met). Without the rule the path is admitted; with it refused; a
+    clip looking level (the ball in view) is admitted either way."""
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    heading = np.array([np.sin(np.deg2rad(50)), 0.0, np.cos(np.deg2rad(50))])  # level, 50 deg right of +z
+    down = np.array([0.0, np.tan(np.deg2rad(40)), 0.0])  # OpenCV: +y is down
+
+    def clip(look: np.ndarray) -> np.ndarray:
+        turn = look_at(np.zeros(3), look)
+        path = [np.eye(4)] * 3 + [turn] * 5
+        for d in np.linspace(0.1, 1.2, 12):
+            p = turn.copy()
+            p[:3, 3] = d * heading
+            path.append(p)
+        return np.stack(path)
+
+    looking_down, looking_level = clip(heading + down), clip(heading)
+    flags = {}
+    for ball in (0.0, 1.0):
+        det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25, reach=2.0,
+                               ball=ball)
+        for name, path in (("down", looking_down), ("level", looking_level)):
+            near, unseen, _ = det.path_flags(path)
+            assert not near.any()
+            flags[name, ball] = unseen
+    assert not flags["down", 0.0].any()  # the positions alone were looked at
+    assert flags["down", 1.0][-1] and flags["down", 1.0][8:].sum() >= 6  # their space above was not
+    assert not flags["level", 0.0].any() and not flags["level", 1.0].any()
+
+
 def test_the_input_photos_sky_is_free_space_a_generated_frames_is_not():
     state = wall_state()
     photo = state.views[0]
