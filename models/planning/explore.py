@@ -183,10 +183,13 @@ class ExplorerDetector(CollisionDetector):
 
     def _line_of_sight(self, a: np.ndarray, b: np.ndarray) -> bool:
         """No occupied cell between ``a`` and ``b`` (nor within r_safe of ``b``'s cell on the way)."""
-        n = max(2, int(np.ceil(np.linalg.norm(b - a) / (self.vmap.voxel / 2))))
-        s = np.linspace(0.0, 1.0, n)[1:]
-        _, st = self.vmap.lookup(a + s[:, None] * (b - a))
-        return not (st == OCCUPIED).any()
+        return bool(self._sight_many(a[None], b[None])[0])
+
+    @staticmethod
+    def _in_frustum(p: np.ndarray) -> np.ndarray:
+        """Per point in a camera's frame (``p[:, 2]`` along its view): in front and within its looking cone."""
+        z = np.maximum(p[:, 2], 1e-12)
+        return (p[:, 2] > 1e-6) & (np.abs(p[:, 0] / z) < 0.9) & (np.abs(p[:, 1] / z) < 0.9)
 
     def _sight_many(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Per pair of positions ``a[i]``, ``b[i]``: no occupied cell between them (``_line_of_sight`` for many)."""
@@ -223,9 +226,7 @@ class ExplorerDetector(CollisionDetector):
         for s in range(len(earlier) - 1, -1, -1):  # the latest first
             if len(pending) == 0:
                 break
-            p = (probes[pending] - earlier[s, :3, 3]) @ earlier[s, :3, :3]
-            z = np.maximum(p[:, 2], 1e-12)
-            look = (p[:, 2] > 1e-6) & (np.abs(p[:, 0] / z) < 0.9) & (np.abs(p[:, 1] / z) < 0.9)
+            look = self._in_frustum((probes[pending] - earlier[s, :3, 3]) @ earlier[s, :3, :3])
             if look.any():
                 j = pending[look]
                 ok = self._sight_many(np.repeat(earlier[s, None, :3, 3], len(j), 0), probes[j])
@@ -237,8 +238,8 @@ class ExplorerDetector(CollisionDetector):
         """Per pose: too near an observed surface; not admissible (outside seen free space and not entered the safe
         way: see the module docstring); the clearance. ``first_only``: stop at the first flagged pose."""
         x = trajectory[:, :3, 3]
-        clearance = self.clearance(x)
-        near = forgive_escape(clearance, clearance < self.path_clearance(x))
+        clearance, needed = self.clearance(x), self.path_clearance(x)
+        near = forgive_escape(clearance, clearance < needed)
         if first_only and near.any():
             return near, np.zeros(len(x), dtype=bool), clearance
         free, occluded = self._visibility(x)
@@ -250,14 +251,11 @@ class ExplorerDetector(CollisionDetector):
         unseen = ~(free | (np.linalg.norm(x - start, axis=1) < self.start_radius()))
         ok_ground = self._above_ground(x)
         reach = self.vmap.reach(x)
-        needed = self.path_clearance(x)
         for t in np.flatnonzero(unseen):
             if t >= fixed and not occluded[t] and ok_ground[t] and reach[t] <= self.max_reach:
                 # an earlier frame of this clip (the latest first) looks at it, nothing in the way
                 earlier = trajectory[:max(t - self.lag + 1, 0)]
-                p = np.einsum("sji,sj->si", earlier[:, :3, :3], x[t] - earlier[:, :3, 3])
-                z = np.maximum(p[:, 2], 1e-12)
-                look = (p[:, 2] > 1e-6) & (np.abs(p[:, 0] / z) < 0.9) & (np.abs(p[:, 1] / z) < 0.9)
+                look = self._in_frustum(np.einsum("sji,sj->si", earlier[:, :3, :3], x[t] - earlier[:, :3, 3]))
                 for s in np.flatnonzero(look)[::-1]:
                     if self._line_of_sight(earlier[s, :3, 3], x[t]):
                         unseen[t] = False
