@@ -114,9 +114,11 @@ trained control given the mirrored cameras:
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # not yet run with
                           # the current defaults; 42 min at load 5-18 with --texture-scale 1 --camera-guidance 1
                           # (results: benchmarks/results/camera-control-mini/full)
-    # a GPU session, Wan2.1-1.3B width (not run on the CPU):
+    # a GPU session, Wan2.1-1.3B width (the CUDA image has no open3d: render the scenes here first with the same
+    # sizes and any width, --scenes FILE, and carry FILE; results/camera-control-mini/gpu-1.3b-width):
     python benchmarks/camera_control_mini.py --out DIR --device cuda --heads 12 --head-dim 128 --layers 30 \
-        --ffn 8960 --adapter-channels 64 --resolution 64 --frames 17 --autoencoder exact --threads 8
+        --ffn 8960 --adapter-channels 64 --resolution 64 --frames 17 --autoencoder exact --threads 8 \
+        --base-steps 400 --control-steps 400 --train-scenes 6 --eval-scenes 3 --scenes FILE
 
 Writes ``results.json``, ``results.md`` and ``turns.png`` (sampled frames beside the requested and mirrored
 truth) into ``--out``. SIMULATION: the scenes, cameras and frames are rendered from procedural ground truth.
@@ -397,6 +399,52 @@ def build_scenes(kinds, seeds, frames: int, resolution: int, encoders, *, grid: 
             entry["grid"] = candidate_grid(scene, resolution)
         out.append(entry)
     return out
+
+
+SCENES_VERSION = 1  # bump when build_scenes' output changes: an older --scenes file is then rebuilt, never used
+
+
+@dataclass
+class SceneMeta:
+    """What the benchmark reads of a scene after ``build_scenes`` rendered it (no simulator: a ``--scenes`` file
+    loads where the ray caster's open3d is missing, e.g. the GPU node)."""
+    c2w0: np.ndarray
+    L: float
+    K: object  # models.camera.cameras.Intrinsics
+
+
+def save_scenes(path: Path, key: dict, train: list[dict], held: list[dict]) -> None:
+    """The rendered scenes (clips, truth, estimator grids) with their settings ``key``, as one pickle."""
+    import pickle
+
+    def light(entries):  # the uint8 frames and poses; the clips are encoded again on loading (load_scenes)
+        return [dict(e, scene=SceneMeta(e["scene"].c2w0, e["scene"].L, e["scene"].K),
+                     clips=[{k: v for k, v in c.items() if k != "clip"} for c in e["clips"]]) for e in entries]
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump({"key": key, "train": light(train), "held": light(held)}, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)
+
+
+def load_scenes(path: Path, key: dict, encoders) -> tuple[list[dict], list[dict]] | None:
+    """``save_scenes``' file when it exists and was built with the same settings, each clip encoded again with
+    ``encoders`` (as ``build_scenes`` does); None otherwise (then the caller renders and rewrites it). Only files
+    this benchmark wrote are to be loaded (pickle)."""
+    import pickle
+
+    if not path.exists():
+        return None
+    with open(path, "rb") as f:
+        data = pickle.load(f)
+    if json.dumps(data.get("key"), sort_keys=True) != json.dumps(key, sort_keys=True):
+        print(f"{path} was built with other settings ({data.get('key')}); rendering afresh", flush=True)
+        return None
+    for e in data["train"] + data["held"]:
+        for c in e["clips"]:
+            c["clip"] = make_clip(encoders, c["truth"], c["poses"], e["scene"].K.K, c["id"], key["condition"])
+    return data["train"], data["held"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -733,6 +781,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sweep", help="development only: also sample the trained control with each "
                     "camera_guidance:lora_scale:sampling_steps of this comma-separated list (sweep.json)")
     ap.add_argument("--sweep-only", action="store_true", help="stop after --sweep (no results.json)")
+    ap.add_argument("--scenes", type=Path, help="the rendered scenes as a file (pickle): loaded when it exists and "
+                    "holds these settings, else rendered and written there; a node without open3d (the GPU image) "
+                    "runs from a file rendered elsewhere")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest on shared cores)")
     args = ap.parse_args(argv)
@@ -756,10 +807,22 @@ def main(argv: list[str] | None = None) -> int:
                                image_tokens=IMAGE_TOKENS)
 
     t0 = time.perf_counter()
-    train = build_scenes(kinds, range(args.seed, args.seed + size["train_scenes"]), T, R, enc, grid=False,
-                         seed=args.seed, texture_scale=args.texture_scale, condition=args.condition)
-    held = build_scenes(kinds, range(args.eval_seed, args.eval_seed + size["eval_scenes"]), T, R, enc, grid=True,
-                        seed=args.eval_seed, texture_scale=args.texture_scale, condition=args.condition)
+    scenes_key = {"kinds": kinds, "train": [args.seed, size["train_scenes"]], "held": [args.eval_seed,
+                  size["eval_scenes"]], "frames": T, "resolution": R, "texture_scale": args.texture_scale,
+                  "condition": args.condition, "version": SCENES_VERSION}
+    cached = load_scenes(args.scenes, scenes_key, enc) if args.scenes else None
+    if cached is not None:
+        train, held = cached
+        print(f"scenes loaded from {args.scenes}", flush=True)
+    else:
+        train = build_scenes(kinds, range(args.seed, args.seed + size["train_scenes"]), T, R, enc, grid=False,
+                             seed=args.seed, texture_scale=args.texture_scale, condition=args.condition)
+        held = build_scenes(kinds, range(args.eval_seed, args.eval_seed + size["eval_scenes"]), T, R, enc,
+                            grid=True, seed=args.eval_seed, texture_scale=args.texture_scale,
+                            condition=args.condition)
+        if args.scenes:
+            save_scenes(args.scenes, scenes_key, train, held)
+            print(f"scenes written to {args.scenes}", flush=True)
     if args.autoencoder == "pca":  # fitted on the training clips only, then every clip is encoded with it
         from navcrafter.models.synthesis.encoders import PCAEncoders
 

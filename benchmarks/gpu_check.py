@@ -263,7 +263,7 @@ def item_gsplat(ctx: dict) -> dict:
                             iterations=100 if not ctx["quick"] else 60, torch_iterations=3, densify=False)
     r = g.run(ns)
     r["markdown"] = g.markdown(r)
-    return r
+    return {"status": "ok", **r}  # gsplat_fit.run reports no status of its own (the 2026-12-04 H200 run read None)
 
 
 def _ort_session(path: Path, device: str):
@@ -727,6 +727,8 @@ def child(name: str, spec: str) -> int:
         res = FUNCS[name](ctx)
     except Exception as exc:  # the parent records it; the other items still run
         res = item_error(exc)
+    if "status" not in res:  # an item that forgot its status is a bug in this file, never a silent blank
+        res = {"status": "error", "error": f"item {name} returned no status", "result": res}
     print(json.dumps(res, default=str))
     return 0
 

@@ -580,14 +580,15 @@ def sample_clip(model: CameraControlledWan, c: dict[str, torch.Tensor | None], *
                         seed=seed)
     scheduler = make_scheduler(cfg)
     scheduler.set_timesteps(steps, device="cpu")
-    latents = torch.from_numpy(initial_noise(seed, C, Fl, h, w))
+    dev = x0.device  # the noise is drawn on the CPU (initial_noise: the same on every device), then moved
+    latents = torch.from_numpy(initial_noise(seed, C, Fl, h, w)).to(dev)
     kwargs: dict[str, Any] = {}
     if c.get("image_reference") is not None and c.get("plucker") is not None:
         kwargs = {"image_reference": c["image_reference"], "image_reference_plucker": c["image_reference_plucker"]}
-    lora = torch.tensor(float(lora_scale))
+    lora = torch.tensor(float(lora_scale), device=dev)
     for t in scheduler.timesteps:
         hidden = torch.cat([latents.to(x0.dtype), c["hidden_cond"]], dim=1)
-        ts = torch.full((1,), float(t))
+        ts = torch.full((1,), float(t), device=dev)
         pred = model(hidden, ts, c["text"], c["image"], c["plucker"], c["cond"], lora, **kwargs)
         if guidance_scale != 1.0:
             if null_text is None:

@@ -257,3 +257,33 @@ def test_parse_sweep(mini):
     assert mini.parse_sweep(None) == []
     with pytest.raises(ValueError, match="camera_guidance:lora_scale:sampling_steps"):
         mini.parse_sweep("3:0.7")
+
+
+def test_scenes_file_round_trips_without_the_simulator_and_only_with_the_same_settings(mini, held, tmp_path):
+    """--scenes: what build_scenes rendered loads back (no simulator object in the file, clips encoded again and
+    equal), and a file of other settings is refused (None: the caller renders afresh)."""
+    import pickle
+
+    import numpy as np
+
+    from navcrafter.models.synthesis.encoders import PixelShuffleEncoders
+
+    enc = PixelShuffleEncoders(4, temporal=4, image_dim=8, text_dim=16, image_tokens=16)
+    key = {"frames": 5, "resolution": 16, "condition": "first", "version": mini.SCENES_VERSION}
+    path = tmp_path / "scenes.pkl"
+    mini.save_scenes(path, key, held, held)
+    with open(path, "rb") as f:
+        raw = pickle.load(f)
+    assert all(isinstance(e["scene"], mini.SceneMeta) and "clip" not in e["clips"][0] for e in raw["train"])
+    train, back = mini.load_scenes(path, key, enc)
+    assert len(train) == len(back) == len(held)
+    for e, b in zip(held, back):
+        assert b["scene"].L == e["scene"].L and np.array_equal(b["scene"].c2w0, e["scene"].c2w0)
+        assert np.array_equal(b["grid"][0], e["grid"][0])
+        for c, d in zip(e["clips"], b["clips"]):
+            assert c["id"] == d["id"] and np.array_equal(c["truth"], d["truth"])
+            for k, v in c["clip"].items():
+                if isinstance(v, np.ndarray):
+                    assert np.array_equal(v, d["clip"][k]), k
+    assert mini.load_scenes(path, dict(key, frames=9), enc) is None
+    assert mini.load_scenes(tmp_path / "missing.pkl", key, enc) is None
