@@ -784,9 +784,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=Path, help="the rendered scenes as a file (pickle): loaded when it exists and "
                     "holds these settings, else rendered and written there; a node without open3d (the GPU image) "
                     "runs from a file rendered elsewhere")
+    ap.add_argument("--render-only", action="store_true", help="with --scenes: render (or check) the scenes file, "
+                    "then stop (gpu_check.py --prepare-camera-scenes)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest on shared cores)")
     args = ap.parse_args(argv)
+    if args.render_only and not args.scenes:
+        ap.error("--render-only needs --scenes FILE")
     if (args.frames - 1) % TEMPORAL or args.resolution % (2 * SPATIAL):
         ap.error(f"--frames must be 1 + a multiple of {TEMPORAL} and --resolution a multiple of {2 * SPATIAL}")
     size = dict(SIZES["quick" if args.quick else "full"])
@@ -823,6 +827,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.scenes:
             save_scenes(args.scenes, scenes_key, train, held)
             print(f"scenes written to {args.scenes}", flush=True)
+    if args.render_only:
+        print(f"--render-only: {args.scenes} holds the scenes; nothing trained", flush=True)
+        return 0
     if args.autoencoder == "pca":  # fitted on the training clips only, then every clip is encoded with it
         from navcrafter.models.synthesis.encoders import PCAEncoders
 

@@ -254,3 +254,23 @@ def test_explore_says_why_it_cannot_run_without_the_flow_stack(gpu_check, tmp_pa
     r = gpu_check.item_scene({"device": "cuda", "dry_run": False, "quick": False, "work": str(tmp_path), "cap": 600,
                               "with_explore": True})
     assert r["status"] == "ok" and r["explore"]["status"] == "skipped" and "open3d" in r["explore"]["reason"]
+
+
+def test_camera_mini_item_dry_run_from_prepared_scenes(gpu_check, tmp_path):
+    """camera-mini (issue 32 item 4) runs from a scenes file rendered beforehand (the node has no open3d): without
+    it the item says how to make it; with it, the miniature trains, samples and reports (tiny, CPU: plumbing)."""
+    out, scenes = tmp_path / "out", tmp_path / "scenes" / "mini.pkl"
+    argv = ["--out", str(out), "--device", "cpu", "--dry-run", "--inline", "--items", "camera-mini",
+            "--camera-scenes", str(scenes)]
+    assert gpu_check.main(argv) == 0
+    r = json.loads((out / "results.json").read_text())["items"]["camera-mini"]
+    assert r["status"] == "not built" and "--prepare-camera-scenes" in r["reason"]
+    assert gpu_check.main(["--prepare-camera-scenes", "--dry-run", "--camera-scenes", str(scenes)]) == 0
+    assert scenes.is_file()
+    assert gpu_check.main(argv) == 0
+    r = json.loads((out / "results.json").read_text())["items"]["camera-mini"]
+    assert r["status"] == "ok", r
+    assert r["setup"]["base_steps"] == 2 and r["setup"]["device"] == "cpu" and 0 <= r["trained"]["r_err"]
+    assert set(r) >= {"trained", "untrained", "trained_wrong_cameras", "floor", "autoencoder_psnr"}
+    assert (out / "camera-mini-turns.png").is_file()
+    assert "| camera-mini | ok | direction accuracy" in (out / "results.md").read_text()
