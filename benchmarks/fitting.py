@@ -796,9 +796,10 @@ def sparse_results(rows: list[dict], protocol: dict) -> dict:
 
 
 def merge_sparse(results: list[dict]) -> dict:
-    """One ``results.json`` from runs of the same protocol over different seeds (``--merge``): the per-fit
-    records are pooled and the tables and pairs recomputed."""
-    keys = ("quick", "views", "clips", "iterations", "continue_iterations", "resolution", "lambda_depth",
+    """One ``results.json`` from runs of the same protocol over different seeds or view counts (``--merge``): the
+    per-fit records are pooled and the tables and pairs recomputed; a fit found in two runs (same view count,
+    photo and variant) is refused."""
+    keys = ("quick", "clips", "iterations", "continue_iterations", "resolution", "lambda_depth",
             "depth_space", "drop_gamma", "sparse_init_fraction", "convergence_tol", "visibility_tol",
             "witness")
     p0 = results[0]["protocol"]
@@ -808,8 +809,15 @@ def merge_sparse(results: list[dict]) -> dict:
             raise ValueError(f"cannot merge runs of different protocols (they differ in {diff})")
     rows = [{**f, "views": int(V), "variant": name} for r in results for V, vv in r["views"].items()
             for name, s in vv.items() for f in s["fits"]]
+    seen: set[tuple] = set()
+    for r in rows:
+        key = (r["views"], r["photo"], r["variant"])
+        if key in seen:
+            raise ValueError(f"the fit {key} is in two of the merged runs: merge runs of other seeds or view counts")
+        seen.add(key)
     seeds = sorted({r["seed"] for r in rows})
     protocol = {**p0, "seeds": [seeds[0], seeds[-1]], "seed_list": seeds,
+                "views": sorted({r["views"] for r in rows}),
                 "kinds": sorted({k for r in results for k in r["protocol"]["kinds"]}),
                 "development": any(r["protocol"]["development"] for r in results),
                 "complete": all(r["protocol"]["complete"] for r in results),

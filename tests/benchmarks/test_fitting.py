@@ -66,6 +66,13 @@ def test_merge_pools_the_fits_of_runs_over_other_seeds(fb):
     assert res["paired"]["3"]["depth"]["n"] == 2 and res["paired"]["3"]["depth"]["wins"] == 1
     assert res["paired"]["3"]["depth"]["delta_psnr"] == pytest.approx(0.1)
     assert res["protocol"]["seeds"] == [10, 11] and res["protocol"]["n_scenes"] == 2
+    with pytest.raises(ValueError, match="two of the merged runs"):
+        fb.merge_sparse([runs[0], runs[0]])
+    six = fb.sparse_results([{**r, "views": 6} for r in runs[0]["views"]["3"]["none"]["fits"]
+                             for r in [dict(r, variant="none")]], dict(proto, views=[6]))
+    both = fb.merge_sparse([res, six])  # view counts pool too: one table with both
+    assert set(both["views"]) == {"3", "6"} and both["protocol"]["views"] == [3, 6]
+    assert both["paired"]["3"]["depth"]["n"] == 2
     runs[1]["protocol"]["lambda_depth"] = 0.5
     with pytest.raises(ValueError, match="lambda_depth"):
         fb.merge_sparse(runs)
