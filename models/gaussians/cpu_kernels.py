@@ -855,7 +855,8 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
       test), ``1 / q0``, the pixel box ``[x0, x1) x [y0, y1)`` of its ``alpha >= 1/255`` ellipse ``q <= 2 (ln(255
       o) + SIGMA_MARGIN)`` plus ``BOX_MARGIN`` (the pixels the PyTorch renderer's boxes can accept; empty when
       culled or never visible; clipped to the image and to the rectangle of its ``tile_size`` squares, as the PyTorch
-      renderer's tiles clip it) and its features;
+      renderer's tiles clip it) and its features; written only for a Gaussian with a box (``cbox`` not 0), the
+      only ones read;
     - ``cbox`` [C, N] = the compositing tiles (side ``ctile``) the box touches, packed into one integer
       ``x0 | x1 << 16 | y0 << 32 | y1 << 48`` (0 with an empty box; :func:`bin_gaussians` reads it);
     - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits);
@@ -885,16 +886,12 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 n_isects += (bx1 - bx0) * (by1 - by0)
             tiles_per_gauss[c, g] = (bx1 - bx0) * (by1 - by0)
             o = float(opacities[c, g])
-            q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
-            rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
-            rec[c, g, R_Q0], rec[c, g, R_Q1], rec[c, g, R_Q2], rec[c, g, R_O] = q0, q1, q2, o
-            rec[c, g, R_CUT] = math.log(max(o * 255.0, 1e-300)) + SIGMA_MARGIN
-            rec[c, g, R_INVQ0] = 1.0 / q0 if q0 > 0.0 else 0.0
-            for f in range(n_feat):
-                rec[c, g, R_FEAT + f] = colors[c, g, f]
-            extent = 2.0 * (math.log(max(o * 255.0, 1.0)) + SIGMA_MARGIN)
             x0 = x1 = y0 = y1 = 0
+            q0 = q1 = q2 = lo = 0.0
             if radii[c, g] > 0 and o * 255.0 > 1.0:
+                q0, q1, q2 = float(conics[c, g, 0]), float(conics[c, g, 1]), float(conics[c, g, 2])
+                lo = math.log(o * 255.0)  # > 0 here: one log for the cut and the extent
+                extent = 2.0 * (lo + SIGMA_MARGIN)
                 inv_det = 1.0 / max(q0 * q2 - q1 * q1, 1e-30)
                 half_w = math.sqrt(extent * q2 * inv_det) + BOX_MARGIN
                 half_h = math.sqrt(extent * q0 * inv_det) + BOX_MARGIN
@@ -903,7 +900,13 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 x1 = min(min(max(math.floor(u + half_w) + 1, 0), width), bx1 * tile_size)
                 y0 = max(min(max(math.floor(v - half_h), 0), height), by0 * tile_size)
                 y1 = min(min(max(math.floor(v + half_h) + 1, 0), height), by1 * tile_size)
-            if x0 < x1 and y0 < y1:
+            if x0 < x1 and y0 < y1:  # the record: only a Gaussian with a box is ever read (gather_entries)
+                rec[c, g, R_MX], rec[c, g, R_MY] = means2d[c, g, 0], means2d[c, g, 1]
+                rec[c, g, R_Q0], rec[c, g, R_Q1], rec[c, g, R_Q2], rec[c, g, R_O] = q0, q1, q2, o
+                rec[c, g, R_CUT] = lo + SIGMA_MARGIN
+                rec[c, g, R_INVQ0] = 1.0 / q0 if q0 > 0.0 else 0.0
+                for f in range(n_feat):
+                    rec[c, g, R_FEAT + f] = colors[c, g, f]
                 rec[c, g, R_X0], rec[c, g, R_X1], rec[c, g, R_Y0], rec[c, g, R_Y1] = x0, x1, y0, y1
                 if pow2:  # shifts: four 64-bit divisions cost ~40 cycles each, per Gaussian
                     cx0, cx1, cy0, cy1 = x0 >> csh, ((x1 - 1) >> csh) + 1, y0 >> csh, ((y1 - 1) >> csh) + 1
@@ -912,7 +915,6 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 cbox[c, g] = cx0 | (cx1 << 16) | (cy0 << 32) | (cy1 << 48)
                 total += (cx1 - cx0) * (cy1 - cy0)
             else:
-                rec[c, g, R_X0] = rec[c, g, R_X1] = rec[c, g, R_Y0] = rec[c, g, R_Y1] = 0.0
                 cbox[c, g] = 0
     return n_isects, total
 
