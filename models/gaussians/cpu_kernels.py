@@ -977,6 +977,24 @@ def _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1):
 
 
 @_ifjit
+def _row_candidates(ly, dy, px0, px1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero, done, cp, cq, cs, n):
+    """Pass 1 of :func:`composite_forward` over columns ``[px0, px1)`` of the tile's row ``ly`` (offset ``dy``
+    from the mean): each pixel's index in the tile, ``row << 16 | column`` and ``sigma`` stored at ``n``, which
+    advances (no branch) where ``sigma`` is within the cut and the pixel is not stopped. Returns the new ``n``."""
+    row = ly * tw - x_lo
+    hq = ly << 16
+    for px in range(px0, px1):
+        p = np.uintp(row + px)
+        dx = xc[np.uintp(px - x_lo)] - mx
+        sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
+        cp[n] = p
+        cq[n] = hq | (px - x_lo)
+        cs[n] = sigma
+        n += np.uintp((sigma >= zero) & (sigma <= cut) & (not done[p]))
+    return n
+
+
+@_ifjit
 def _pair_weight(p, e, o, alpha_clamp, athr, tstop, one, zero, T, done):
     """One candidate pair of the compositing (``e = exp(-sigma)``): ``(w, T_i, state)``, state 0 when its alpha is
     below 1/255 (skipped), 1 when the pixel's transmittance would fall to the stop (marked done, not composited), 2
@@ -1067,30 +1085,14 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                 if x1 - x0 <= NARROW_BOX:
                     for py in range(y0, y1):
                         dy = yc[py - y_lo] - my
-                        row = (py - y_lo) * tw - x_lo
-                        hq = (py - y_lo) << 16
-                        for px in range(x0, x1):
-                            p = np.uintp(row + px)
-                            dx = xc[np.uintp(px - x_lo)] - mx
-                            sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
-                            cp[n] = p
-                            cq[n] = hq | (px - x_lo)
-                            cs[n] = sigma
-                            n += np.uintp((sigma >= zero) & (sigma <= cut) & (not done[p]))
+                        n = _row_candidates(py - y_lo, dy, x0, x1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero,
+                                            done, cp, cq, cs, n)
                 else:
                     for py in range(y0, y1):
                         dy = yc[py - y_lo] - my
                         rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
-                        row = (py - y_lo) * tw - x_lo
-                        hq = (py - y_lo) << 16
-                        for px in range(rx0, rx1):
-                            p = np.uintp(row + px)
-                            dx = xc[np.uintp(px - x_lo)] - mx
-                            sigma = half * (q0 * dx * dx + q2 * dy * dy) + q1 * dx * dy
-                            cp[n] = p
-                            cq[n] = hq | (px - x_lo)
-                            cs[n] = sigma
-                            n += np.uintp((sigma >= zero) & (sigma <= cut) & (not done[p]))
+                        n = _row_candidates(py - y_lo, dy, rx0, rx1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero,
+                                            done, cp, cq, cs, n)
                 for i in range(n):
                     cs[i] = math.exp(-cs[i])
                 # one loop per feature count (RGB, RGB + depth unrolled): no per-pair test of the count
