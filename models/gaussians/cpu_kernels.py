@@ -370,7 +370,6 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
 # thread). Loading the rows from the inputs and writing the outputs back are plain copies around them. The same
 # operations in the same order per Gaussian as the scalar code: bit-identical results.
 QS_BLOCK = 128  # Gaussians per block (the work rows stay in L1/L2)
-QS_ROW = QS_BLOCK + 8  # a work row's length: rows a power of two apart fall into the same L1 sets
 # rows of a block's inputs X: mean (0-2), quaternion w, x, y, z (3-6), scales (7-9)
 # camera constants (_qs_cameras, one row per camera): viewmat rows 0-2 (0-11), fx, K01, cx, K10, fy, cy (12-17),
 # the Jacobian's clamp limits (18-21: right, left, down, up tangents)
@@ -382,7 +381,7 @@ def _o(k):
     """The offset of row ``k`` in a block's work array (rows of QS_BLOCK, one flat array: the offsets between
     rows are constants, so LLVM can tell the rows apart; with a 2D array's runtime stride it could not, and kept
     the loops scalar)."""
-    return np.uintp(k * QS_ROW)
+    return np.uintp(k * QS_BLOCK)
 
 
 @_ijit
@@ -530,7 +529,7 @@ def project_qs_forward(means, quats, scales, viewmats, Ks, width, height, eps2d,
     for ch in numba.prange((n + QS_BLOCK - 1) // QS_BLOCK):
         g0 = ch * QS_BLOCK
         m = min(QS_BLOCK, n - g0)
-        X, Cv, Y = np.empty(10 * QS_ROW), np.empty(6 * QS_ROW), np.empty(8 * QS_ROW)
+        X, Cv, Y = np.empty(10 * QS_BLOCK), np.empty(6 * QS_BLOCK), np.empty(8 * QS_BLOCK)
         _qs_load(means, quats, scales, g0, m, X)
         _qs_cov_block(X, Cv, m)
         for c in range(n_cam):
@@ -682,8 +681,8 @@ def project_qs_backward(means, quats, scales, viewmats, Ks, width, height, eps2d
     for ch in numba.prange((n + QS_BLOCK - 1) // QS_BLOCK):
         g0 = ch * QS_BLOCK
         m = min(QS_BLOCK, n - g0)
-        X, Cv, Gc = np.empty(10 * QS_ROW), np.empty(6 * QS_ROW), np.empty(7 * QS_ROW)
-        A, D, Z = np.zeros(9 * QS_ROW), np.empty(9 * QS_ROW), np.empty(7 * QS_ROW)
+        X, Cv, Gc = np.empty(10 * QS_BLOCK), np.empty(6 * QS_BLOCK), np.empty(7 * QS_BLOCK)
+        A, D, Z = np.zeros(9 * QS_BLOCK), np.empty(9 * QS_BLOCK), np.empty(7 * QS_BLOCK)
         _qs_load(means, quats, scales, g0, m, X)
         _qs_cov_block(X, Cv, m)
         for c in range(n_cam):
@@ -1305,100 +1304,83 @@ def gather_slots(order, roff, epos, slots, grads):
 # --------------------------------------------------------------------------------------------------
 # Spherical harmonics (the 3DGS convention of models/gaussians/sh.py)
 # --------------------------------------------------------------------------------------------------
-# Over blocks of QS_BLOCK Gaussians in flat work arrays, like the projection above: the coefficients copied into
-# 48 rows (coefficient k, channel j at row 3 k + j; zeros from the degree's (degree + 1)^2 on), then loops without
-# branches over the block's columns that LLVM vectorises (the degree enters as zero basis values and
-# coefficients, which add zeros: the sums' values are those of the degree's terms alone).
 _C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
 _C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 _C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
        1.445305721320277, -0.5900435899266435)
-SH_ROWS = 48  # 16 coefficients x 3 channels
 
 
 @_ifjit
-def _sh_basis(x, y, z, nb):
-    """The 16 basis values at the unit direction (x, y, z) (sh.py's ``sh_basis`` term by term), those from
-    ``nb`` on set to zero."""
-    xx, yy, zz = x * x, y * y, z * z
-    return (_C0, -_C1 * y if nb > 1 else 0.0, _C1 * z if nb > 2 else 0.0, -_C1 * x if nb > 3 else 0.0,
-            _C2[0] * x * y if nb > 4 else 0.0, _C2[1] * y * z if nb > 5 else 0.0,
-            _C2[2] * (2.0 * zz - xx - yy) if nb > 6 else 0.0, _C2[3] * x * z if nb > 7 else 0.0,
-            _C2[4] * (xx - yy) if nb > 8 else 0.0, _C3[0] * y * (3.0 * xx - yy) if nb > 9 else 0.0,
-            _C3[1] * x * y * z if nb > 10 else 0.0, _C3[2] * y * (4.0 * zz - xx - yy) if nb > 11 else 0.0,
-            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) if nb > 12 else 0.0,
-            _C3[4] * x * (4.0 * zz - xx - yy) if nb > 13 else 0.0, _C3[5] * z * (xx - yy) if nb > 14 else 0.0,
-            _C3[6] * x * (xx - 3.0 * yy) if nb > 15 else 0.0)
+def _sh_basis(degree, x, y, z, b, db):
+    """The ``(degree + 1)^2`` basis values at the unit direction (x, y, z) into ``b`` [16] and, when ``db`` has
+    rows, their derivatives into ``db`` [16, 3] (sh.py's ``sh_basis`` term by term)."""
+    grad = db.shape[0] > 0
+    b[0] = _C0
+    if grad:
+        for i in range(16):
+            db[i, 0] = db[i, 1] = db[i, 2] = 0.0
+    if degree >= 1:
+        b[1], b[2], b[3] = -_C1 * y, _C1 * z, -_C1 * x
+        if grad:
+            db[1, 1], db[2, 2], db[3, 0] = -_C1, _C1, -_C1
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        b[4] = _C2[0] * x * y
+        b[5] = _C2[1] * y * z
+        b[6] = _C2[2] * (2.0 * zz - xx - yy)
+        b[7] = _C2[3] * x * z
+        b[8] = _C2[4] * (xx - yy)
+        if grad:
+            db[4, 0], db[4, 1] = _C2[0] * y, _C2[0] * x
+            db[5, 1], db[5, 2] = _C2[1] * z, _C2[1] * y
+            db[6, 0], db[6, 1], db[6, 2] = -2.0 * _C2[2] * x, -2.0 * _C2[2] * y, 4.0 * _C2[2] * z
+            db[7, 0], db[7, 2] = _C2[3] * z, _C2[3] * x
+            db[8, 0], db[8, 1] = 2.0 * _C2[4] * x, -2.0 * _C2[4] * y
+    if degree >= 3:
+        xx, yy, zz = x * x, y * y, z * z
+        b[9] = _C3[0] * y * (3.0 * xx - yy)
+        b[10] = _C3[1] * x * y * z
+        b[11] = _C3[2] * y * (4.0 * zz - xx - yy)
+        b[12] = _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+        b[13] = _C3[4] * x * (4.0 * zz - xx - yy)
+        b[14] = _C3[5] * z * (xx - yy)
+        b[15] = _C3[6] * x * (xx - 3.0 * yy)
+        if grad:
+            db[9, 0], db[9, 1] = _C3[0] * 6.0 * x * y, _C3[0] * (3.0 * xx - 3.0 * yy)
+            db[10, 0], db[10, 1], db[10, 2] = _C3[1] * y * z, _C3[1] * x * z, _C3[1] * x * y
+            db[11, 0], db[11, 1], db[11, 2] = (-2.0 * _C3[2] * x * y, _C3[2] * (4.0 * zz - xx - 3.0 * yy),
+                                               8.0 * _C3[2] * y * z)
+            db[12, 0], db[12, 1], db[12, 2] = (-6.0 * _C3[3] * x * z, -6.0 * _C3[3] * y * z,
+                                               _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy))
+            db[13, 0], db[13, 1], db[13, 2] = (_C3[4] * (4.0 * zz - 3.0 * xx - yy), -2.0 * _C3[4] * x * y,
+                                               8.0 * _C3[4] * x * z)
+            db[14, 0], db[14, 1], db[14, 2] = 2.0 * _C3[5] * x * z, -2.0 * _C3[5] * y * z, _C3[5] * (xx - yy)
+            db[15, 0], db[15, 1] = _C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * _C3[6] * x * y
 
 
 @_ifjit
-def _sh_dir(X, iu, px, py, pz):
-    """Block column ``iu``'s unit direction from the camera centre (px, py, pz) to its mean, and the distance."""
-    dx, dy, dz = X[_o(0) + iu] - px, X[_o(1) + iu] - py, X[_o(2) + iu] - pz
+def _unit_dir(means, campos, c, g):
+    dx, dy, dz = (float(means[g, 0]) - campos[c, 0], float(means[g, 1]) - campos[c, 1],
+                  float(means[g, 2]) - campos[c, 2])
     nrm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # torch.nn.functional.normalize's eps
     return dx / nrm, dy / nrm, dz / nrm, nrm
 
 
-@_ijit
-def _sh_load(means, dc, rest, g0, m, nb, X, Co):
-    """Gaussians ``g0 .. g0 + m``: means into ``X`` rows 0-2, the degree's coefficients into ``Co`` (float64;
-    the rows of the coefficients from ``nb`` on zero). ``dc`` [N, 3] is coefficient 0, ``rest`` [N, K - 1, 3]
+@_ifjit
+def _coef(dc, rest, g, k, j):
+    """Coefficient ``k`` of channel ``j`` of Gaussian g: ``dc`` [N, 3] is coefficient 0, ``rest`` [N, K - 1, 3]
     the others (a fit's ``sh_dc`` / ``sh_rest``, or two views of one [N, K, 3] array)."""
-    for i in range(m):
-        iu = np.uintp(i)
-        g = g0 + i
-        X[_o(0) + iu], X[_o(1) + iu], X[_o(2) + iu] = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        Co[_o(0) + iu], Co[_o(1) + iu], Co[_o(2) + iu] = float(dc[g, 0]), float(dc[g, 1]), float(dc[g, 2])
-        for k in range(1, 16):
-            for j in range(3):
-                Co[_o(3 * k + j) + iu] = float(rest[g, k - 1, j]) if k < nb else 0.0
+    return dc[g, j] if k == 0 else rest[g, k - 1, j]
 
 
 @_ifjit
-def _sh_dot(Co, iu, j, b):
-    """Channel j's sum ``sum_k b_k c_kj`` of block column ``iu``, in coefficient order (constant indices into
-    the basis tuple ``b``: a loop over it kept the block loop scalar)."""
-    a = 0.0
-    a += b[0] * Co[_o(j) + iu]
-    a += b[1] * Co[_o(3 + j) + iu]
-    a += b[2] * Co[_o(6 + j) + iu]
-    a += b[3] * Co[_o(9 + j) + iu]
-    a += b[4] * Co[_o(12 + j) + iu]
-    a += b[5] * Co[_o(15 + j) + iu]
-    a += b[6] * Co[_o(18 + j) + iu]
-    a += b[7] * Co[_o(21 + j) + iu]
-    a += b[8] * Co[_o(24 + j) + iu]
-    a += b[9] * Co[_o(27 + j) + iu]
-    a += b[10] * Co[_o(30 + j) + iu]
-    a += b[11] * Co[_o(33 + j) + iu]
-    a += b[12] * Co[_o(36 + j) + iu]
-    a += b[13] * Co[_o(39 + j) + iu]
-    a += b[14] * Co[_o(42 + j) + iu]
-    a += b[15] * Co[_o(45 + j) + iu]
-    return a
-
-
-@_ifjit
-def _sh_acc(VC, iu, k, bk, v0, v1, v2):
-    """Adds basis function k's value times the colour gradient to its coefficients' gradient rows."""
-    VC[_o(3 * k) + iu] += bk * v0
-    VC[_o(3 * k + 1) + iu] += bk * v1
-    VC[_o(3 * k + 2) + iu] += bk * v2
-
-
-@_fjit
-def _sh_block(X, Co, px, py, pz, nb, Y, m):
-    """``Y`` rows 0-2 = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` per channel of the block's columns for the camera at
-    (px, py, pz), row 3 = the channels' clamp bits (vectorised)."""
-    for i in range(m):
-        iu = np.uintp(i)
-        x, y, z, _nrm = _sh_dir(X, iu, px, py, pz)
-        b = _sh_basis(x, y, z, nb)
-        a0, a1, a2 = _sh_dot(Co, iu, 0, b), _sh_dot(Co, iu, 1, b), _sh_dot(Co, iu, 2, b)
-        Y[_o(0) + iu], Y[_o(1) + iu], Y[_o(2) + iu] = max(a0 + 0.5, 0.0), max(a1 + 0.5, 0.0), max(a2 + 0.5, 0.0)
-        Y[_o(3) + iu] = (1.0 if a0 + 0.5 < 0.0 else 0.0) + (2.0 if a1 + 0.5 < 0.0 else 0.0) + (
-            4.0 if a2 + 0.5 < 0.0 else 0.0)
+def _set_coef(v_dc, v_rest, g, k, x, y, z):
+    """Writes coefficient ``k``'s gradient (x, y, z) of Gaussian g into ``v_dc`` (k = 0) or ``v_rest``."""
+    if k == 0:
+        v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = x, y, z
+    else:
+        v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = x, y, z
 
 
 @_pfjit
@@ -1409,87 +1391,48 @@ def sh_forward(degree, means, campos, dc, rest, rgb, cut):
     ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
-    for ch in numba.prange((n + QS_BLOCK - 1) // QS_BLOCK):
-        g0 = ch * QS_BLOCK
-        m = min(QS_BLOCK, n - g0)
-        X, Co, Y = np.empty(3 * QS_ROW), np.empty(SH_ROWS * QS_ROW), np.empty(4 * QS_ROW)
-        _sh_load(means, dc, rest, g0, m, nb, X, Co)
-        for c in range(n_cam):
-            _sh_block(X, Co, campos[c, 0], campos[c, 1], campos[c, 2], nb, Y, m)
-            for i in range(m):
-                iu = np.uintp(i)
-                g = g0 + i
-                rgb[c, g, 0], rgb[c, g, 1], rgb[c, g, 2] = Y[_o(0) + iu], Y[_o(1) + iu], Y[_o(2) + iu]
-                cut[c, g] = np.uint8(Y[_o(3) + iu])
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        b, db = np.empty(16), np.empty((0, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            for c in range(n_cam):
+                x, y, z, _ = _unit_dir(means, campos, c, g)
+                _sh_basis(degree, x, y, z, b, db)
+                a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
+                for k in range(nb):
+                    bk = b[k]
+                    a0 += bk * _coef(dc, rest, g, k, 0)
+                    a1 += bk * _coef(dc, rest, g, k, 1)
+                    a2 += bk * _coef(dc, rest, g, k, 2)
+                rgb[c, g, 0] = max(a0 + 0.5, 0.0)
+                rgb[c, g, 1] = max(a1 + 0.5, 0.0)
+                rgb[c, g, 2] = max(a2 + 0.5, 0.0)
+                cut[c, g] = (1 if a0 + 0.5 < 0.0 else 0) | (2 if a1 + 0.5 < 0.0 else 0) | (4 if a2 + 0.5 < 0.0 else 0)
 
 
 @_ifjit
-def _sh_w(Co, iu, k, v0, v1, v2):
-    """Basis function k's coefficient gradient's weight: its coefficients dotted with the colour gradient."""
-    return Co[_o(3 * k) + iu] * v0 + Co[_o(3 * k + 1) + iu] * v1 + Co[_o(3 * k + 2) + iu] * v2
-
-
-@_ifjit
-def _sh_dir_grad(x, y, z, Co, iu, v0, v1, v2):
-    """``sum_k w_k dY_k / d(x, y, z)`` at the direction (x, y, z), ``w_k`` = :func:`_sh_w` (zero from the
-    degree's basis functions on: their terms add zeros): the basis derivatives contracted with each basis
-    function's coefficient gradient, without a [16, 3] table."""
-    w1, w2, w3 = _sh_w(Co, iu, 1, v0, v1, v2), _sh_w(Co, iu, 2, v0, v1, v2), _sh_w(Co, iu, 3, v0, v1, v2)
-    w4, w5, w6 = _sh_w(Co, iu, 4, v0, v1, v2), _sh_w(Co, iu, 5, v0, v1, v2), _sh_w(Co, iu, 6, v0, v1, v2)
-    w7, w8, w9 = _sh_w(Co, iu, 7, v0, v1, v2), _sh_w(Co, iu, 8, v0, v1, v2), _sh_w(Co, iu, 9, v0, v1, v2)
-    w10, w11, w12 = _sh_w(Co, iu, 10, v0, v1, v2), _sh_w(Co, iu, 11, v0, v1, v2), _sh_w(Co, iu, 12, v0, v1, v2)
-    w13, w14, w15 = _sh_w(Co, iu, 13, v0, v1, v2), _sh_w(Co, iu, 14, v0, v1, v2), _sh_w(Co, iu, 15, v0, v1, v2)
+def _sh_dir_grad(degree, x, y, z, w):
+    """``sum_k w[k] dY_k / d(x, y, z)`` at the direction (x, y, z): :func:`_sh_basis`' derivatives contracted
+    with the weights ``w`` [16] (each basis function's coefficient gradient), without the [16, 3] table."""
     g0 = g1 = g2 = 0.0
-    g0 -= _C1 * w3
-    g1 -= _C1 * w1
-    g2 += _C1 * w2
-    g0 += _C2[0] * y * w4 - 2.0 * _C2[2] * x * w6 + _C2[3] * z * w7 + 2.0 * _C2[4] * x * w8
-    g1 += _C2[0] * x * w4 + _C2[1] * z * w5 - 2.0 * _C2[2] * y * w6 - 2.0 * _C2[4] * y * w8
-    g2 += _C2[1] * y * w5 + 4.0 * _C2[2] * z * w6 + _C2[3] * x * w7
-    xx, yy, zz = x * x, y * y, z * z
-    g0 += (_C3[0] * 6.0 * x * y * w9 + _C3[1] * y * z * w10 - 2.0 * _C3[2] * x * y * w11
-           - 6.0 * _C3[3] * x * z * w12 + _C3[4] * (4.0 * zz - 3.0 * xx - yy) * w13
-           + 2.0 * _C3[5] * x * z * w14 + _C3[6] * (3.0 * xx - 3.0 * yy) * w15)
-    g1 += (_C3[0] * (3.0 * xx - 3.0 * yy) * w9 + _C3[1] * x * z * w10
-           + _C3[2] * (4.0 * zz - xx - 3.0 * yy) * w11 - 6.0 * _C3[3] * y * z * w12
-           - 2.0 * _C3[4] * x * y * w13 - 2.0 * _C3[5] * y * z * w14 - 6.0 * _C3[6] * x * y * w15)
-    g2 += (_C3[1] * x * y * w10 + 8.0 * _C3[2] * y * z * w11 + _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w12
-           + 8.0 * _C3[4] * x * z * w13 + _C3[5] * (xx - yy) * w14)
+    if degree >= 1:
+        g0 -= _C1 * w[3]
+        g1 -= _C1 * w[1]
+        g2 += _C1 * w[2]
+    if degree >= 2:
+        g0 += _C2[0] * y * w[4] - 2.0 * _C2[2] * x * w[6] + _C2[3] * z * w[7] + 2.0 * _C2[4] * x * w[8]
+        g1 += _C2[0] * x * w[4] + _C2[1] * z * w[5] - 2.0 * _C2[2] * y * w[6] - 2.0 * _C2[4] * y * w[8]
+        g2 += _C2[1] * y * w[5] + 4.0 * _C2[2] * z * w[6] + _C2[3] * x * w[7]
+    if degree >= 3:
+        xx, yy, zz = x * x, y * y, z * z
+        g0 += (_C3[0] * 6.0 * x * y * w[9] + _C3[1] * y * z * w[10] - 2.0 * _C3[2] * x * y * w[11]
+               - 6.0 * _C3[3] * x * z * w[12] + _C3[4] * (4.0 * zz - 3.0 * xx - yy) * w[13]
+               + 2.0 * _C3[5] * x * z * w[14] + _C3[6] * (3.0 * xx - 3.0 * yy) * w[15])
+        g1 += (_C3[0] * (3.0 * xx - 3.0 * yy) * w[9] + _C3[1] * x * z * w[10]
+               + _C3[2] * (4.0 * zz - xx - 3.0 * yy) * w[11] - 6.0 * _C3[3] * y * z * w[12]
+               - 2.0 * _C3[4] * x * y * w[13] - 2.0 * _C3[5] * y * z * w[14] - 6.0 * _C3[6] * x * y * w[15])
+        g2 += (_C3[1] * x * y * w[10] + 8.0 * _C3[2] * y * z * w[11] + _C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w[12]
+               + 8.0 * _C3[4] * x * z * w[13] + _C3[5] * (xx - yy) * w[14])
     return g0, g1, g2
-
-
-@_fjit
-def _sh_grad_block(X, Co, V, px, py, pz, nb, VC, A, m):
-    """Adds the block's columns' gradients for the camera at (px, py, pz) (vectorised), from the colour
-    gradient ``V`` rows 0-2 (zero where the clamp stopped it): the coefficients' into ``VC`` (48 rows, the
-    layout of ``Co``), the means' into ``A`` rows 0-2 (float64 sums over the cameras, from +0)."""
-    for i in range(m):
-        iu = np.uintp(i)
-        x, y, z, nrm = _sh_dir(X, iu, px, py, pz)
-        b = _sh_basis(x, y, z, nb)
-        v0, v1, v2 = V[_o(0) + iu], V[_o(1) + iu], V[_o(2) + iu]
-        _sh_acc(VC, iu, 0, b[0], v0, v1, v2)  # constant indices: a loop over the tuple kept this loop scalar
-        _sh_acc(VC, iu, 1, b[1], v0, v1, v2)
-        _sh_acc(VC, iu, 2, b[2], v0, v1, v2)
-        _sh_acc(VC, iu, 3, b[3], v0, v1, v2)
-        _sh_acc(VC, iu, 4, b[4], v0, v1, v2)
-        _sh_acc(VC, iu, 5, b[5], v0, v1, v2)
-        _sh_acc(VC, iu, 6, b[6], v0, v1, v2)
-        _sh_acc(VC, iu, 7, b[7], v0, v1, v2)
-        _sh_acc(VC, iu, 8, b[8], v0, v1, v2)
-        _sh_acc(VC, iu, 9, b[9], v0, v1, v2)
-        _sh_acc(VC, iu, 10, b[10], v0, v1, v2)
-        _sh_acc(VC, iu, 11, b[11], v0, v1, v2)
-        _sh_acc(VC, iu, 12, b[12], v0, v1, v2)
-        _sh_acc(VC, iu, 13, b[13], v0, v1, v2)
-        _sh_acc(VC, iu, 14, b[14], v0, v1, v2)
-        _sh_acc(VC, iu, 15, b[15], v0, v1, v2)
-        vd0, vd1, vd2 = _sh_dir_grad(x, y, z, Co, iu, v0, v1, v2)
-        # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
-        dot = x * vd0 + y * vd1 + z * vd2
-        A[_o(0) + iu] += (vd0 - x * dot) / nrm
-        A[_o(1) + iu] += (vd1 - y * dot) / nrm
-        A[_o(2) + iu] += (vd2 - z * dot) / nrm
 
 
 @_pfjit
@@ -1497,32 +1440,51 @@ def sh_backward(degree, means, campos, dc, rest, cut, v_rgb, v_means, v_dc, v_re
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' ``v_dc`` [N, 3] and
     ``v_rest`` [N, K - 1, 3] (cameras summed in order, in float64, whatever the dtype of the coefficients and
     their gradients; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``: where
-    :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again; coefficients above the degree
-    get zeros). The direction's gradient contracts the basis derivatives with each basis function's coefficient
-    gradient (:func:`_sh_dir_grad`) instead of a [16, 3] table per pair."""
+    :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again). The direction's gradient
+    contracts the basis derivatives with each basis function's coefficient gradient (:func:`_sh_dir_grad`) instead
+    of a [16, 3] table per pair."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     n_k = v_rest.shape[1] + 1
-    for ch in numba.prange((n + QS_BLOCK - 1) // QS_BLOCK):
-        g0 = ch * QS_BLOCK
-        m = min(QS_BLOCK, n - g0)
-        X, Co, V = np.empty(3 * QS_ROW), np.empty(SH_ROWS * QS_ROW), np.empty(3 * QS_ROW)
-        VC, A = np.zeros(SH_ROWS * QS_ROW), np.zeros(3 * QS_ROW)
-        _sh_load(means, dc, rest, g0, m, nb, X, Co)
-        for c in range(n_cam):
-            for i in range(m):
-                iu = np.uintp(i)
-                g = g0 + i
+    one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
+    for ch in numba.prange((n + CHUNK - 1) // CHUNK):
+        b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
+        vco = np.empty((n_k, 3))
+        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
+            if not one_cam:
+                for k in range(n_k):
+                    vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
+            vm0 = vm1 = vm2 = 0.0  # float64 sums over the cameras, written once in the output's dtype
+            for c in range(n_cam):
+                x, y, z, nrm = _unit_dir(means, campos, c, g)
+                _sh_basis(degree, x, y, z, b, db)
                 cg = cut[c, g]
-                V[_o(0) + iu] = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
-                V[_o(1) + iu] = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
-                V[_o(2) + iu] = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
-            _sh_grad_block(X, Co, V, campos[c, 0], campos[c, 1], campos[c, 2], nb, VC, A, m)
-        for i in range(m):
-            iu = np.uintp(i)
-            g = g0 + i
-            v_means[g, 0], v_means[g, 1], v_means[g, 2] = A[_o(0) + iu], A[_o(1) + iu], A[_o(2) + iu]
-            v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = VC[_o(0) + iu], VC[_o(1) + iu], VC[_o(2) + iu]
-            for k in range(1, n_k):
-                for j in range(3):
-                    v_rest[g, k - 1, j] = VC[_o(3 * k + j) + iu] if k < 16 else 0.0
+                v0 = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
+                v1 = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
+                v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
+                if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
+                    for k in range(nb):
+                        bk = b[k]
+                        _set_coef(v_dc, v_rest, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
+                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
+                                + _coef(dc, rest, g, k, 2) * v2)
+                else:
+                    for k in range(nb):
+                        vco[k, 0] += b[k] * v0
+                        vco[k, 1] += b[k] * v1
+                        vco[k, 2] += b[k] * v2
+                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
+                                + _coef(dc, rest, g, k, 2) * v2)
+                vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
+                # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
+                dot = x * vd0 + y * vd1 + z * vd2
+                vm0 += (vd0 - x * dot) / nrm
+                vm1 += (vd1 - y * dot) / nrm
+                vm2 += (vd2 - z * dot) / nrm
+            v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
+            if one_cam:
+                for k in range(nb, n_k):  # coefficients above the degree: zero gradient
+                    _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
+            else:
+                for k in range(n_k):
+                    _set_coef(v_dc, v_rest, g, k, vco[k, 0], vco[k, 1], vco[k, 2])
