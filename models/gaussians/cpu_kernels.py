@@ -923,18 +923,19 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
 def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec, ent, cap):
     """``ent`` [n_isects, 13 + D] = each list entry's record, in list order (tiles in parallel); ``cap``
     [C * tiles] = per tile the pixels of its entries' boxes within it (the most pairs compositing can keep)."""
-    n_rec = rec.shape[2]
     n_all = offsets.shape[0] - 1
+    n, n_rec = rec.shape[1], np.uintp(rec.shape[2])
+    rf, ef = rec.reshape(-1), ent.reshape(-1)  # flat, unsigned offsets: 3.79 -> 3.17 ms (RGB, one thread)
     for it in numba.prange(n_all):
         t = _interleave(it, n_all)
         c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
         area = 0
         for k in range(offsets[t], offsets[t + 1]):
-            g = gids[k]
+            src, dst = np.uintp(c * n + gids[k]) * n_rec, np.uintp(k) * n_rec
             for j in range(n_rec):
-                ent[k, j] = rec[c, g, j]
-            x0, x1 = max(int(rec[c, g, R_X0]), x_lo), min(int(rec[c, g, R_X1]), x_hi)
-            y0, y1 = max(int(rec[c, g, R_Y0]), y_lo), min(int(rec[c, g, R_Y1]), y_hi)
+                ef[dst + j] = rf[src + j]
+            x0, x1 = max(int(rf[src + np.uintp(R_X0)]), x_lo), min(int(rf[src + np.uintp(R_X1)]), x_hi)
+            y0, y1 = max(int(rf[src + np.uintp(R_Y0)]), y_lo), min(int(rf[src + np.uintp(R_Y1)]), y_hi)
             if x0 < x1 and y0 < y1:
                 area += (x1 - x0) * (y1 - y0)
         cap[t] = area
