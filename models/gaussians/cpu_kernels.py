@@ -1273,9 +1273,10 @@ def gather_slots(order, roff, epos, slots, grads):
     ``epos``): deterministic for any thread count. Walked in depth order: each tile's entries are then read in
     list order (near-sequential), and the scattered accesses are one row written per Gaussian instead of one
     read per entry."""
-    n_s = slots.shape[1]
+    n_s = np.uintp(slots.shape[1])
     n_cam, n = order.shape
     total = n_cam * n
+    sf, gf = slots.reshape(-1), grads.reshape(-1)  # flat, unsigned offsets: 3.19 -> 2.92 ms (RGB, one thread)
     for ch in numba.prange((total + CHUNK - 1) // CHUNK):
         acc = np.empty(n_s)
         idx0 = ch * CHUNK
@@ -1284,19 +1285,21 @@ def gather_slots(order, roff, epos, slots, grads):
         for idx in range(idx0, min(idx0 + CHUNK, total)):
             g = order[c, r]
             i0, i1 = roff[idx], roff[idx + 1]
-            if g >= 0 and i1 == i0 + 1:  # one entry (most Gaussians at 64-px tiles): its row as the sum
-                k = epos[i0]
-                for j in range(n_s):
-                    grads[c, g, j] = 0.0 + slots[k, j]  # what the float64 sum from zero gives (-0.0 -> +0.0)
-            elif g >= 0:
-                for j in range(n_s):
-                    acc[j] = 0.0
-                for i in range(i0, i1):
-                    k = epos[i]
+            if g >= 0:
+                dst = np.uintp(c * n + g) * n_s
+                if i1 == i0 + 1:  # one entry (most Gaussians at 64-px tiles): its row as the sum
+                    src = np.uintp(epos[i0]) * n_s
                     for j in range(n_s):
-                        acc[j] += slots[k, j]
-                for j in range(n_s):
-                    grads[c, g, j] = acc[j]
+                        gf[dst + j] = 0.0 + sf[src + j]  # what the float64 sum from zero gives (-0.0 -> +0.0)
+                else:
+                    for j in range(n_s):
+                        acc[j] = 0.0
+                    for i in range(i0, i1):
+                        src = np.uintp(epos[i]) * n_s
+                        for j in range(n_s):
+                            acc[j] += sf[src + j]
+                    for j in range(n_s):
+                        gf[dst + j] = acc[j]
             r += 1
             if r == n:
                 r, c = 0, c + 1
