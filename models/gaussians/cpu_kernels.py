@@ -368,7 +368,10 @@ def project_backward(means, covars, viewmats, Ks, width, height, eps2d, near, fa
 # vectorises those (numba's array arguments may alias, and with the kernels' seven to eleven arrays, strided
 # rows and branches it kept the per-Gaussian loop scalar: 4.95 -> 0.79 ms for the forward's maths at 100k, one
 # thread). Loading the rows from the inputs and writing the outputs back are plain copies around them. The same
-# operations in the same order per Gaussian as the scalar code: bit-identical results.
+# operations in the same order per Gaussian as the scalar code, but fast-math lets LLVM contract and reassociate the
+# vector loop's sums differently: means2d and depths are bit-identical, float32 conics and compensations differ in
+# the last bit for some Gaussians (renders and gradients within 6.9e-7 of each tensor's largest value; README
+# round raster25).
 QS_BLOCK = 128  # Gaussians per block (the work rows stay in L1/L2)
 # rows of a block's inputs X: mean (0-2), quaternion w, x, y, z (3-6), scales (7-9)
 # camera constants (_qs_cameras, one row per camera): viewmat rows 0-2 (0-11), fx, K01, cx, K10, fy, cy (12-17),
