@@ -485,6 +485,24 @@ def _cam_tuple(cams, c):
             r[16], r[17], r[18], r[19], r[20], r[21])
 
 
+@_ifjit
+def _qs_cov2d(X, Cv, iu, cam, near, far):
+    """Block column ``iu`` in the camera ``cam``: its frame (``_qs_frame``'s 18 values), its covariance's six
+    entries, ``C p0`` and ``C p1`` (p0, p1 the rows of ``P = J W``) and the 2D covariance ``P C P^T`` as ``(a, b,
+    d)`` before the blur: the projection's forward and its backward (which recomputes it) share this."""
+    fr = _qs_frame(X, iu, cam, near, far)
+    p00, p01, p02, p10, p11, p12 = fr[12], fr[13], fr[14], fr[15], fr[16], fr[17]
+    c00, c01, c02, c11, c12, c22 = _qs_cov_of(Cv, 0, iu)
+    e0 = c00 * p00 + c01 * p01 + c02 * p02  # C p0
+    e1 = c01 * p00 + c11 * p01 + c12 * p02
+    e2 = c02 * p00 + c12 * p01 + c22 * p02
+    f0 = c00 * p10 + c01 * p11 + c02 * p12  # C p1
+    f1 = c01 * p10 + c11 * p11 + c12 * p12
+    f2 = c02 * p10 + c12 * p11 + c22 * p12
+    return (fr, (c00, c01, c02, c11, c12, c22), (e0, e1, e2), (f0, f1, f2),
+            (p00 * e0 + p01 * e1 + p02 * e2, p10 * e0 + p11 * e1 + p12 * e2, p10 * f0 + p11 * f1 + p12 * f2))
+
+
 @_fjit
 def _qs_project_block(X, Cv, cams, c, width, height, eps2d, near, far, radius_clip, Y, m):
     """The projection of the block's columns into camera c (vectorised): ``Y`` [8 rows] = u, v, depth,
@@ -493,16 +511,8 @@ def _qs_project_block(X, Cv, cams, c, width, height, eps2d, near, far, radius_cl
     k00, k01, k02, k10, k11, k12 = cam[12], cam[13], cam[14], cam[15], cam[16], cam[17]
     for i in range(m):
         iu = np.uintp(i)
-        (x, y, z, zs, izs, depth_ok, _tx, _ty, _j00, _j02, _j11, _j12,
-         p00, p01, p02, p10, p11, p12) = _qs_frame(X, iu, cam, near, far)
-        c00, c01, c02, c11, c12, c22 = _qs_cov_of(Cv, 0, iu)
-        e0 = c00 * p00 + c01 * p01 + c02 * p02  # C p0
-        e1 = c01 * p00 + c11 * p01 + c12 * p02
-        e2 = c02 * p00 + c12 * p01 + c22 * p02
-        a = p00 * e0 + p01 * e1 + p02 * e2
-        b = p10 * e0 + p11 * e1 + p12 * e2
-        d = (p10 * (c00 * p10 + c01 * p11 + c02 * p12) + p11 * (c01 * p10 + c11 * p11 + c12 * p12)
-             + p12 * (c02 * p10 + c12 * p11 + c22 * p12))
+        fr, _c, _e, _f, (a, b, d) = _qs_cov2d(X, Cv, iu, cam, near, far)
+        x, y, z, zs, izs, depth_ok = fr[0], fr[1], fr[2], fr[3], fr[4], fr[5]
         u = (k00 * x + k01 * y + k02 * zs) * izs
         v = (k10 * x + k11 * y + k12 * zs) * izs
         det_orig = a * d - b * b
@@ -563,18 +573,9 @@ def _qs_project_grad_block(X, Cv, cams, c, eps2d, near, far, Gc, D, m):
         iu = np.uintp(i)
         vu, vv, vz_d, vc0 = Gc[_o(0) + iu], Gc[_o(1) + iu], Gc[_o(2) + iu], Gc[_o(3) + iu]
         vc1, vc2, vcp = Gc[_o(4) + iu], Gc[_o(5) + iu], Gc[_o(6) + iu]
-        (x, y, _z, _zs, izs, depth_ok, tx, ty, j00, j02, j11, j12,
-         p00, p01, p02, p10, p11, p12) = _qs_frame(X, iu, cam, near, far)
-        c00, c01, c02, c11, c12, c22 = _qs_cov_of(Cv, 0, iu)
-        e0 = c00 * p00 + c01 * p01 + c02 * p02  # C p0
-        e1 = c01 * p00 + c11 * p01 + c12 * p02
-        e2 = c02 * p00 + c12 * p01 + c22 * p02
-        f0 = c00 * p10 + c01 * p11 + c02 * p12  # C p1
-        f1 = c01 * p10 + c11 * p11 + c12 * p12
-        f2 = c02 * p10 + c12 * p11 + c22 * p12
-        a0 = p00 * e0 + p01 * e1 + p02 * e2
-        b0 = p10 * e0 + p11 * e1 + p12 * e2
-        d0 = p10 * f0 + p11 * f1 + p12 * f2
+        fr, (c00, c01, c02, c11, c12, c22), (e0, e1, e2), (f0, f1, f2), (a0, b0, d0) = _qs_cov2d(
+            X, Cv, iu, cam, near, far)
+        (x, y, _z, _zs, izs, depth_ok, tx, ty, j00, j02, j11, j12, p00, p01, p02, p10, p11, p12) = fr
         a, d = a0 + eps2d, d0 + eps2d
         det = a * d - b0 * b0
         valid = depth_ok & (det > 0)  # else culled: conics are constants, never rasterized; only depth flows
