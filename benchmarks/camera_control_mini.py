@@ -36,10 +36,28 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   ``models/simulation/scenes.py``, rendered by its ray caster) is filmed from its input-photo camera along
   four families of paths, **each in both directions with the same amplitude**: pan (yaw about the vertical,
   ±20–35°), tilt (pitch about the camera's x axis, ±10–18°), orbit (rigid rotation about a vertical axis
-  0.7 L ahead, ±20–40°) and dolly (along the viewing axis, ±0.25–0.4 L; L = free distance ahead, both
-  directions kept collision-free). Constant speed, so frame k sits at ``k/(T-1)`` of the amplitude. With each
-  path and its mirror image equally often in the data, the first frame says nothing about the direction: a
-  model that ignores the camera is at chance (0.5), and only the cameras can tell it which way to go.
+  0.4 L ahead, ±20–40°) and dolly (a translation without turning along the scene's ``dolly_axis``, ±0.4–0.6 L;
+  L = free distance ahead along the view axis; every path and its mirror image kept ``CLEARANCE`` from every
+  surface, the amplitude of both shrunk together when needed). Constant speed, so frame k sits at ``k/(T-1)``
+  of the amplitude. With each path and its mirror image equally often in the data, the first frame says nothing
+  about the direction: a model that ignores the camera is at chance (0.5), and only the cameras can tell it
+  which way to go.
+* **Dollies and orbits the miniature can tell apart** (``SCENES_VERSION`` 2, 2026-12-04, issue 32; before: dolly
+  along the view axis at ±0.25–0.4 L, orbit about 0.7 L). Chosen on true renders only, before any training
+  (development scenes 0–7, 9 frames at 32², the mirror-pair PSNR: the truth along each path against the truth
+  along its mirror image, frames 1..; lower = the two directions differ more;
+  ``benchmarks/results/camera-control-mini/dev-dolly32-paths``): the dolly's axis is, of 9×9 directions in the
+  picture (yaw and pitch up to 0.8 of the half field of view off the view axis, ``DOLLY_CONE``), the one with
+  the most free room **both** ways (the rooms' first cameras stand 0.5–0.8 m before the back wall, so a view-axis
+  dolly out, and with it the dolly in, shrank to 0.07–0.11 L there; a slanted axis has 0.85–1.2 m both ways),
+  at ±0.4–0.6 L: dolly 18.35 → **16.62 dB** (amplitudes 0.34–4.7 m → 0.53–7.1 m; copying frame 0 20.8 →
+  18.8 dB). The orbit's centre 0.7 → **0.4 L** ahead (same angles): orbit 16.25 → **15.37 dB**. Pans (14.54)
+  and tilts (14.24) are unchanged (the same paths and amplitudes). Tried and not chosen (same table): a dolly
+  towards the centroid of the nearest 20 % of the picture (18.2 dB in units of L; 19.6 in units of its
+  distance: it points at the floor), the view axis at 0.4–0.6 L (17.4: still short in the rooms), a most-room
+  axis up to 45° off the view axis (15.2 at 0.4–0.6 L, but outside the picture: a sideways truck, not a dolly),
+  an orbit about 0.25 L (14.9; nearly a pan) or at 30–50° (14.7 about 0.4 L). A nearer orbit centre gives more
+  image motion (the pivot no longer holds the content at 0.7 L still), not more parallax.
 * **Coarse textures** (``--texture-scale``, default ``TEXTURE_SCALE`` = 4): every procedural material's
   feature size (stripes, checkers, tiles, wood grain, the fine grain too) is 4× the data engine's, the geometry,
   colours, lighting and cameras unchanged. At 32² the engine's own textures alias into pixel noise that no
@@ -73,7 +91,8 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   the other 18.4 dB on those scenes, pans 14.5), and the rooms' first cameras stand 0.5–0.8 m before the back
   wall, so the collision-free dollies there shrink to 0.07–0.11 L. Moving those cameras to the middle of the
   room (tried on renders only, before any training) lengthens the dollies but makes the views of the room more
-  alike (mirror-pair PSNR dolly 18.4 → 18.1, orbit 16.3 → 17.3 dB), so the scenes stay as they were.
+  alike (mirror-pair PSNR dolly 18.4 → 18.1, orbit 16.3 → 17.3 dB), so the scenes stay as they were (the dollies
+  and orbits changed instead, ``SCENES_VERSION`` 2, above).
 * **Trained models on disk** (``--save-models`` / ``--load-models``, safetensors: the trained model and the
   frozen base; a file is loaded only by a run whose training settings are equal, ``training_signature``) and a
   development ``--sweep`` of sampling settings (``w:lora:steps[:shift]``, ``sweep.json``; ``--sweep-only``): the
