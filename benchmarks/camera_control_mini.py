@@ -59,8 +59,8 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   an orbit about 0.25 L (14.9; nearly a pan) or at 30–50° (14.7 about 0.4 L). A nearer orbit centre gives more
   image motion (the pivot no longer holds the content at 0.7 L still), not more parallax. The quick preset on
   development scenes 0–7 (64 clips, one run each, 2026-12-04): direction accuracy 0.922 ± 0.034 (dolly 13 of 16,
-  orbit 15 of 16) against 0.875 ± 0.042 (dolly 10, orbit 15) with the version-1 paths; about one SE of the
-  difference, so "no worse, probably better" (results README, ``dev-dolly32-quick``).
+  orbit 15 of 16) against 0.891 ± 0.039 (dolly 10, orbit 15) with the version-1 paths; below one SE of the
+  difference, so "no worse, dollies probably better" (results README, ``dev-dolly32-quick``).
 * **Coarse textures** (``--texture-scale``, default ``TEXTURE_SCALE`` = 4): every procedural material's
   feature size (stripes, checkers, tiles, wood grain, the fine grain too) is 4× the data engine's, the geometry,
   colours, lighting and cameras unchanged. At 32² the engine's own textures alias into pixel noise that no
