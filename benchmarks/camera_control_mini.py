@@ -36,10 +36,31 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   ``models/simulation/scenes.py``, rendered by its ray caster) is filmed from its input-photo camera along
   four families of paths, **each in both directions with the same amplitude**: pan (yaw about the vertical,
   ±20–35°), tilt (pitch about the camera's x axis, ±10–18°), orbit (rigid rotation about a vertical axis
-  0.7 L ahead, ±20–40°) and dolly (along the viewing axis, ±0.25–0.4 L; L = free distance ahead, both
-  directions kept collision-free). Constant speed, so frame k sits at ``k/(T-1)`` of the amplitude. With each
-  path and its mirror image equally often in the data, the first frame says nothing about the direction: a
-  model that ignores the camera is at chance (0.5), and only the cameras can tell it which way to go.
+  0.4 L ahead, ±20–40°) and dolly (a translation without turning along the scene's ``dolly_axis``, ±0.4–0.6 L;
+  L = free distance ahead along the view axis; every path and its mirror image kept ``CLEARANCE`` from every
+  surface, the amplitude of both shrunk together when needed). Constant speed, so frame k sits at ``k/(T-1)``
+  of the amplitude. With each path and its mirror image equally often in the data, the first frame says nothing
+  about the direction: a model that ignores the camera is at chance (0.5), and only the cameras can tell it
+  which way to go.
+* **Dollies and orbits the miniature can tell apart** (``SCENES_VERSION`` 2, 2026-12-04, issue 32; before: dolly
+  along the view axis at ±0.25–0.4 L, orbit about 0.7 L). Chosen on true renders only, before any training
+  (development scenes 0–7, 9 frames at 32², the mirror-pair PSNR: the truth along each path against the truth
+  along its mirror image, frames 1..; lower = the two directions differ more;
+  ``benchmarks/results/camera-control-mini/dev-dolly32-paths``): the dolly's axis is, of 9×9 directions in the
+  picture (yaw and pitch up to 0.8 of the half field of view off the view axis, ``DOLLY_CONE``), the one with
+  the most free room **both** ways (the rooms' first cameras stand 0.5–0.8 m before the back wall, so a view-axis
+  dolly out, and with it the dolly in, shrank to 0.07–0.11 L there; a slanted axis has 0.85–1.2 m both ways),
+  at ±0.4–0.6 L: dolly 18.35 → **16.62 dB** (amplitudes 0.34–4.7 m → 0.53–7.1 m; copying frame 0 20.8 →
+  18.8 dB). The orbit's centre 0.7 → **0.4 L** ahead (same angles): orbit 16.25 → **15.37 dB**. Pans (14.54)
+  and tilts (14.24) are unchanged (the same paths and amplitudes). Tried and not chosen (same table): a dolly
+  towards the centroid of the nearest 20 % of the picture (18.2 dB in units of L; 19.6 in units of its
+  distance: it points at the floor), the view axis at 0.4–0.6 L (17.4: still short in the rooms), a most-room
+  axis up to 45° off the view axis (15.2 at 0.4–0.6 L, but outside the picture: a sideways truck, not a dolly),
+  an orbit about 0.25 L (14.9; nearly a pan) or at 30–50° (14.7 about 0.4 L). A nearer orbit centre gives more
+  image motion (the pivot no longer holds the content at 0.7 L still), not more parallax. The quick preset on
+  development scenes 0–7 (64 clips, one run each, 2026-12-04): direction accuracy 0.922 ± 0.034 (dolly 13 of 16,
+  orbit 15 of 16) against 0.891 ± 0.039 (dolly 10, orbit 15) with the version-1 paths; below one SE of the
+  difference, so "no worse, dollies probably better" (results README, ``dev-dolly32-quick``).
 * **Coarse textures** (``--texture-scale``, default ``TEXTURE_SCALE`` = 4): every procedural material's
   feature size (stripes, checkers, tiles, wood grain, the fine grain too) is 4× the data engine's, the geometry,
   colours, lighting and cameras unchanged. At 32² the engine's own textures alias into pixel noise that no
@@ -73,7 +94,8 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   the other 18.4 dB on those scenes, pans 14.5), and the rooms' first cameras stand 0.5–0.8 m before the back
   wall, so the collision-free dollies there shrink to 0.07–0.11 L. Moving those cameras to the middle of the
   room (tried on renders only, before any training) lengthens the dollies but makes the views of the room more
-  alike (mirror-pair PSNR dolly 18.4 → 18.1, orbit 16.3 → 17.3 dB), so the scenes stay as they were.
+  alike (mirror-pair PSNR dolly 18.4 → 18.1, orbit 16.3 → 17.3 dB), so the scenes stay as they were (the dollies
+  and orbits changed instead, ``SCENES_VERSION`` 2, above).
 * **Trained models on disk** (``--save-models`` / ``--load-models``, safetensors: the trained model and the
   frozen base; a file is loaded only by a run whose training settings are equal, ``training_signature``) and a
   development ``--sweep`` of sampling settings (``w:lora:steps[:shift]``, ``sweep.json``; ``--sweep-only``): the
@@ -140,8 +162,14 @@ import torch
 
 FAMILIES = ("pan", "tilt", "orbit", "dolly")
 # amplitude ranges (degrees for pan / tilt / orbit, units of L for dolly), drawn uniformly, sign +-1
-AMPLITUDES = {"pan": (20.0, 35.0), "tilt": (10.0, 18.0), "orbit": (20.0, 40.0), "dolly": (0.25, 0.4)}
-ORBIT_CENTRE = 0.7  # the orbit's axis, in units of L ahead of the first camera
+# (module docstring, "Dollies and orbits the miniature can tell apart": the dolly's 0.4-0.6 L and ORBIT_CENTRE 0.4
+# since SCENES_VERSION 2; before: dolly 0.25-0.4 L along the view axis, orbit centre 0.7 L)
+AMPLITUDES = {"pan": (20.0, 35.0), "tilt": (10.0, 18.0), "orbit": (20.0, 40.0), "dolly": (0.4, 0.6)}
+ORBIT_CENTRE = 0.4  # the orbit's axis, in units of L ahead of the first camera
+# the dolly's axis: of DOLLY_GRID x DOLLY_GRID directions (yaw x pitch, up to DOLLY_CONE of the half field of view
+# off the view axis: a point in the picture), the one with the most free room both ways (dolly_axis)
+DOLLY_CONE = 0.8
+DOLLY_GRID = 9
 CLEARANCE = 0.15  # metres between the camera and any surface along a path (and its mirror image)
 GRID = 20  # candidate amplitudes per family and direction of the pose estimator
 GRID_RANGE = 1.25  # the estimator's candidates reach this multiple of the family's largest amplitude
@@ -192,9 +220,10 @@ def _about(pivot: np.ndarray, R: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-def family_pose(family: str, amount: float, c2w0: np.ndarray, L: float) -> np.ndarray:
+def family_pose(family: str, amount: float, c2w0: np.ndarray, L: float, dolly_axis: np.ndarray) -> np.ndarray:
     """The OpenCV camera-to-world pose after moving ``amount`` along ``family`` from ``c2w0`` (degrees for
-    pan / tilt / orbit, units of ``L`` for dolly; negative = the mirror direction). World z is up."""
+    pan / tilt / orbit, units of ``L`` for dolly; negative = the mirror direction). World z is up. A dolly
+    translates along the world unit vector ``dolly_axis`` (the scene's, ``dolly_axis``) without turning."""
     c2w0 = np.asarray(c2w0, dtype=np.float64)
     if family == "pan":
         return _about(c2w0[:3, 3], _rz(np.deg2rad(amount)), c2w0)
@@ -206,14 +235,40 @@ def family_pose(family: str, amount: float, c2w0: np.ndarray, L: float) -> np.nd
         return _about(c2w0[:3, 3] + c2w0[:3, 2] * ORBIT_CENTRE * L, _rz(np.deg2rad(amount)), c2w0)
     if family == "dolly":
         out = c2w0.copy()
-        out[:3, 3] = c2w0[:3, 3] + c2w0[:3, 2] * amount * L
+        out[:3, 3] = c2w0[:3, 3] + np.asarray(dolly_axis, np.float64) * amount * L
         return out
     raise ValueError(f"unknown path family {family!r}; choose from {FAMILIES}")
 
 
-def path_poses(family: str, amplitude: float, frames: int, c2w0: np.ndarray, L: float) -> np.ndarray:
+def path_poses(family: str, amplitude: float, frames: int, c2w0: np.ndarray, L: float,
+               dolly_axis: np.ndarray) -> np.ndarray:
     """``[frames, 4, 4]`` poses at constant speed: frame k at ``k / (frames - 1)`` of ``amplitude``."""
-    return np.stack([family_pose(family, amplitude * k / (frames - 1), c2w0, L) for k in range(frames)])
+    return np.stack([family_pose(family, amplitude * k / (frames - 1), c2w0, L, dolly_axis) for k in range(frames)])
+
+
+def _free(sim, origin: np.ndarray, direction: np.ndarray) -> float:
+    """Free distance (m) from ``origin`` along ``direction`` to the first surface (``inf``: none, open sky)."""
+    from navcrafter.models.simulation.datasets import _free_distance
+
+    return float(_free_distance(sim, origin, direction))
+
+
+def dolly_axis(sim, c2w0: np.ndarray, fov_x_deg: float) -> np.ndarray:
+    """The dolly's world unit axis: of ``DOLLY_GRID``² directions of the picture (yaw and pitch each up to
+    ``DOLLY_CONE`` of the half horizontal field of view off the view axis), the one with the most free room in
+    both directions (the larger of min(free ahead, free behind); on a tie the one nearest the view axis).
+    The rooms' first cameras stand 0.5-0.8 m before the back wall, so along the view axis the collision-free dolly
+    out (and with it, the same amplitude, the dolly in) is short; a slanted axis has more room behind."""
+    half = DOLLY_CONE * np.deg2rad(fov_x_deg) / 2.0
+    best, axis = None, None
+    for yaw in np.linspace(-half, half, DOLLY_GRID):
+        for pitch in np.linspace(-half, half, DOLLY_GRID):
+            local = np.array([np.sin(yaw) * np.cos(pitch), -np.sin(pitch), np.cos(yaw) * np.cos(pitch)])
+            d = c2w0[:3, :3] @ local
+            key = (min(_free(sim, c2w0[:3, 3], d), _free(sim, c2w0[:3, 3], -d)), local[2])
+            if best is None or key > best:
+                best, axis = key, d
+    return axis / np.linalg.norm(axis)
 
 
 @dataclass
@@ -222,6 +277,7 @@ class Scene:
     c2w0: np.ndarray
     L: float
     K: object  # models.camera.cameras.Intrinsics
+    dolly_axis: np.ndarray  # world unit vector (dolly_axis)
 
 
 def make_scene(kind: str, seed: int, resolution: int, texture_scale: float = TEXTURE_SCALE) -> Scene:
@@ -230,7 +286,6 @@ def make_scene(kind: str, seed: int, resolution: int, texture_scale: float = TEX
     import dataclasses
 
     from navcrafter.models.camera.cameras import Intrinsics
-    from navcrafter.models.simulation.datasets import _free_distance
     from navcrafter.models.simulation.scenes import generate_scene
 
     if texture_scale <= 0:
@@ -238,9 +293,10 @@ def make_scene(kind: str, seed: int, resolution: int, texture_scale: float = TEX
     sim = generate_scene(kind, seed)
     sim.materials = [dataclasses.replace(m, scale=m.scale * texture_scale) for m in sim.materials]
     c2w0 = np.asarray(sim.camera_c2w, dtype=np.float64)
-    hit = _free_distance(sim, c2w0[:3, 3], c2w0[:3, 2])
+    hit = _free(sim, c2w0[:3, 3], c2w0[:3, 2])
     L = float(np.clip(hit if np.isfinite(hit) else 12.0, 0.5, 12.0))
-    return Scene(sim, c2w0, L, Intrinsics.from_fov(float(sim.camera_fov_x_deg), resolution, resolution))
+    fov = float(sim.camera_fov_x_deg)
+    return Scene(sim, c2w0, L, Intrinsics.from_fov(fov, resolution, resolution), dolly_axis(sim, c2w0, fov))
 
 
 def scene_amplitudes(scene: Scene, rng: np.random.Generator, frames: int) -> dict[str, float]:
@@ -250,8 +306,8 @@ def scene_amplitudes(scene: Scene, rng: np.random.Generator, frames: int) -> dic
         lo, hi = AMPLITUDES[fam]
         a = float(rng.uniform(lo, hi))
         for _ in range(8):
-            centres = np.concatenate([path_poses(fam, s * a, 4 * frames, scene.c2w0, scene.L)[:, :3, 3]
-                                      for s in (1.0, -1.0)])
+            centres = np.concatenate([path_poses(fam, s * a, 4 * frames, scene.c2w0, scene.L,
+                                                 scene.dolly_axis)[:, :3, 3] for s in (1.0, -1.0)])
             if np.all(scene.sim.distance(centres) >= CLEARANCE):
                 break
             a *= 0.75
@@ -330,7 +386,7 @@ def candidate_grid(scene: Scene, resolution: int) -> tuple[np.ndarray, np.ndarra
         for s in np.linspace(-top, top, 2 * GRID + 1):
             if fam != FAMILIES[0] and s == 0.0:
                 continue  # the first camera once
-            poses.append(family_pose(fam, float(s), scene.c2w0, scene.L))
+            poses.append(family_pose(fam, float(s), scene.c2w0, scene.L, scene.dolly_axis))
             labels.append((fam, float(s)))
     poses = np.stack(poses)
     return render_path(scene, poses), poses, labels
@@ -389,7 +445,7 @@ def build_scenes(kinds, seeds, frames: int, resolution: int, encoders, *, grid: 
         for fam in FAMILIES:
             for sign in (1.0, -1.0):
                 a = sign * amps[fam]
-                poses = path_poses(fam, a, frames, scene.c2w0, scene.L)
+                poses = path_poses(fam, a, frames, scene.c2w0, scene.L, scene.dolly_axis)
                 truth = render_path(scene, poses)
                 cid = f"{kind}-{s}-{fam}{'+' if sign > 0 else '-'}"
                 entry["clips"].append({"family": fam, "amplitude": a, "poses": poses, "truth": truth,
@@ -401,7 +457,9 @@ def build_scenes(kinds, seeds, frames: int, resolution: int, encoders, *, grid: 
     return out
 
 
-SCENES_VERSION = 1  # bump when build_scenes' output changes: an older --scenes file is then rebuilt, never used
+# bump when build_scenes' output changes: an older --scenes file is then rebuilt, never used. 2 (2026-12-04, issue 32):
+# dollies along dolly_axis at 0.4-0.6 L, orbits about 0.4 L (1: dollies along the view axis at 0.25-0.4 L, 0.7 L)
+SCENES_VERSION = 2
 
 
 @dataclass
@@ -411,6 +469,7 @@ class SceneMeta:
     c2w0: np.ndarray
     L: float
     K: object  # models.camera.cameras.Intrinsics
+    dolly_axis: np.ndarray
 
 
 def save_scenes(path: Path, key: dict, train: list[dict], held: list[dict]) -> None:
@@ -418,7 +477,7 @@ def save_scenes(path: Path, key: dict, train: list[dict], held: list[dict]) -> N
     import pickle
 
     def light(entries):  # the uint8 frames and poses; the clips are encoded again on loading (load_scenes)
-        return [dict(e, scene=SceneMeta(e["scene"].c2w0, e["scene"].L, e["scene"].K),
+        return [dict(e, scene=SceneMeta(e["scene"].c2w0, e["scene"].L, e["scene"].K, e["scene"].dolly_axis),
                      clips=[{k: v for k, v in c.items() if k != "clip"} for c in e["clips"]]) for e in entries]
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -602,6 +661,28 @@ def mean_videos(model, clips: list[dict], encoders, *, seed: int, device: str) -
                   c["image"], None, c["cond"], torch.tensor(1.0, device=device))
         out.append(video_to_frames(encoders.decode_video((noise - v)[0].float().cpu().numpy())))
     model.train(was)
+    return out
+
+
+def mirror_pairs(entries: list[dict]) -> dict:
+    """Per family, on true renders only (no model): the mean PSNR (frames 1..) of the truth along each path
+    against the truth along its mirror image (lower: the two directions are easier to tell apart), the same for
+    copying frame 0, and the smallest and largest amplitude (deg; dolly: units of L and metres)."""
+    out = {}
+    for fam in FAMILIES:
+        clips = [(e, c) for e in entries for c in e["clips"] if c["family"] == fam and c["amplitude"] > 0]
+        if not clips:
+            continue
+        mirror = {c["id"]: m for e in entries for c in e["clips"] for m in e["clips"]
+                  if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
+        amps = np.array([c["amplitude"] for _, c in clips])
+        out[fam] = {"mirror_psnr": float(np.mean([video_psnr(c["truth"], mirror[c["id"]]["truth"]) for _, c in clips])),
+                    "copy_frame0_psnr": float(np.mean([video_psnr(np.repeat(c["truth"][:1], len(c["truth"]), 0),
+                                                                  c["truth"]) for _, c in clips])),
+                    "amplitude": [float(amps.min()), float(amps.max())]}
+        if fam == "dolly":
+            metres = np.array([c["amplitude"] * e["scene"].L for e, c in clips])
+            out[fam]["metres"] = [float(metres.min()), float(metres.max())]
     return out
 
 
@@ -848,6 +929,9 @@ def main(argv: list[str] | None = None) -> int:
                  if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
     mirrored_clips = [mirror_of[c["id"]] for c in held_flat]
     timings["data_s"] = time.perf_counter() - t0
+    pairs = mirror_pairs(held)
+    print("held-out truth, mirror-pair PSNR by family: " + ", ".join(
+        f"{f} {v['mirror_psnr']:.2f} dB" for f, v in pairs.items()), flush=True)
     print(f"data: {len(train_clips)} training clips, {len(held_clips)} held-out clips "
           f"({timings['data_s']:.0f} s)", flush=True)
 
@@ -960,7 +1044,11 @@ def main(argv: list[str] | None = None) -> int:
             "frames": T, "resolution": R, "train_clips": len(train_clips), "heldout_clips": len(held_clips),
             "train_scene_seeds": [args.seed, args.seed + size["train_scenes"] - 1],
             "heldout_scene_seeds": [args.eval_seed, args.eval_seed + size["eval_scenes"] - 1],
-            "amplitudes": AMPLITUDES, "estimator_grid": {"per_direction": GRID, "range": GRID_RANGE},
+            "amplitudes": AMPLITUDES, "orbit_centre_L": ORBIT_CENTRE,
+            "dolly_axis": f"most room both ways, {DOLLY_GRID}x{DOLLY_GRID} directions up to {DOLLY_CONE} of the "
+                          "half field of view off the view axis",
+            "scenes_version": SCENES_VERSION, "truth_mirror_pairs": pairs,
+            "estimator_grid": {"per_direction": GRID, "range": GRID_RANGE},
             "width": {"heads": args.heads, "head_dim": args.head_dim, "layers": args.layers, "ffn": args.ffn},
             "base_steps": size["base_steps"], "control_steps": size["control_steps"], "lr": args.lr,
             "batch": args.batch, "control_batch": args.control_batch,

@@ -48,6 +48,53 @@ def test_paths_mirror_and_start_at_the_first_camera(mini, held):
     np.testing.assert_allclose(t, 0.0, atol=1e-9)  # a pan does not move the centre
 
 
+@pytest.fixture(scope="module")
+def room(mini):
+    """Development room 0 (the one whose first camera stands 0.76 m before the back wall), 5 frames at 16²."""
+    from navcrafter.models.synthesis.encoders import PixelShuffleEncoders
+
+    enc = PixelShuffleEncoders(4, temporal=4, image_dim=8, text_dim=16, image_tokens=16)
+    return mini.build_scenes(("room",), [0], 5, 16, enc, grid=False, seed=0)[0]
+
+
+def test_dollies_are_collision_free_mirrored_and_longer_than_along_the_view_axis(mini, room):
+    """Issue 32: a dolly and its mirror image have the same amplitude along one axis (the path negated), keep
+    CLEARANCE from every surface, point into the picture, and reach further than the view-axis dolly of
+    SCENES_VERSION 1 (0.07-0.11 L in the rooms: the back wall 0.5-0.8 m behind the first camera)."""
+    sc = room["scene"]
+    c2w0, axis = sc.c2w0, sc.dolly_axis
+    np.testing.assert_allclose(np.linalg.norm(axis), 1.0, atol=1e-12)
+    local = c2w0[:3, :3].T @ axis
+    half = np.deg2rad(sc.sim.camera_fov_x_deg) / 2
+    assert local[2] > 0 and abs(np.arctan2(local[0], local[2])) <= mini.DOLLY_CONE * half + 1e-9  # in the picture
+    fwd = next(c for c in room["clips"] if c["family"] == "dolly" and c["amplitude"] > 0)
+    back = next(c for c in room["clips"] if c["family"] == "dolly" and c["amplitude"] < 0)
+    assert back["amplitude"] == -fwd["amplitude"]
+    np.testing.assert_allclose(fwd["poses"][:, :3, 3] - c2w0[:3, 3], -(back["poses"][:, :3, 3] - c2w0[:3, 3]),
+                               atol=1e-12)
+    np.testing.assert_allclose(fwd["poses"][:, :3, :3], np.broadcast_to(c2w0[:3, :3], (5, 3, 3)))  # no turn
+    np.testing.assert_allclose(np.cross(fwd["poses"][-1, :3, 3] - c2w0[:3, 3], axis), 0.0, atol=1e-12)
+    for fam in mini.FAMILIES:  # every path of the room, both directions, densely sampled, keeps CLEARANCE
+        for c in room["clips"]:
+            if c["family"] == fam:
+                dense = mini.path_poses(fam, c["amplitude"], 40, c2w0, sc.L, axis)[:, :3, 3]
+                assert np.all(sc.sim.distance(dense) >= mini.CLEARANCE), c["id"]
+    # the view-axis dolly (version 1) of the same amplitude is not collision-free both ways: the back wall
+    view = [mini.path_poses("dolly", s * fwd["amplitude"], 40, c2w0, sc.L, c2w0[:3, 2])[:, :3, 3] for s in (1, -1)]
+    assert np.any(sc.sim.distance(np.concatenate(view)) < mini.CLEARANCE)
+    assert fwd["amplitude"] * sc.L > 0.5  # metres
+
+
+def test_mirror_pairs_tell_identical_directions_from_mirrored_ones(mini, held):
+    pairs = mini.mirror_pairs(held)
+    assert set(pairs) == set(mini.FAMILIES)
+    for v in pairs.values():
+        assert v["mirror_psnr"] < mini.PSNR_CAP and v["amplitude"][0] > 0
+    same = [dict(held[0], clips=[dict(c, truth=next(m for m in held[0]["clips"] if m["family"] == c["family"]
+                                                     and m["amplitude"] > 0)["truth"]) for c in held[0]["clips"]])]
+    assert all(v["mirror_psnr"] == mini.PSNR_CAP for v in mini.mirror_pairs(same).values())
+
+
 def test_direction_accuracy_truth_is_one_mirror_is_zero(mini, held):
     e = held[0]
     truth = [c["truth"] for c in e["clips"]]
@@ -79,17 +126,18 @@ def test_estimate_cameras_picks_the_nearest_candidate(mini):
 
 
 def test_pose_errors_per_frame_and_bad_input(mini):
-    req = np.stack([mini.family_pose("pan", a, np.eye(4), 1.0) for a in (0.0, 10.0, 20.0)])
-    est = np.stack([mini.family_pose("pan", a, np.eye(4), 1.0) for a in (0.0, 12.0, 15.0)])
+    z = np.array([0.0, 0.0, 1.0])
+    req = np.stack([mini.family_pose("pan", a, np.eye(4), 1.0, z) for a in (0.0, 10.0, 20.0)])
+    est = np.stack([mini.family_pose("pan", a, np.eye(4), 1.0, z) for a in (0.0, 12.0, 15.0)])
     r, t = mini.pose_errors_per_frame(est, req)
     np.testing.assert_allclose(r, [2.0, 5.0], atol=1e-9)
-    dolly = np.stack([mini.family_pose("dolly", a, np.eye(4), 2.0) for a in (0.0, 0.5)])
+    dolly = np.stack([mini.family_pose("dolly", a, np.eye(4), 2.0, z) for a in (0.0, 0.5)])
     _, t = mini.pose_errors_per_frame(dolly, dolly[[0, 0]], scale=2.0)
     np.testing.assert_allclose(t, [0.5])
     with pytest.raises(ValueError, match="equal shape"):
         mini.pose_errors_per_frame(est, req[:2])
     with pytest.raises(ValueError, match="unknown path family"):
-        mini.family_pose("zoom", 1.0, np.eye(4), 1.0)
+        mini.family_pose("zoom", 1.0, np.eye(4), 1.0, z)
 
 
 def test_cosine_trainer_warms_up_then_decays_to_zero_without_touching_the_product(mini):
@@ -148,7 +196,8 @@ def test_camera_guidance_extrapolates_from_the_camera_free_base(mini):
 
 def test_mirrored_cameras_turn_the_other_way(mini):
     # a level camera (OpenCV axes: x right, y down = world -z, z forward = world +y): mirroring a pan or an
-    # orbit gives the opposite one; a tilt and a dolly are unchanged; every rotation stays proper
+    # orbit gives the opposite one; a tilt and a dolly along the view axis are unchanged (a slanted dolly's axis
+    # is mirrored with the world); every rotation stays proper
     c2w0 = np.eye(4)
     c2w0[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
     c2w0[:3, 3] = [0.3, -1.0, 1.5]
@@ -157,8 +206,8 @@ def test_mirrored_cameras_turn_the_other_way(mini):
         return np.linalg.inv(p[0]) @ p
 
     for fam, a in (("pan", 30.0), ("orbit", 25.0), ("tilt", 12.0), ("dolly", 0.3)):
-        fwd = mini.path_poses(fam, a, 5, c2w0, 2.0)
-        back = mini.path_poses(fam, -a, 5, c2w0, 2.0)
+        fwd = mini.path_poses(fam, a, 5, c2w0, 2.0, c2w0[:3, 2])
+        back = mini.path_poses(fam, -a, 5, c2w0, 2.0, c2w0[:3, 2])
         m = mini.mirror_relative_poses(fwd)
         np.testing.assert_allclose(np.linalg.det(m[:, :3, :3]), 1.0, atol=1e-12)
         expected = rel(back) if fam in ("pan", "orbit") else rel(fwd)
@@ -279,6 +328,7 @@ def test_scenes_file_round_trips_without_the_simulator_and_only_with_the_same_se
     assert len(train) == len(back) == len(held)
     for e, b in zip(held, back):
         assert b["scene"].L == e["scene"].L and np.array_equal(b["scene"].c2w0, e["scene"].c2w0)
+        assert np.array_equal(b["scene"].dolly_axis, e["scene"].dolly_axis)
         assert np.array_equal(b["grid"][0], e["grid"][0])
         for c, d in zip(e["clips"], b["clips"]):
             assert c["id"] == d["id"] and np.array_equal(c["truth"], d["truth"])
