@@ -133,9 +133,9 @@ trained control given the mirrored cameras:
     python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini --quick   # 7.3 min at load 0.4-1.9
                           # (results: benchmarks/results/camera-control-mini/quick; base 4000 + control 3000
                           # steps; 16.0 min at load 4.6-7.6 beside other jobs; the same numbers both times)
-    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # 19.7 min at load
-                          # 1-4.5 (results: benchmarks/results/camera-control-mini/full: direction accuracy 0.875 on
-                          # 80 held-out clips, R_err 6.75 deg/frame vs floor 0.47)
+    python benchmarks/camera_control_mini.py --out bench-out/camera-control-mini           # 12.2 min at load
+                          # 1-3 (results: benchmarks/results/camera-control-mini/full: direction accuracy 0.938 on
+                          # 80 held-out clips, R_err 5.37 deg/frame vs floor 0.41)
     # a GPU session, Wan2.1-1.3B width (the CUDA image has no open3d: render the scenes here first with the same
     # sizes and any width, --scenes FILE, and carry FILE; results/camera-control-mini/gpu-1.3b-width):
     python benchmarks/camera_control_mini.py --out DIR --device cuda --heads 12 --head-dim 128 --layers 30 \
