@@ -664,17 +664,21 @@ def mean_videos(model, clips: list[dict], encoders, *, seed: int, device: str) -
     return out
 
 
+def mirror_clips(entries: list[dict]) -> dict[str, dict]:
+    """Each clip's id -> the clip of the same scene and family with the opposite amplitude (its mirror image)."""
+    return {c["id"]: m for e in entries for c in e["clips"] for m in e["clips"]
+            if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
+
+
 def mirror_pairs(entries: list[dict]) -> dict:
     """Per family, on true renders only (no model): the mean PSNR (frames 1..) of the truth along each path
     against the truth along its mirror image (lower: the two directions are easier to tell apart), the same for
     copying frame 0, and the smallest and largest amplitude (deg; dolly: units of L and metres)."""
-    out = {}
+    out, mirror = {}, mirror_clips(entries)
     for fam in FAMILIES:
         clips = [(e, c) for e in entries for c in e["clips"] if c["family"] == fam and c["amplitude"] > 0]
         if not clips:
             continue
-        mirror = {c["id"]: m for e in entries for c in e["clips"] for m in e["clips"]
-                  if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
         amps = np.array([c["amplitude"] for _, c in clips])
         out[fam] = {"mirror_psnr": float(np.mean([video_psnr(c["truth"], mirror[c["id"]]["truth"]) for _, c in clips])),
                     "copy_frame0_psnr": float(np.mean([video_psnr(np.repeat(c["truth"][:1], len(c["truth"]), 0),
@@ -691,8 +695,7 @@ def measure(videos: list[np.ndarray], held: list[dict]) -> dict:
     from navcrafter.models.metrics.image import ssim
 
     flat = [(e, c) for e in held for c in e["clips"]]
-    mirror = {c["id"]: m for e in held for c in e["clips"] for m in e["clips"]
-              if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
+    mirror = mirror_clips(held)
     per = []
     for v, (e, c) in zip(videos, flat):
         cands, cposes, _ = e["grid"]
@@ -925,9 +928,8 @@ def main(argv: list[str] | None = None) -> int:
         train_clips += [flipped_clip(enc, c, e["scene"].K.K, args.condition) for e in train for c in e["clips"]]
     held_flat = [c for e in held for c in e["clips"]]
     held_clips = [c["clip"] for c in held_flat]
-    mirror_of = {c["id"]: m["clip"] for e in held for c in e["clips"] for m in e["clips"]
-                 if m["family"] == c["family"] and m["amplitude"] == -c["amplitude"]}
-    mirrored_clips = [mirror_of[c["id"]] for c in held_flat]
+    mirror_of = mirror_clips(held)
+    mirrored_clips = [mirror_of[c["id"]]["clip"] for c in held_flat]
     timings["data_s"] = time.perf_counter() - t0
     pairs = mirror_pairs(held)
     print("held-out truth, mirror-pair PSNR by family: " + ", ".join(
