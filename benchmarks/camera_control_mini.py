@@ -625,22 +625,31 @@ class CameraGuided(torch.nn.Module):
 
 
 def sample_videos(model, clips: list[dict], encoders, *, plucker_from: list[dict] | None, steps: int, lora: float,
-                  shift: float, seed: int, device: str, base=None, camera_guidance: float = 1.0) -> list[np.ndarray]:
+                  shift: float, seed: int, device: str, base=None, camera_guidance: float = 1.0,
+                  batch: int = 1) -> list[np.ndarray]:
     """Sampled videos (uint8 ``[T, H, W, 3]``) of ``clips``, with the cameras of ``plucker_from`` if given, and
-    camera guidance ``camera_guidance`` against ``base`` (``CameraGuided``) when it is not 1."""
+    camera guidance ``camera_guidance`` against ``base`` (``CameraGuided``) when it is not 1. ``batch`` clips per
+    sampling call (a GPU's throughput; clip i keeps its noise seed ``seed + i`` whatever the batch)."""
     from navcrafter.models.synthesis.pipeline import video_to_frames
-    from navcrafter.models.synthesis.training import clip_conditions, sample_clip
+    from navcrafter.models.synthesis.training import clip_conditions, sample_clip, stack_conditions
 
     if camera_guidance != 1.0 and base is None:
         raise ValueError("camera_guidance != 1 needs the frozen base model (base=...) as the unconditional branch")
+    if batch < 1:
+        raise ValueError(f"--sample-batch must be >= 1, got {batch}")
     net = model if camera_guidance == 1.0 else CameraGuided(model, base, camera_guidance).eval()
     out = []
-    for i, clip in enumerate(clips):
-        c = clip_conditions(model, clip, device)
-        if plucker_from is not None:
-            c["plucker"] = clip_conditions(model, plucker_from[i], device)["plucker"]
-        z = sample_clip(net, c, seed=seed + i, steps=steps, guidance_scale=1.0, lora_scale=lora, flow_shift=shift)
-        out.append(video_to_frames(encoders.decode_video(z[0].float().cpu().numpy())))
+    for start in range(0, len(clips), batch):
+        cs = []
+        for i in range(start, min(start + batch, len(clips))):
+            c = clip_conditions(model, clips[i], device)
+            if plucker_from is not None:
+                c["plucker"] = clip_conditions(model, plucker_from[i], device)["plucker"]
+            cs.append(c)
+        z = sample_clip(net, cs[0] if len(cs) == 1 else stack_conditions(cs),
+                        seed=[seed + start + j for j in range(len(cs))], steps=steps, guidance_scale=1.0,
+                        lora_scale=lora, flow_shift=shift)
+        out.extend(video_to_frames(encoders.decode_video(zi.float().cpu().numpy())) for zi in z)
     return out
 
 
@@ -843,6 +852,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--control-batch", type=int, help="the control stage's batch (default: --batch)")
     ap.add_argument("--reference-frames", type=int, default=1,
                     help="the control's num_reference_frames in training (1: frame 0 only, as at inference)")
+    ap.add_argument("--sample-batch", type=int, default=1,
+                    help="held-out clips per sampling call (1: one at a time, the CPU runs' setting; a GPU samples "
+                         "a whole condition's clips at once; each clip keeps its own noise seed)")
+    ap.add_argument("--progress", type=Path, help="a JSON file rewritten after every stage (losses, timings, each "
+                    "measured condition): what a run cut short by a time cap had measured")
     ap.add_argument("--sampling-steps", type=int, default=SAMPLING_STEPS,
                     help=f"DPM-solver steps (the product's SynthesisConfig: {SynthesisConfig().steps})")
     ap.add_argument("--lora-scale", type=float, default=SynthesisConfig().lora_scale,
@@ -889,6 +903,15 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    progress_state: dict = {"stages": [], "timings_s": timings}
+
+    def note(stage: str, **data) -> None:
+        """Record a finished stage in ``--progress`` (rewritten whole each time: a cut-short run keeps it)."""
+        progress_state["stages"].append(stage)
+        progress_state.update(data, elapsed_s=time.perf_counter() - t_start)
+        if args.progress is not None:
+            args.progress.write_text(json.dumps(progress_state, default=float))
+
     kinds = ("room", "street", "tabletop")
     T, R = args.frames, args.resolution
     enc = PixelShuffleEncoders(SPATIAL, temporal=TEMPORAL, image_dim=IMAGE_DIM, text_dim=TEXT_DIM,
@@ -979,13 +1002,16 @@ def main(argv: list[str] | None = None) -> int:
                   "control_final_loss": float(np.mean([h["loss"] for h in control_state.history[-50:]]))}
         if args.save_models is not None:
             save_models(args.save_models, model, untrained, signature, losses)
+        note("trained", **losses)
     model.eval()
     # the base's image-to-video alone: its mean video against simply copying frame 0 into every frame
     base_mean = float(np.mean([video_psnr(v, c["truth"]) for v, c in zip(
         mean_videos(untrained, held_clips, enc, seed=args.eval_seed, device=args.device), held_flat)]))
     print(f"base mean video {base_mean:.2f} dB on frames 1.. (copy frame 0: {copy0:.2f} dB)", flush=True)
+    note("base mean video", base_mean_video_psnr=base_mean, copy_frame0_psnr=copy0)
 
-    fixed = dict(seed=args.eval_seed, device=args.device, base=untrained)  # every sampling call below
+    fixed = dict(seed=args.eval_seed, device=args.device, base=untrained,  # every sampling call below
+                 batch=args.sample_batch)
     sweep = []  # development only: the trained control under other sampling settings
     for w, lora_s, steps_s, shift_s in parse_sweep(args.sweep):
         t1 = time.perf_counter()
@@ -1008,15 +1034,34 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     lora, shift = args.lora_scale, FLOW_SHIFT
     kw = dict(steps=args.sampling_steps, lora=lora, shift=shift, camera_guidance=args.camera_guidance, **fixed)
-    v_trained = sample_videos(model, held_clips, enc, plucker_from=None, **kw)
+    measured: dict[str, dict] = {}
+
+    def sampled(name: str, videos: list[np.ndarray], t1: float) -> list[np.ndarray]:
+        """Measure one condition's videos as soon as they exist, and note it (``--progress``)."""
+        measured[name] = m = measure(videos, held)
+        timings[f"sampling_{name}_s"] = time.perf_counter() - t1
+        note(f"sampled {name}", **{name: {k: m[k] for k in ("direction_accuracy", "direction_accuracy_se", "r_err",
+                                                             "t_err", "psnr", "ssim")}})
+        print(f"{name}: direction {m['direction_accuracy']:.3f}, R_err {m['r_err']:.2f}, PSNR {m['psnr']:.2f} "
+              f"({timings[f'sampling_{name}_s']:.0f} s)", flush=True)
+        return videos
+
+    v_trained = sampled("trained", sample_videos(model, held_clips, enc, plucker_from=None, **kw), t0)
     # the untrained control is zero, so it equals the base exactly and guidance against the base changes nothing
-    v_untrained = sample_videos(untrained, held_clips, enc, plucker_from=None, **{**kw, "camera_guidance": 1.0})
-    v_wrong = sample_videos(model, held_clips, enc, plucker_from=mirrored_clips, **kw)
-    v_unguided = (sample_videos(model, held_clips, enc, plucker_from=None, **{**kw, "camera_guidance": 1.0})
-                  if args.camera_guidance != 1.0 else None)
+    t1 = time.perf_counter()
+    v_untrained = sampled("untrained", sample_videos(untrained, held_clips, enc, plucker_from=None,
+                                                     **{**kw, "camera_guidance": 1.0}), t1)
+    t1 = time.perf_counter()
+    v_wrong = sampled("trained_wrong_cameras", sample_videos(model, held_clips, enc, plucker_from=mirrored_clips,
+                                                             **kw), t1)
+    t1 = time.perf_counter()
+    v_unguided = (sampled("trained_without_camera_guidance", sample_videos(
+        model, held_clips, enc, plucker_from=None, **{**kw, "camera_guidance": 1.0}), t1)
+        if args.camera_guidance != 1.0 else None)
     timings["sampling_s"] = time.perf_counter() - t0
     gap_t = camera_gap(model, held_clips, control_cfg, seed=args.eval_seed, device=args.device)
     gap_u = camera_gap(untrained, held_clips, control_cfg, seed=args.eval_seed, device=args.device)
+    note("camera gap", camera_gap={"trained": gap_t["camera_gap"], "untrained": gap_u["camera_gap"]})
 
     def entry(m: dict, gap: dict | None) -> dict:
         return {"direction_accuracy": m["direction_accuracy"], "direction_accuracy_se": m["direction_accuracy_se"],
@@ -1026,10 +1071,11 @@ def main(argv: list[str] | None = None) -> int:
                 "camera_gap_se": None if gap is None else gap["camera_gap_se"],
                 "by_family": m["by_family"], "per_clip": m["per_clip"]}
 
-    m_t, m_u, m_w = measure(v_trained, held), measure(v_untrained, held), measure(v_wrong, held)
+    m_t, m_u, m_w = measured["trained"], measured["untrained"], measured["trained_wrong_cameras"]
     results = {
         "trained": entry(m_t, gap_t), "untrained": entry(m_u, gap_u), "trained_wrong_cameras": entry(m_w, None),
-        **({} if v_unguided is None else {"trained_without_camera_guidance": entry(measure(v_unguided, held), gap_t)}),
+        **({} if v_unguided is None else {"trained_without_camera_guidance": entry(
+            measured["trained_without_camera_guidance"], gap_t)}),
         "autoencoder_psnr": ae,
         "base_mean_video_psnr": base_mean, "copy_frame0_psnr": copy0,
         "floor": {k: floor[k] for k in ("r_err", "t_err", "direction_accuracy", "psnr", "ssim", "by_family")},

@@ -100,6 +100,10 @@ CAMERA_MINI_DATA = ["--resolution", "64", "--frames", "17", "--autoencoder", "ex
 CAMERA_MINI_WIDTH = ["--heads", "12", "--head-dim", "128", "--layers", "30", "--ffn", "8960",
                      "--adapter-channels", "64"]
 CAMERA_MINI_STEPS = {"full": (400, 200), "quick": (150, 50)}  # steps per stage, warmup
+# held-out clips per sampling call. 2026-12-04 (second lease): one clip at a time, the trained, untrained, mirrored
+# and unguided conditions (6 DiT calls per step with camera guidance, 20 steps, 24 clips) did not finish within the
+# 420 s cap after ~255 s of training; a GPU samples the 24 clips of a condition in one batch
+CAMERA_MINI_SAMPLE_BATCH = 24
 # the dry run's plumbing sizes (CPU, tiny): its own scenes file
 CAMERA_MINI_DRY = (["--resolution", "32", "--frames", "5", "--autoencoder", "exact", "--train-scenes", "1",
                     "--eval-scenes", "1"],
@@ -692,7 +696,9 @@ def item_camera_mini(ctx: dict) -> dict:
     out = Path(ctx["work"]) / "camera-mini"
     argv = ["--out", str(out), "--device", ctx["device"], "--scenes", str(path), "--threads",
             str(min(8, os.cpu_count() or 1)), "--base-steps", str(steps), "--control-steps", str(steps),
-            "--warmup", str(warmup), *data, *width]
+            "--warmup", str(warmup), "--sample-batch", str(CAMERA_MINI_SAMPLE_BATCH), *data, *width]
+    if ctx.get("partial"):  # each finished stage lands there: a run cut by its cap still reports what it measured
+        argv += ["--progress", ctx["partial"]]
     rc = mini.main(argv)
     if rc != 0:
         return {"status": "error", "error": f"camera_control_mini.main returned {rc}", "argv": argv}
@@ -732,14 +738,28 @@ def run_group(cmd: list[str], timeout: float) -> subprocess.CompletedProcess:
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         out, err = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
+    except subprocess.TimeoutExpired as exc:
         try:
             os.killpg(proc.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-        proc.communicate()
+        exc.output, exc.stderr = proc.communicate()  # what the item printed before its cap: its log keeps it
         raise
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def keep_item_log(name: str, ctx: dict, stdout: str | None, stderr: str | None) -> dict:
+    """Write an item's printed output to ``items/<name>.log`` in the output folder (it comes back with the results)
+    and return its last lines, so a timed-out or failed item says how far it got."""
+    text = (stdout or "") + ("\n--- stderr ---\n" + stderr if stderr else "")
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith("{")]
+    res: dict = {"log_tail": lines[-12:]} if lines else {}
+    if ctx.get("out") and text.strip():
+        log = Path(ctx["out"]) / "items" / f"{name}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        log.write_text(text)
+        res["log"] = str(log)
+    return res
 
 
 def _partial(path: Path) -> dict:
@@ -756,14 +776,18 @@ def run_item_subprocess(name: str, ctx: dict, cap: float) -> dict:
     t0 = time.perf_counter()
     try:
         p = run_group([sys.executable, __file__, "--item", name, "--spec", spec], cap)
-    except subprocess.TimeoutExpired:
-        return {"status": "timeout", "cap_s": cap, "wall_s": time.perf_counter() - t0, **_partial(partial)}
+    except subprocess.TimeoutExpired as exc:
+        log = keep_item_log(name, ctx, exc.output, exc.stderr)
+        last = (log.get("log_tail") or ["nothing printed"])[-1]
+        return {"status": "timeout", "cap_s": cap, "wall_s": time.perf_counter() - t0,
+                "reason": f"cut at its cap of {cap:.0f} s; its last line: {last}", **log, **_partial(partial)}
+    log = keep_item_log(name, ctx, p.stdout, p.stderr)
     lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
     if p.returncode != 0 or not lines:
         return {"status": "error", "returncode": p.returncode, "error": (p.stderr or p.stdout)[-3000:],
-                "wall_s": time.perf_counter() - t0, "cap_s": cap, **_partial(partial)}
+                "wall_s": time.perf_counter() - t0, "cap_s": cap, **log, **_partial(partial)}
     out = json.loads(lines[-1])
-    out.update({"wall_s": time.perf_counter() - t0, "cap_s": cap})
+    out.update({"wall_s": time.perf_counter() - t0, "cap_s": cap, **{k: v for k, v in log.items() if k == "log"}})
     return out
 
 
@@ -1095,8 +1119,14 @@ def markdown(report: dict) -> str:
             f"{tr['camera_gap_se']:.4f}; {st.get('base_steps')} + {st.get('control_steps')} steps: base "
             f"{tm.get('base_s', 0):.0f} s, control {tm.get('control_s', 0):.0f} s, sampling "
             f"{tm.get('sampling_s', 0):.0f} s (SIMULATION; trained from scratch)", "—")
-    else:
-        row("camera-mini", "", "—")
+    else:  # cut short or failed: the stages it finished (``--progress``)
+        pr = cm.get("partial") or {}
+        done = [f"{k} direction {pr[k]['direction_accuracy']:.3f}, R_err {pr[k]['r_err']:.2f}°"
+                for k in ("trained", "untrained", "trained_wrong_cameras") if k in pr]
+        if "base_final_loss" in pr:
+            done.insert(0, f"trained: final loss base {pr['base_final_loss']:.4f}, control "
+                           f"{pr['control_final_loss']:.4f}")
+        row("camera-mini", ("finished before it stopped: " + "; ".join(done)) if done else "", "—")
     sc = r.get("scene", {})
     comp, ex = sc.get("composed") or {}, sc.get("explore") or {}
     summary = ""

@@ -565,35 +565,58 @@ def trainable_parameters(model: CameraControlledWan, config: CameraTrainingConfi
 # --------------------------------------------------------------------------------------------------
 # Validation sampling from stored conditions
 # --------------------------------------------------------------------------------------------------
+def stack_conditions(cs: Sequence[dict[str, torch.Tensor | None]]) -> dict[str, torch.Tensor | None]:
+    """Several clips' ``clip_conditions`` as one batch (each tensor concatenated along its batch dimension), for
+    ``sample_clip`` over a batch. A key must be a tensor in every clip or None in every clip."""
+    if not cs:
+        raise ValueError("stack_conditions needs at least one clip's conditions")
+    out: dict[str, torch.Tensor | None] = {}
+    for k in cs[0]:
+        vals = [c[k] for c in cs]
+        if all(v is None for v in vals):
+            out[k] = None
+        elif any(v is None for v in vals):
+            raise ValueError(f"stack_conditions: {k!r} is None in some clips and not in others: batch clips whose "
+                             "conditions have the same keys (same render conditioning, same reference frames)")
+        else:
+            out[k] = torch.cat(vals, dim=0)
+    return out
+
+
 @torch.no_grad()
-def sample_clip(model: CameraControlledWan, c: dict[str, torch.Tensor | None], *, seed: int, steps: int,
-                guidance_scale: float, lora_scale: float, flow_shift: float,
+def sample_clip(model: CameraControlledWan, c: dict[str, torch.Tensor | None], *, seed: int | Sequence[int],
+                steps: int, guidance_scale: float, lora_scale: float, flow_shift: float,
                 null_text: torch.Tensor | None = None) -> torch.Tensor:
-    """Denoised latents ``[1, C, F, h, w]`` for the stored conditions ``c`` (``clip_conditions``), with the
-    product's scheduler (``pipeline.make_scheduler``: DPM-solver on flow sigmas) and noise
-    (``pipeline.initial_noise``). CFG over the text (``null_text``; with ``guidance_scale == 1`` one branch)."""
+    """Denoised latents ``[B, C, F, h, w]`` for the stored conditions ``c`` (``clip_conditions``, or a batch of
+    them from ``stack_conditions`` with one seed per clip), with the product's scheduler (``pipeline.make_scheduler``:
+    DPM-solver on flow sigmas) and noise (``pipeline.initial_noise``, per clip: a clip's noise does not depend on
+    its batch). CFG over the text (``null_text``; with ``guidance_scale == 1`` one branch)."""
     was = model.training
     model.eval()
     x0 = c["x0"]
-    _, C, Fl, h, w = x0.shape
+    B, C, Fl, h, w = x0.shape
+    seeds = [int(seed)] if isinstance(seed, int) else [int(s) for s in seed]
+    if len(seeds) != B:
+        raise ValueError(f"sample_clip: {len(seeds)} seeds for a batch of {B} clips: give one seed per clip")
     cfg = SamplerConfig(steps=steps, guidance_scale=guidance_scale, lora_scale=lora_scale, flow_shift=flow_shift,
-                        seed=seed)
+                        seed=seeds[0])
     scheduler = make_scheduler(cfg)
     scheduler.set_timesteps(steps, device="cpu")
     dev = x0.device  # the noise is drawn on the CPU (initial_noise: the same on every device), then moved
-    latents = torch.from_numpy(initial_noise(seed, C, Fl, h, w)).to(dev)
+    latents = torch.from_numpy(np.concatenate([initial_noise(s, C, Fl, h, w) for s in seeds])).to(dev)
     kwargs: dict[str, Any] = {}
     if c.get("image_reference") is not None and c.get("plucker") is not None:
         kwargs = {"image_reference": c["image_reference"], "image_reference_plucker": c["image_reference_plucker"]}
     lora = torch.tensor(float(lora_scale), device=dev)
     for t in scheduler.timesteps:
         hidden = torch.cat([latents.to(x0.dtype), c["hidden_cond"]], dim=1)
-        ts = torch.full((1,), float(t), device=dev)
+        ts = torch.full((B,), float(t), device=dev)
         pred = model(hidden, ts, c["text"], c["image"], c["plucker"], c["cond"], lora, **kwargs)
         if guidance_scale != 1.0:
             if null_text is None:
                 raise ValueError("guidance_scale != 1 needs null_text (the null prompt's embeddings)")
-            un = model(hidden, ts, null_text, c["image"], c["plucker"], c["cond"], lora, **kwargs)
+            null = null_text.expand(B, *null_text.shape[1:])
+            un = model(hidden, ts, null, c["image"], c["plucker"], c["cond"], lora, **kwargs)
             pred = un + guidance_scale * (pred - un)
         latents = scheduler.step(pred.float(), t, latents, return_dict=False)[0].float()
     model.train(was)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
 
 import pytest
@@ -274,3 +275,25 @@ def test_camera_mini_item_dry_run_from_prepared_scenes(gpu_check, tmp_path):
     assert set(r) >= {"trained", "untrained", "trained_wrong_cameras", "floor", "autoencoder_psnr"}
     assert (out / "camera-mini-turns.png").is_file()
     assert "| camera-mini | ok | direction accuracy" in (out / "results.md").read_text()
+    # run as an item process runs it: every finished stage lands in its partial file (kept if the cap cuts it)
+    partial = tmp_path / "camera-mini.partial.json"
+    ctx = {"dry_run": True, "quick": False, "device": "cpu", "work": str(tmp_path / "work"), "out": None,
+           "camera_scenes": str(scenes), "partial": str(partial)}
+    assert gpu_check.item_camera_mini(ctx)["status"] == "ok"
+    pr = json.loads(partial.read_text())
+    assert pr["stages"][:2] == ["trained", "base mean video"] and "sampled trained" in pr["stages"]
+    assert {"trained", "untrained", "trained_wrong_cameras", "base_final_loss"} <= set(pr)
+    assert pr["trained"]["direction_accuracy"] == r["trained"]["direction_accuracy"]  # the same run again
+
+
+@pytest.mark.subprocess
+def test_a_timed_out_item_keeps_what_it_printed(gpu_check, tmp_path):
+    """An item cut by its cap leaves its printed lines (items/<name>.log, the last lines in its result) instead of
+    a bare "timeout": 2026-12-04's camera-mini run on the GPU timed out and said nothing of how far it got."""
+    code = "import time; print('base step 100: loss 1.16', flush=True); time.sleep(60)"
+    with pytest.raises(subprocess.TimeoutExpired) as exc:
+        gpu_check.run_group([sys.executable, "-c", code], 5)
+    log = gpu_check.keep_item_log("camera-mini", {"out": str(tmp_path)}, exc.value.output, exc.value.stderr)
+    assert log["log_tail"] == ["base step 100: loss 1.16"]
+    assert (tmp_path / "items" / "camera-mini.log").read_text().startswith("base step 100")
+    assert gpu_check.keep_item_log("x", {"out": None}, "", None) == {}

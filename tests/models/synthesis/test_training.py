@@ -23,8 +23,10 @@ from navcrafter.models.synthesis.training import (
     clip_conditions,
     flow_loss,
     latest_checkpoint,
+    sample_clip,
     sample_generator,
     shift_sigma,
+    stack_conditions,
 )
 from navcrafter.schemas.training import CameraTrainingConfig
 
@@ -53,6 +55,25 @@ def config(**kw) -> CameraTrainingConfig:
 
 def model():
     return build_camera_wan(TINY_I2V_CONFIG, dataclasses.replace(tiny_camera_config(), cond_channels=0), seed=0)
+
+
+def test_sampling_a_batch_equals_sampling_each_clip_with_its_own_seed():
+    """sample_clip over stack_conditions (a GPU's batch) gives each clip what sampling it alone gives (its own
+    noise seed, whatever its place in the batch); a seed count that does not match the batch is refused."""
+    net = model().eval()
+    cs = [clip_conditions(net, synthetic_clip(i)) for i in range(3)]
+    kw = dict(steps=3, guidance_scale=1.0, lora_scale=0.7, flow_shift=3.0)
+    with torch.no_grad():
+        one = [sample_clip(net, c, seed=10 + i, **kw) for i, c in enumerate(cs)]
+        batch = sample_clip(net, stack_conditions(cs), seed=[10, 11, 12], **kw)
+    assert batch.shape == (3, *one[0].shape[1:])
+    for i in range(3):
+        torch.testing.assert_close(batch[i:i + 1], one[i], rtol=1e-4, atol=1e-4)
+    assert not torch.allclose(one[0], one[1])  # the seeds differ, so must the clips
+    with pytest.raises(ValueError, match="one seed per clip"):
+        sample_clip(net, stack_conditions(cs), seed=[10, 11], **kw)
+    with pytest.raises(ValueError, match="None in some clips"):
+        stack_conditions([cs[0], {**cs[1], "cond": torch.zeros(1)}])
 
 
 def test_sigma_shift_and_flow_target():
