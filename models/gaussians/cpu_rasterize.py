@@ -66,6 +66,7 @@ class _Scratch:
     a forward issued before the previous graph is freed."""
 
     KEEP = 3  # buffers kept per name
+    ALIGN = 64  # bytes: arrays start on a cache line (a 16-float record row is one line, not two)
 
     def __init__(self) -> None:
         self._bufs: dict[str, list[np.ndarray]] = {}
@@ -78,14 +79,15 @@ class _Scratch:
             bufs = self._bufs.setdefault(name, [])
             for buf in bufs:
                 # free: referenced only by the list, this loop's variable and getrefcount's argument
-                if buf.nbytes >= need and sys.getrefcount(buf) <= 3:
+                if buf.nbytes >= need + self.ALIGN and sys.getrefcount(buf) <= 3:
                     break
             else:
-                buf = np.empty(max(need + need // 4, 64), dtype=np.uint8)  # headroom for the next call
+                buf = np.empty(max(need + need // 4, 64) + self.ALIGN, dtype=np.uint8)  # headroom for the next call
                 if len(bufs) >= self.KEEP:
                     bufs.pop(0)
                 bufs.append(buf)
-            return buf[:need].view(dtype).reshape(shape)
+            start = -buf.ctypes.data % self.ALIGN
+            return buf[start:start + need].view(dtype).reshape(shape)
 
 
 _SCRATCH = _Scratch()
