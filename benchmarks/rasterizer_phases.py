@@ -13,9 +13,8 @@ render modes' tensor ops, the loss and autograd). The baseline is ``git show REV
 ``cpu_rasterize.py`` written to a directory per commit under the system's temporary directory (kept: numba caches
 the baseline's kernels there) and imported from there (the rest of the package is this tree's). **Both versions
 run cache-loaded kernels**: when a kernel had to be compiled in this process (no cache yet, or a changed source),
-the script runs itself again after the warm-up (once), because code compiled in the timing process ran
-differently from the same code loaded from numba's cache (raster26: ``project_qs_forward`` 5.0 ms compiled in the
-process against 1.85 ms loaded from the cache it had just written, one thread, 100k Gaussians).
+the script runs itself again after the warm-up (once; ``benchmarks.rasterizer.rerun_if_compiled``: code compiled
+in the timing process runs slower than the same code loaded from numba's cache).
 Medians over ``--repeats`` after two warm-up calls; the load average is printed before and after.
 ``--threads N --wall`` times the phases in wall time on N threads instead (what the benchmark's goal counts:
 serial phases and thread imbalance show there; the Python / PyTorch rows are split into forward and backward).
@@ -41,7 +40,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as benchmarks/rasterizer.
 
 import torch  # noqa: E402
 
-from benchmarks.rasterizer import make_scene  # noqa: E402
+from benchmarks.rasterizer import make_scene, rerun_if_compiled  # noqa: E402
 from navcrafter.models.gaussians import cpu_kernels, cpu_rasterize  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,7 +74,6 @@ def load_baseline(rev: str, tmp: Path):
 
 
 CLOCK = time.process_time  # --wall: time.perf_counter
-RERUN_ENV = "NAVCRAFTER_PHASES_RERUN"  # set when the script runs itself again with the kernels cached
 
 
 def baseline_dir(rev: str) -> Path:
@@ -85,12 +83,6 @@ def baseline_dir(rev: str) -> Path:
     path = Path(tempfile.gettempdir()) / "navcrafter-rasterizer-baselines" / sha
     path.mkdir(parents=True, exist_ok=True)
     return path
-
-
-def compiled_here(kernels) -> list[str]:
-    """The module's kernels that numba compiled in this process (not loaded from its cache)."""
-    return [name for name in dir(kernels) if not name.startswith("_")
-            and sum(getattr(getattr(getattr(kernels, name), "stats", None), "cache_misses", {}).values())]
 
 
 def instrument(kernels, acc: dict) -> None:
@@ -155,13 +147,7 @@ def main() -> None:
         small = make_scene(2000, 64, sh)
         for _, glue in versions.values():
             run(glue, {}, small, sh, mode, 1)
-    fresh = {name: compiled_here(kernels) for name, (kernels, _) in versions.items()}
-    if any(fresh.values()):
-        if os.environ.get(RERUN_ENV):
-            raise SystemExit(f"kernels compiled again although cached: {fresh}")
-        print(f"compiled in this process: {fresh}; running again with them cached", flush=True)
-        os.environ[RERUN_ENV] = "1"
-        os.execv(sys.executable, [sys.executable, *sys.argv])
+    rerun_if_compiled({name: kernels for name, (kernels, _) in versions.items()})
     accs = {name: {} for name in versions}
     for name, (kernels, _) in versions.items():
         instrument(kernels, accs[name])
