@@ -5,6 +5,7 @@ optionally beside the kernels of another git revision in the same process (the t
     python benchmarks/rasterizer_phases.py                          # this tree
     python benchmarks/rasterizer_phases.py --baseline e30e0c0       # that revision's kernels, then this tree's
     python benchmarks/rasterizer_phases.py --threads 2 --wall       # wall time per phase on 2 threads
+    NUMBA_CACHE_DIR=$(mktemp -d) python benchmarks/rasterizer_phases.py --in-process   # a first run's kernels
 
 Process CPU time (``time.process_time``) on one numba thread and one torch thread is the stable figure on a
 shared machine (wall time counts other processes' turns). Each kernel the autograd glue calls through the
@@ -40,7 +41,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as benchmarks/rasterizer.
 
 import torch  # noqa: E402
 
-from benchmarks.rasterizer import make_scene, rerun_if_compiled  # noqa: E402
+from benchmarks.rasterizer import compiled_here, make_scene, rerun_if_compiled  # noqa: E402
 from navcrafter.models.gaussians import cpu_kernels, cpu_rasterize  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -133,6 +134,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--threads", type=int, default=1, help="numba and torch threads (default 1)")
     ap.add_argument("--wall", action="store_true", help="wall time (perf_counter) instead of process CPU time")
+    ap.add_argument("--in-process", action="store_true",
+                    help="time the kernels even when compiled in this process (a first run's cost) instead of "
+                         "running again with them cached")
     args = ap.parse_args()
     global CLOCK
     if args.wall:
@@ -147,7 +151,10 @@ def main() -> None:
         small = make_scene(2000, 64, sh)
         for _, glue in versions.values():
             run(glue, {}, small, sh, mode, 1)
-    rerun_if_compiled({name: kernels for name, (kernels, _) in versions.items()})
+    if args.in_process:
+        print(f"compiled in this process: {({name: compiled_here(k) for name, (k, _) in versions.items()})}")
+    else:
+        rerun_if_compiled({name: kernels for name, (kernels, _) in versions.items()})
     accs = {name: {} for name in versions}
     for name, (kernels, _) in versions.items():
         instrument(kernels, accs[name])
