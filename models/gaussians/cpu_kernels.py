@@ -724,44 +724,66 @@ def _depth_key(bits):
     return bits | np.uint64(1 << 63)
 
 
-RADIX_BITS = 11  # 2048 bins (L1-resident); the passes over digits all keys share (exponent bits) are skipped
+RADIX_BITS = 11  # the widest digit (2048 bins, L1-resident)
+
+
+@_ijit
+def _radix_digits(diff):
+    """The digits of a radix sort of keys whose differing bits are those set in ``diff`` (the OR of each key XOR
+    the first): ``(lo, width, passes)``, the fewest passes of at most ``RADIX_BITS`` bits over the bits from the
+    lowest to the highest set one, each ``width`` bits wide (balanced: narrower digits have fewer bins to scatter
+    into). The bits outside are the same in every key, so sorting these alone gives the full keys' order.
+    ``passes`` is 0 when all keys are equal."""
+    if diff == 0:
+        return 0, 1, 0
+    lo = 0
+    while (diff >> np.uint64(lo)) & np.uint64(1) == 0:
+        lo += 1
+    hi = 63
+    while (diff >> np.uint64(hi)) & np.uint64(1) == 0:
+        hi -= 1
+    n_bits = hi - lo + 1
+    passes = (n_bits + RADIX_BITS - 1) // RADIX_BITS
+    return lo, (n_bits + passes - 1) // passes, passes
 
 
 @_jit
-def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, roff, epos):
+def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, roff, epos, iwork, kwork, hist):
     """Per tile (``camera * tiles + row * tile_w + col``) the Gaussians whose tile range ``cbox`` [C, N]
     (:func:`pack_gaussians`' packed x0 | x1 << 16 | y0 << 32 | y1 << 48 of the compositing tiles, 0 = none)
     covers it, in depth order
     (stable: ties keep index order): ``offsets`` [C * tiles + 1], ``gids`` [n_isects]. One stable LSD radix
     sort of each camera's visible Gaussians by their depths (``depth_bits`` [C, N]: the float64 depths' bits,
-    keyed by :func:`_depth_key`; each Gaussian's tile square packed
+    keyed by :func:`_depth_key`; only the bits in which the keys differ, in :func:`_radix_digits`' digits, all
+    digits' histograms counted in the pass that finds the visible Gaussians; each Gaussian's tile square packed
     into one integer travels with it, so the pass that appends them to their tiles in that order reads
     sequentially), instead of a sort per tile. Also, per camera, the visible Gaussians in depth order
     ``order_out`` [C, N] (-1 past the last) and, per rank ``idx = camera * N + rank``, the list positions of its
-    entries in row-major tile order ``epos[roff[idx]:roff[idx + 1]]`` (for :func:`gather_slots`)."""
+    entries in row-major tile order ``epos[roff[idx]:roff[idx + 1]]`` (for :func:`gather_slots`). Work arrays
+    from the caller (reused between calls: no fresh pages): ``iwork`` [4, N] int64, ``kwork`` [2, N] uint64,
+    ``hist`` [64 // RADIX_BITS + 1, 2 ** RADIX_BITS] int64."""
     n_cam, n = cbox.shape[0], cbox.shape[1]
     n_tiles = tile_w * tile_h
     counts = np.empty(n_tiles, dtype=np.int64)
     fill = np.empty(n_tiles, dtype=np.int64)
     offsets[0] = 0
-    order = np.empty(n, dtype=np.int64)
-    tmp = np.empty(n, dtype=np.int64)
-    okey = np.empty(n, dtype=np.uint64)  # the keys and squares travel with the indices: each pass reads them in
-    tkey = np.empty(n, dtype=np.uint64)  # sequence
-    obox = np.empty(n, dtype=np.int64)
-    tbox = np.empty(n, dtype=np.int64)
-    n_bins = 1 << RADIX_BITS
-    hist = np.empty(n_bins, dtype=np.int64)
-    mask = np.uint64(n_bins - 1)
-    j = 0
+    order, tmp, obox, tbox = iwork[0], iwork[1], iwork[2], iwork[3]
+    okey, tkey = kwork[0], kwork[1]  # the keys and squares travel with the indices: each pass reads them in
+    j = 0  # sequence
     for c in range(n_cam):
         m = 0
         counts[:] = 0
+        diff = np.uint64(0)
+        key0 = np.uint64(0)
         for g in range(n):  # the visible Gaussians in index order, and the entries per tile (one pass)
             box = cbox[c, g]
             if box != 0:
+                key = _depth_key(depth_bits[c, g])
+                if m == 0:
+                    key0 = key
+                diff |= key ^ key0
                 order[m] = g
-                okey[m] = _depth_key(depth_bits[c, g])
+                okey[m] = key
                 obox[m] = box
                 m += 1
                 for ty in range((box >> 32) & 0xFFFF, box >> 48):
@@ -770,25 +792,30 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
         for t in range(n_tiles):
             fill[t] = offsets[c * n_tiles + t]
             offsets[c * n_tiles + t + 1] = offsets[c * n_tiles + t] + counts[t]
-        for shift in range(0, 64, RADIX_BITS):
-            sh = np.uint64(shift)
-            hist[:] = 0
-            for i in range(m):
-                hist[(okey[i] >> sh) & mask] += 1
-            if m == 0 or hist[(okey[0] >> sh) & mask] == m:
+        lo, width, passes = _radix_digits(diff)
+        n_bins = 1 << width
+        mask = np.uint64(n_bins - 1)
+        hist[:passes, :n_bins] = 0
+        for i in range(m):  # every digit's histogram in one pass over the keys
+            k = okey[i] >> np.uint64(lo)
+            for p in range(passes):
+                hist[p, (k >> np.uint64(p * width)) & mask] += 1
+        for p in range(passes):
+            sh = np.uint64(lo + p * width)
+            if hist[p, (okey[0] >> sh) & mask] == m:
                 continue  # one digit value for all: the pass would not move anything
             acc = 0
             for b in range(n_bins):
-                h = hist[b]
-                hist[b] = acc
+                h = hist[p, b]
+                hist[p, b] = acc
                 acc += h
             for i in range(m):
                 b = (okey[i] >> sh) & mask
-                d = hist[b]
+                d = hist[p, b]
                 tmp[d] = order[i]
                 tkey[d] = okey[i]
                 tbox[d] = obox[i]
-                hist[b] = d + 1
+                hist[p, b] = d + 1
             order, tmp = tmp, order
             okey, tkey = tkey, okey
             obox, tbox = tbox, obox

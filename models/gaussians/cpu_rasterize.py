@@ -57,13 +57,16 @@ def set_threads(threads: int | None) -> int:
 
 
 class _Scratch:
-    """Reused work arrays: a fresh multi-megabyte ``np.empty`` per call is fresh pages from the kernel, and
-    touching them (page faults, zeroing) cost ~5-10 ms per 100k-Gaussian render. A buffer is handed out again
-    only when nothing references it any more (no view of it is alive: no autograd context waiting for its
-    backward pass, no tensor made from it), so results never share memory; a few per name, for a forward
-    issued before the previous graph is freed."""
+    """Reused work arrays, outputs and gradients: a fresh multi-megabyte ``np.empty`` per call is fresh pages
+    from the kernel, and touching them (page faults, zeroing) cost ~5-10 ms per 100k-Gaussian render (the
+    outputs and gradients handed to PyTorch: ~2,700 faults, ~1.7 us each, per SH3 call when glibc returned them
+    to the system between calls). A buffer is handed out again only when nothing references it any more (no view
+    of it is alive: no autograd context waiting for its backward pass, no tensor made from it: a render, a meta
+    entry or a ``.grad`` kept by the caller keeps its buffer), so results never share memory; a few per name, for
+    a forward issued before the previous graph is freed."""
 
     KEEP = 3  # buffers kept per name
+    ALIGN = 64  # bytes: arrays start on a cache line (a 16-float record row is one line, not two)
 
     def __init__(self) -> None:
         self._bufs: dict[str, list[np.ndarray]] = {}
@@ -76,14 +79,15 @@ class _Scratch:
             bufs = self._bufs.setdefault(name, [])
             for buf in bufs:
                 # free: referenced only by the list, this loop's variable and getrefcount's argument
-                if buf.nbytes >= need and sys.getrefcount(buf) <= 3:
+                if buf.nbytes >= need + self.ALIGN and sys.getrefcount(buf) <= 3:
                     break
             else:
-                buf = np.empty(max(need + need // 4, 64), dtype=np.uint8)  # headroom for the next call
+                buf = np.empty(max(need + need // 4, 64) + self.ALIGN, dtype=np.uint8)  # headroom for the next call
                 if len(bufs) >= self.KEEP:
                     bufs.pop(0)
                 bufs.append(buf)
-            return buf[:need].view(dtype).reshape(shape)
+            start = -buf.ctypes.data % self.ALIGN
+            return buf[start:start + need].view(dtype).reshape(shape)
 
 
 _SCRATCH = _Scratch()
@@ -169,8 +173,8 @@ class _SH(torch.autograd.Function):
         dt = _dt(means)
         # the means read in place too (saved for backward: autograd's version check guards them)
         m = _np_view(means, dt)
-        rgb = np.empty((len(campos), len(m), 3), dt)
-        cut = np.empty((len(campos), len(m)), np.uint8)  # where the clamp stops the gradient (3 bits)
+        rgb = _SCRATCH.get("sh_rgb", (len(campos), len(m), 3), dt)
+        cut = _SCRATCH.get("sh_cut", (len(campos), len(m)), np.uint8)  # where the clamp stops the gradient (3 bits)
         with _LOCK:
             K.sh_forward(degree, m, campos, *_coef_arrays(co_t), rgb, cut)
         ctx.save_for_backward(*co_t, means)
@@ -183,7 +187,8 @@ class _SH(torch.autograd.Function):
         *co_t, means = ctx.saved_tensors
         m = _np_view(means, _dt(means))
         cos = [_coef_array(t) for t in co_t]
-        v_m, v_cos = np.empty_like(m), [np.empty(c.shape, dtype=c.dtype) for c in cos]
+        v_m = _SCRATCH.get("sh_v_means", m.shape, m.dtype)
+        v_cos = [_SCRATCH.get(f"sh_v_coef{i}", c.shape, c.dtype) for i, c in enumerate(cos)]
         with _LOCK:  # v_rgb read in place (a view of the compositing's gradients: any strides)
             K.sh_backward(ctx.degree, m, cp, *_coef_arrays(cos), cut, _as_kernel_dtype(v_rgb, m.dtype), v_m,
                           *_coef_arrays(v_cos))
@@ -293,9 +298,9 @@ class _ProjectQS(torch.autograd.Function):
         m, q, sc = _np_view(means, dt), _np_view(quats, _dt(quats)), _np_view(scales, _dt(scales))
         vm, k = _np(viewmats), _np(Ks)
         n_cam, n = vm.shape[0], m.shape[0]
-        means2d, depths = np.empty((n_cam, n, 2), dt), np.empty((n_cam, n), dt)
-        conics, comps = np.empty((n_cam, n, 3), dt), np.empty((n_cam, n), dt)
-        radii = np.empty((n_cam, n), dtype=np.int32)
+        means2d, depths = _SCRATCH.get("qs_means2d", (n_cam, n, 2), dt), _SCRATCH.get("qs_depths", (n_cam, n), dt)
+        conics, comps = _SCRATCH.get("qs_conics", (n_cam, n, 3), dt), _SCRATCH.get("qs_comps", (n_cam, n), dt)
+        radii = _SCRATCH.get("qs_radii", (n_cam, n), np.int32)
         with _LOCK:
             K.project_qs_forward(m, q, sc, vm, k, width, height, eps2d, near, far, radius_clip,
                                  means2d, depths, conics, radii, comps)
@@ -313,7 +318,8 @@ class _ProjectQS(torch.autograd.Function):
         m, q, sc = _np_view(means, _dt(means)), _np_view(quats, _dt(quats)), _np_view(scales, _dt(scales))
         vm, k = ctx.arrays
         n_cam, n, dt = vm.shape[0], m.shape[0], m.dtype
-        v_means, v_quats, v_scales = np.empty((n, 3), dt), np.empty((n, 4), q.dtype), np.empty((n, 3), sc.dtype)
+        v_means, v_quats = _SCRATCH.get("qs_v_means", (n, 3), dt), _SCRATCH.get("qs_v_quats", (n, 4), q.dtype)
+        v_scales = _SCRATCH.get("qs_v_scales", (n, 3), sc.dtype)
         with _LOCK:
             K.project_qs_backward(m, q, sc, vm, k, *ctx.scalars, _grad_view(v_means2d, (n_cam, n, 2), dt),
                                   _grad_view(v_depths, (n_cam, n), dt), _grad_view(v_conics, (n_cam, n, 3), dt),
@@ -354,21 +360,24 @@ class _Composite(torch.autograd.Function):
         rad = np.ascontiguousarray(radii.cpu().numpy())
         cbox = _SCRATCH.get("cbox", (n_cam, n), np.int64)
         rec = _SCRATCH.get("rec", (n_cam, n, K.R_FEAT + d), dt)
-        render = np.empty((n_cam, height, width, d), dt)
-        t_final = np.empty((n_cam, height, width), dt)
+        render = _SCRATCH.get("render", (n_cam, height, width, d), dt)
+        t_final = _SCRATCH.get("t_final", (n_cam, height, width), dt)
         # compositing tiles (K.composite_tile_size) apart from the API's tile_size, which decides n_isects and
         # which pixels a Gaussian may touch (its boxes are clipped to its tile_size squares)
         ctile = K.composite_tile_size(width, height)
         ctw, cth = -(-width // ctile), -(-height // ctile)
         offsets = _SCRATCH.get("offsets", n_cam * ctw * cth + 1, np.int64)
         depth64 = _SCRATCH.get("depth64", (n_cam, n), np.float64)
-        tiles_per_gauss = np.empty((n_cam, n), np.int64)  # handed out in info: not a reused array
+        tiles_per_gauss = _SCRATCH.get("tiles_per_gauss", (n_cam, n), np.int64)
         with _LOCK:
             n_isects, n_ent = K.pack_gaussians(m2, con, opa, col, rad, depths.numpy(), tile_size, tile_w, tile_h,
                                                ctile, width, height, rec, cbox, depth64, tiles_per_gauss)
             gids, epos = _SCRATCH.get("gids", n_ent, np.int64), _SCRATCH.get("epos", n_ent, np.int64)
             order, roff = _SCRATCH.get("order", (n_cam, n), np.int64), _SCRATCH.get("roff", n_cam * n + 1, np.int64)
-            K.bin_gaussians(cbox, depth64.view(np.uint64), ctw, cth, offsets, gids, order, roff, epos)
+            iwork, kwork = _SCRATCH.get("bin_iwork", (4, n), np.int64), _SCRATCH.get("bin_kwork", (2, n), np.uint64)
+            hist = _SCRATCH.get("bin_hist", (64 // K.RADIX_BITS + 1, 1 << K.RADIX_BITS), np.int64)
+            K.bin_gaussians(cbox, depth64.view(np.uint64), ctw, cth, offsets, gids, order, roff, epos, iwork, kwork,
+                            hist)
             ent = _SCRATCH.get("ent", (n_ent, rec.shape[2]), dt)
             cap = _SCRATCH.get("cap", n_cam * ctw * cth, np.int64)
             K.gather_entries(offsets, gids, ctw * cth, ctw, ctile, width, height, rec, ent, cap)
@@ -403,7 +412,8 @@ class _Composite(torch.autograd.Function):
         va = np.zeros((n_cam, height, width), dt) if v_alphas is None else _np_view(v_alphas[..., 0], dt)
         slots = _SCRATCH.get("slots", (len(gids), 6 + d), dt)  # per-entry sums, in the dtype
         # the gradients in the inputs' dtype (float64 sums), handed to PyTorch as views of one array
-        grads = np.zeros((n_cam, n, 6 + d), dt)
+        grads = _SCRATCH.get("grads", (n_cam, n, 6 + d), dt)
+        grads.fill(0)  # Gaussians without entries keep zeros
         with _LOCK:
             K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, vr, va,
                                  pbase, pend, pix, pes, pts, slots)

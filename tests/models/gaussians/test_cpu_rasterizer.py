@@ -480,6 +480,77 @@ def test_interleaved_graphs_do_not_share_work_arrays(dtype):
                 assert torch.equal(leaves[k].grad, g), k
 
 
+def test_kept_results_and_gradients_are_not_overwritten_by_later_calls():
+    """Outputs and gradients live in reused buffers (``_Scratch``) only while nothing holds them: results kept
+    from one render (image, alpha, meta, leaf gradients) keep their values and memory through later renders of
+    another scene of the same sizes, and a later render's tensors never share memory with them."""
+    viewmats, Ks = cameras(torch.float32, n=1)
+
+    def render(seed):
+        inputs = scene_inputs(n=60, seed=seed, dtype=torch.float32, sh_degree=3)
+        leaves = {k: v.detach().clone().requires_grad_() for k, v in inputs.items() if k != "backgrounds"}
+        img, alpha, meta = cpu_rasterization(leaves["means"], leaves["quats"], leaves["scales"],
+                                             leaves["opacities"], leaves["colors"], viewmats, Ks, W, H, sh_degree=3,
+                                             render_mode="RGB+ED")
+        meta["means2d"].retain_grad()
+        ((img * loss_weights(img.shape, 0, img.dtype)).sum() + alpha.sum()).backward()
+        kept = [img, alpha, meta["means2d"], meta["depths"], meta["conics"], meta["radii"],
+                meta["tiles_per_gauss"], meta["means2d"].grad] + [v.grad for v in leaves.values()]
+        return [t.detach() for t in kept]
+
+    first = render(5)
+    copies = [t.clone() for t in first]
+    later = render(6) + render(7)
+    for t, c in zip(first, copies):
+        assert torch.equal(t, c)
+    ptrs = {t.untyped_storage().data_ptr() for t in first}
+    assert not ptrs & {t.untyped_storage().data_ptr() for t in later}
+    assert not torch.equal(first[0], later[0])  # another scene: the check above compares different values
+
+
+@pytest.mark.parametrize("depths", ["float64", "float32", "ties", "one", "signs", "top bits"])
+def test_bin_gaussians_sorts_each_tile_by_depth_stably(depths):
+    """The binning's radix sort (digits over the bits in which the keys differ) against a stable argsort: the
+    depth order of the visible Gaussians, each tile's list, and the entries' positions for the gradient gather;
+    depths with all 64 bits differing, float32 values (low bits zero), ties (index order), one value, both signs,
+    and keys differing only in their top bits."""
+    import numpy as np
+
+    from navcrafter.models.gaussians import cpu_kernels as K
+
+    rng = np.random.default_rng(0)
+    n_cam, n, tw, th = 2, 3000, 5, 4
+    d = {"float64": rng.uniform(0.5, 9.0, (n_cam, n)),
+         "float32": rng.uniform(0.5, 9.0, (n_cam, n)).astype(np.float32).astype(np.float64),
+         "ties": rng.integers(0, 7, (n_cam, n)).astype(np.float64),
+         "one": np.full((n_cam, n), 3.25),
+         "signs": rng.uniform(-4.0, 4.0, (n_cam, n)),
+         "top bits": np.where(rng.random((n_cam, n)) < 0.5, 2.0, -8.0) * 2.0 ** rng.integers(-3, 4, (n_cam, n)),
+         }[depths]
+    x0, y0 = rng.integers(0, tw, (n_cam, n)), rng.integers(0, th, (n_cam, n))
+    x1, y1 = np.minimum(x0 + rng.integers(1, 3, (n_cam, n)), tw), np.minimum(y0 + rng.integers(1, 3, (n_cam, n)), th)
+    cbox = (x0 | x1 << 16 | y0 << 32 | y1 << 48).astype(np.int64)
+    cbox[rng.random((n_cam, n)) < 0.2] = 0  # not visible
+    area = np.where(cbox != 0, (x1 - x0) * (y1 - y0), 0)
+    n_ent = int(area.sum())
+    offsets, gids, epos = np.empty(n_cam * tw * th + 1, np.int64), np.empty(n_ent, np.int64), np.empty(n_ent, np.int64)
+    order, roff = np.empty((n_cam, n), np.int64), np.empty(n_cam * n + 1, np.int64)
+    K.bin_gaussians(cbox, d.view(np.uint64), tw, th, offsets, gids, order, roff, epos, np.empty((4, n), np.int64),
+                    np.empty((2, n), np.uint64), np.empty((64 // K.RADIX_BITS + 1, 1 << K.RADIX_BITS), np.int64))
+    for c in range(n_cam):
+        vis = np.flatnonzero(cbox[c] != 0)
+        ranked = vis[np.argsort(d[c, vis], kind="stable")]
+        assert np.array_equal(order[c, :len(vis)], ranked) and (order[c, len(vis):] == -1).all()
+        for t in range(tw * th):
+            ty, tx = divmod(t, tw)
+            on = ranked[(x0[c, ranked] <= tx) & (tx < x1[c, ranked]) & (y0[c, ranked] <= ty) & (ty < y1[c, ranked])]
+            lo, hi = offsets[c * tw * th + t], offsets[c * tw * th + t + 1]
+            assert np.array_equal(gids[lo:hi], on)
+        for r, g in enumerate(ranked):  # each entry of rank r: its list position holds g
+            assert (gids[epos[roff[c * n + r]:roff[c * n + r + 1]]] == g).all()
+            assert roff[c * n + r + 1] - roff[c * n + r] == area[c, g]
+
+
 # --------------------------------------------------------------------------------------------------
 # SH of a fit's two coefficient tensors (sh_dc, sh_rest) without their concatenation
 # --------------------------------------------------------------------------------------------------
