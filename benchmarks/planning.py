@@ -100,11 +100,12 @@ PAIRED = ("seen", "coverage", "fscore", "coverage_at_0.05", "coverage_rel_0.01")
 
 
 def bench_config(strategy: str, quick: bool, unknown_space: str | None = None,
-                 plan: dict[str, str] | None = None, crn: bool = False) -> RunConfig:
+                 plan: dict[str, str] | None = None, crn: bool = False, base_seed: int = 0) -> RunConfig:
     """``plan``: further ``plan.*`` settings (name without the prefix -> value, ``--ours-plan``); ``crn``:
-    ``simulation.common_random_numbers`` (``--crn``)."""
+    ``simulation.common_random_numbers`` (``--crn``); ``base_seed``: the run's base seed (``--base-seed``)."""
     # the 3DGS fit (on by default since issue 18) does not change the cloud Table V scores: off, to keep runs short
-    overrides = {"iterations": ITERATIONS, "plan.num_candidates": 3, "plan.strategy": strategy, "fit.enabled": False}
+    overrides = {"iterations": ITERATIONS, "plan.num_candidates": 3, "plan.strategy": strategy, "fit.enabled": False,
+                 "seed": base_seed}
     if crn:
         overrides["simulation.common_random_numbers"] = True
     overrides.update({f"plan.{k}": v for k, v in (plan or {}).items()})
@@ -138,10 +139,10 @@ def run_one(photo: Path, store: Path, config: RunConfig) -> tuple[dict, str]:
 
 def exploration(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...],
                 unknown_space: str | None = None, methods: dict[str, str] = METHODS,
-                ours_plan: dict[str, str] | None = None, crn: bool = False) -> list[dict]:
+                ours_plan: dict[str, str] | None = None, crn: bool = False, base_seed: int = 0) -> list[dict]:
     """One row per scene: ``{"kind", "seed", "initial_cloud_sha256", <method>: {metrics}, ...}`` (``run_one`` per
     method: the per-scene metric function a loop over other worlds reuses). ``ours_plan``: ``plan.*`` settings for
-    ``ours`` alone (a variant of the explorer); ``crn``: common random numbers for every method."""
+    ``ours`` alone (a variant of the explorer); ``crn``, ``base_seed``: the simulation's draws, for every method."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="navcrafter-bench-") as tmp:
         for kind in kinds:
@@ -150,7 +151,8 @@ def exploration(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...],
                 photo = write_demo_collection(photos, (kind,), 1, seed)[0]
                 row, digests = {"kind": kind, "seed": seed}, set()
                 for name, strategy in methods.items():
-                    cfg = bench_config(strategy, quick, unknown_space, ours_plan if name == "ours" else None, crn)
+                    cfg = bench_config(strategy, quick, unknown_space, ours_plan if name == "ours" else None, crn,
+                                       base_seed)
                     r, digest = run_one(photo, Path(tmp) / name / f"{kind}-{seed}", cfg)
                     digests.add(digest)
                     row[name] = r
@@ -424,7 +426,8 @@ def markdown(result: dict) -> str:
                "iteration, so every method and variant meets the same simulated errors at the same iteration)."
                if result.get("common_random_numbers") else
                "Simulation draws: from each step's cache key (the default; without --crn any setting redraws "
-               "the simulation)."), "",
+               "the simulation).") + (f" Base seed {result['base_seed']} (--base-seed)."
+                                      if result.get("base_seed") else ""), "",
               "| Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 10 cm ↑ | cov 1 % d0 ↑ | AUC ↑ | precision ↑ | "
               "F 2 cm ↑ | collisions ↓ | close ↓ | planner s/it |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -515,6 +518,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="common random numbers (simulation.common_random_numbers): every step's seed from the "
                     "scene, step and iteration, not from its cache key, so variants meet the same simulated errors "
                     "(recorded in results.json as common_random_numbers)")
+    ap.add_argument("--base-seed", type=int, default=0,
+                    help="the runs' base seed (RunConfig.seed; default 0): another draw of the simulation for every "
+                    "method (recorded in results.json as base_seed)")
     ap.add_argument("--ours-plan", action="append", default=[], metavar="KEY=VALUE",
                     help="a plan.* setting for 'ours' alone, e.g. explore_free_space=share (repeatable; recorded in "
                     "results.json as ours_plan)")
@@ -527,8 +533,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.merge:
         parts = [json.loads(p.read_text()) for p in args.merge]
-        if len({bool(p.get("common_random_numbers")) for p in parts}) > 1:
-            ap.error("--merge: some runs used --crn and some did not; their draws are not comparable")
+        if len({(bool(p.get("common_random_numbers")), p.get("base_seed", 0)) for p in parts}) > 1:
+            ap.error("--merge: the runs differ in --crn or --base-seed (the simulation's draws)")
         rows = [r for p in parts for r in p["runs"]]
         kinds = tuple(k for k in KINDS if any(r["kind"] == k for r in rows))
         names = tuple(parts[0]["methods"])
@@ -539,6 +545,7 @@ def main(argv: list[str] | None = None) -> int:
                   "timing": times, "label": LABEL, "quick": parts[0]["quick"], "iterations": ITERATIONS,
                   "development_seeds": list(DEV_SEEDS), "merged_from": [str(p) for p in args.merge],
                   "common_random_numbers": bool(parts[0].get("common_random_numbers")),
+                  "base_seed": parts[0].get("base_seed", 0),
                   "wall_seconds": sum(p.get("wall_seconds", 0.0) for p in parts)}
         result["goal"] = goal(result) if "baseline" in names else {}
         args.out.mkdir(parents=True, exist_ok=True)
@@ -564,10 +571,11 @@ def main(argv: list[str] | None = None) -> int:
     if any("=" not in kv for kv in args.ours_plan):
         ap.error("--ours-plan: KEY=VALUE")
     ours_plan = dict(kv.split("=", 1) for kv in args.ours_plan)
-    bench_config(ALL_METHODS["ours"], args.quick, args.unknown_space, ours_plan, args.crn)  # a bad setting fails now
+    bench_config(ALL_METHODS["ours"], args.quick, args.unknown_space, ours_plan, args.crn,
+                 args.base_seed)  # a bad setting fails now
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = exploration(args.quick, seeds, kinds, args.unknown_space, methods, ours_plan, args.crn)
+    rows = exploration(args.quick, seeds, kinds, args.unknown_space, methods, ours_plan, args.crn, args.base_seed)
     worlds = (world_exploration(args.quick, args.worlds, args.world_views, args.up, args.scale, args.unknown_space,
                                 methods, args.crn) if args.worlds else {})
     times = {} if args.skip_timing else timing()
@@ -577,7 +585,7 @@ def main(argv: list[str] | None = None) -> int:
               "timing": times, "label": run_labels(bool(kinds), bool(worlds)), "quick": args.quick,
               "iterations": ITERATIONS, "development_seeds": list(DEV_SEEDS), **worlds,
               "wall_seconds": time.perf_counter() - t0, **({"ours_plan": ours_plan} if ours_plan else {}),
-              "common_random_numbers": args.crn}
+              "common_random_numbers": args.crn, "base_seed": args.base_seed}
     result["goal"] = goal(result) if "baseline" in methods and rows else {}
     (args.out / "results.json").write_text(json.dumps(result, indent=1))
     md = markdown(result) + (worlds_markdown(result) if worlds else "")

@@ -24,13 +24,14 @@ def test_ours_plan_settings_reach_the_config_and_a_bad_one_fails_at_once(tmp_pat
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
-def test_crn_reaches_every_method_and_runs_with_and_without_it_are_not_merged(tmp_path):
+def test_crn_and_base_seed_reach_every_method_and_runs_with_other_draws_are_not_merged(tmp_path):
     import json
 
     from benchmarks import planning
 
     assert planning.bench_config("viewcrafter_nbv", True, crn=True).simulation.common_random_numbers
     assert not planning.bench_config("explorer", True).simulation.common_random_numbers
+    assert planning.bench_config("explorer", True, base_seed=3).seed == 3
     parts = []
     for crn in (True, False):
         p = tmp_path / f"crn{crn}.json"
