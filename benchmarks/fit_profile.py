@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         # the group is committed under a key of its own, so a real run recomputes it
         scene = Store(store).scene(res.scene_id)
         spec = STEPS["fit"]
-        seed = steps.seed_from_key(steps.step_key(scene, spec, None, cfg))
+        seed = steps.step_seed(res.scene_id, spec, None, cfg, steps.step_key(scene, spec, None, cfg))
         writer = scene.begin(spec, None, f"fit-profile-{time.time_ns()}", cfg.backend)
         attrs = body_of(spec)(steps.StepContext(scene, None, cfg, seed, writer, "bench", None))
         step_s = time.perf_counter() - t0

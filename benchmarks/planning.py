@@ -100,10 +100,14 @@ PAIRED = ("seen", "coverage", "fscore", "coverage_at_0.05", "coverage_rel_0.01")
 
 
 def bench_config(strategy: str, quick: bool, unknown_space: str | None = None,
-                 plan: dict[str, str] | None = None) -> RunConfig:
-    """``plan``: further ``plan.*`` settings (name without the prefix -> value, ``--ours-plan``)."""
+                 plan: dict[str, str] | None = None, crn: bool = False, base_seed: int = 0) -> RunConfig:
+    """``plan``: further ``plan.*`` settings (name without the prefix -> value, ``--ours-plan``); ``crn``:
+    ``simulation.common_random_numbers`` (``--crn``); ``base_seed``: the run's base seed (``--base-seed``)."""
     # the 3DGS fit (on by default since issue 18) does not change the cloud Table V scores: off, to keep runs short
-    overrides = {"iterations": ITERATIONS, "plan.num_candidates": 3, "plan.strategy": strategy, "fit.enabled": False}
+    overrides = {"iterations": ITERATIONS, "plan.num_candidates": 3, "plan.strategy": strategy, "fit.enabled": False,
+                 "seed": base_seed}
+    if crn:
+        overrides["simulation.common_random_numbers"] = True
     overrides.update({f"plan.{k}": v for k, v in (plan or {}).items()})
     if unknown_space:
         overrides["plan.unknown_space"] = unknown_space
@@ -135,10 +139,10 @@ def run_one(photo: Path, store: Path, config: RunConfig) -> tuple[dict, str]:
 
 def exploration(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...],
                 unknown_space: str | None = None, methods: dict[str, str] = METHODS,
-                ours_plan: dict[str, str] | None = None) -> list[dict]:
+                ours_plan: dict[str, str] | None = None, crn: bool = False, base_seed: int = 0) -> list[dict]:
     """One row per scene: ``{"kind", "seed", "initial_cloud_sha256", <method>: {metrics}, ...}`` (``run_one`` per
     method: the per-scene metric function a loop over other worlds reuses). ``ours_plan``: ``plan.*`` settings for
-    ``ours`` alone (a variant of the explorer)."""
+    ``ours`` alone (a variant of the explorer); ``crn``, ``base_seed``: the simulation's draws, for every method."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="navcrafter-bench-") as tmp:
         for kind in kinds:
@@ -147,7 +151,8 @@ def exploration(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...],
                 photo = write_demo_collection(photos, (kind,), 1, seed)[0]
                 row, digests = {"kind": kind, "seed": seed}, set()
                 for name, strategy in methods.items():
-                    cfg = bench_config(strategy, quick, unknown_space, ours_plan if name == "ours" else None)
+                    cfg = bench_config(strategy, quick, unknown_space, ours_plan if name == "ours" else None, crn,
+                                       base_seed)
                     r, digest = run_one(photo, Path(tmp) / name / f"{kind}-{seed}", cfg)
                     digests.add(digest)
                     row[name] = r
@@ -164,7 +169,7 @@ def exploration(quick: bool, seeds: tuple[int, int], kinds: tuple[str, ...],
 # Worlds from real scans (--worlds FILE...): models/simulation/worlds
 # --------------------------------------------------------------------------------------------------
 def world_exploration(quick: bool, worlds: list[Path], views: int, up: str = "auto", scale: float = 1.0,
-                      unknown_space: str | None = None, methods: dict[str, str] = METHODS) -> dict:
+                      unknown_space: str | None = None, methods: dict[str, str] = METHODS, crn: bool = False) -> dict:
     """Each scan as a ground-truth world (``navcrafter demo-data --world``), ``views`` start views of it, each
     explored by every method from the same photo (bit-identical initial clouds, checked): ``{"worlds": {name:
     {method: M}}, "world_runs": [...]}``, M the method's metrics averaged over the world's start views
@@ -180,7 +185,8 @@ def world_exploration(quick: bool, worlds: list[Path], views: int, up: str = "au
             record = json.loads((photo.parent / GROUNDTRUTH_DIR / photo.stem / "scene.json").read_text())
             row, digests = {"world": record["scene"]["name"], "photo": photo.name}, set()
             for name, strategy in methods.items():
-                r, digest = run_one(photo, Path(tmp) / name / photo.stem, bench_config(strategy, quick, unknown_space))
+                cfg = bench_config(strategy, quick, unknown_space, crn=crn)
+                r, digest = run_one(photo, Path(tmp) / name / photo.stem, cfg)
                 digests.add(digest)
                 row[name] = r
                 print(f"{photo.stem} {name:8s} " + " ".join(f"{m}={r[m]:.3f}" for m in PRINTED if m in r), flush=True)
@@ -416,6 +422,12 @@ def markdown(result: dict) -> str:
                  if dev else "A held-out range (development: seeds 0-9)."), "", _setup(result), "",
               *([f"'ours' is a variant of the explorer: plan settings {result['ours_plan']} (--ours-plan).", ""]
                 if result.get("ours_plan") else []),
+              ("Simulation draws: **common random numbers** (--crn: each step's seed from the scene, step and "
+               "iteration, so every method and variant meets the same simulated errors at the same iteration)."
+               if result.get("common_random_numbers") else
+               "Simulation draws: from each step's cache key (the default; without --crn any setting redraws "
+               "the simulation).") + (f" Base seed {result['base_seed']} (--base-seed)."
+                                      if result.get("base_seed") else ""), "",
               "| Method | seen ↑ | cov 2 cm ↑ | cov 5 cm ↑ | cov 10 cm ↑ | cov 1 % d0 ↑ | AUC ↑ | precision ↑ | "
               "F 2 cm ↑ | collisions ↓ | close ↓ | planner s/it |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -502,6 +514,13 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"comma-separated methods ({', '.join(ALL_METHODS)}); 'ours' is compared with the others")
     ap.add_argument("--unknown-space", choices=("free", "occupied"), default=None,
                     help="override plan.unknown_space (both planners; default: the config's)")
+    ap.add_argument("--crn", action="store_true",
+                    help="common random numbers (simulation.common_random_numbers): every step's seed from the "
+                    "scene, step and iteration, not from its cache key, so variants meet the same simulated errors "
+                    "(recorded in results.json as common_random_numbers)")
+    ap.add_argument("--base-seed", type=int, default=0,
+                    help="the runs' base seed (RunConfig.seed; default 0): another draw of the simulation for every "
+                    "method (recorded in results.json as base_seed)")
     ap.add_argument("--ours-plan", action="append", default=[], metavar="KEY=VALUE",
                     help="a plan.* setting for 'ours' alone, e.g. explore_free_space=share (repeatable; recorded in "
                     "results.json as ours_plan)")
@@ -514,6 +533,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.merge:
         parts = [json.loads(p.read_text()) for p in args.merge]
+        if len({(bool(p.get("common_random_numbers")), p.get("base_seed", 0)) for p in parts}) > 1:
+            ap.error("--merge: the runs differ in --crn or --base-seed (the simulation's draws)")
         rows = [r for p in parts for r in p["runs"]]
         kinds = tuple(k for k in KINDS if any(r["kind"] == k for r in rows))
         names = tuple(parts[0]["methods"])
@@ -523,6 +544,8 @@ def main(argv: list[str] | None = None) -> int:
                   "per_kind": {k: summarise([r for r in rows if r["kind"] == k], names) for k in kinds},
                   "timing": times, "label": LABEL, "quick": parts[0]["quick"], "iterations": ITERATIONS,
                   "development_seeds": list(DEV_SEEDS), "merged_from": [str(p) for p in args.merge],
+                  "common_random_numbers": bool(parts[0].get("common_random_numbers")),
+                  "base_seed": parts[0].get("base_seed", 0),
                   "wall_seconds": sum(p.get("wall_seconds", 0.0) for p in parts)}
         result["goal"] = goal(result) if "baseline" in names else {}
         args.out.mkdir(parents=True, exist_ok=True)
@@ -548,19 +571,21 @@ def main(argv: list[str] | None = None) -> int:
     if any("=" not in kv for kv in args.ours_plan):
         ap.error("--ours-plan: KEY=VALUE")
     ours_plan = dict(kv.split("=", 1) for kv in args.ours_plan)
-    bench_config(ALL_METHODS["ours"], args.quick, args.unknown_space, ours_plan)  # a bad setting fails now
+    bench_config(ALL_METHODS["ours"], args.quick, args.unknown_space, ours_plan, args.crn,
+                 args.base_seed)  # a bad setting fails now
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = exploration(args.quick, seeds, kinds, args.unknown_space, methods, ours_plan)
+    rows = exploration(args.quick, seeds, kinds, args.unknown_space, methods, ours_plan, args.crn, args.base_seed)
     worlds = (world_exploration(args.quick, args.worlds, args.world_views, args.up, args.scale, args.unknown_space,
-                                methods) if args.worlds else {})
+                                methods, args.crn) if args.worlds else {})
     times = {} if args.skip_timing else timing()
     names = tuple(methods)
     result = {**summarise(rows, names), "seeds": list(seeds), "kinds": list(kinds), "runs": rows,
               "per_kind": {k: summarise([r for r in rows if r["kind"] == k], names) for k in kinds},
               "timing": times, "label": run_labels(bool(kinds), bool(worlds)), "quick": args.quick,
               "iterations": ITERATIONS, "development_seeds": list(DEV_SEEDS), **worlds,
-              "wall_seconds": time.perf_counter() - t0, **({"ours_plan": ours_plan} if ours_plan else {})}
+              "wall_seconds": time.perf_counter() - t0, **({"ours_plan": ours_plan} if ours_plan else {}),
+              "common_random_numbers": args.crn, "base_seed": args.base_seed}
     result["goal"] = goal(result) if "baseline" in methods and rows else {}
     (args.out / "results.json").write_text(json.dumps(result, indent=1))
     md = markdown(result) + (worlds_markdown(result) if worlds else "")

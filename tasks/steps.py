@@ -29,7 +29,7 @@ import numpy as np
 from navcrafter.models.reconstruction.pointcloud import Cloud
 from navcrafter.models.roles import Backend
 from navcrafter.schemas.config import RunConfig
-from navcrafter.schemas.keys import cache_key, dependencies
+from navcrafter.schemas.keys import cache_key, dependencies, stable_hash
 from navcrafter.schemas.layout import StepSpec
 from navcrafter.schemas.store import SceneStore, StepWriter, Store, StoreFull, store_problem
 from navcrafter.schemas.tables import utcnow
@@ -44,7 +44,7 @@ class StepContext:
     scene: SceneStore
     k: int | None
     config: RunConfig
-    seed: int  # every random choice of a step is seeded from its key: (scene, step, config, upstream)
+    seed: int  # every random choice of a step is seeded from its key (scene, step, config, upstream): step_seed
     writer: StepWriter
     run_id: str
     prepared: Any = None  # what the step's ``prepare`` returned (ingest), else None
@@ -84,6 +84,17 @@ def step_key(scene: SceneStore, spec: StepSpec, k: int | None, config: RunConfig
 
 def seed_from_key(key: str) -> int:
     return int(key[:15], 16)
+
+
+def step_seed(scene_id: str, spec: StepSpec, k: int | None, config: RunConfig, key: str) -> int:
+    """A step's random seed: from its cache key, or with ``simulation.common_random_numbers`` (simulation backend
+    only: the option keys no step of another backend) from the base seed, the scene, the step and the iteration
+    alone, so runs that differ in any other setting draw the same random numbers at the same step. The key still
+    holds every setting (the option included), so caching is unchanged; only the seed's source is."""
+    if config.backend == "simulation" and config.simulation.common_random_numbers:
+        return seed_from_key(stable_hash({"common_random_numbers": config.seed, "scene": scene_id,
+                                          "step": spec.name, "k": k}, length=32))
+    return seed_from_key(key)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -140,7 +151,7 @@ def _execute_locked(store: Store, scene_id: str, spec: StepSpec, k: int | None, 
     try:
         prepared = prepare() if prepare is not None else None
         writer = scene.begin(spec, k, key, config.backend)
-        ctx = StepContext(scene, k, config, seed_from_key(key), writer, run_id, prepared)
+        ctx = StepContext(scene, k, config, step_seed(scene_id, spec, k, config, key), writer, run_id, prepared)
         with StepPeaks() as peaks:
             try:
                 attrs = body(ctx) or {}

@@ -116,6 +116,12 @@ class PlanConfig(_Section):
         "refused (the path is then shortened or another taken). 0: off, the explorer before it (development room 0 "
         "with explore_accuracy 0.03 met a ceiling 0.30 m above a dolly's end that no frame looked at; "
         "benchmarks/results/planning-explore10-dev).")
+    explore_ball_follow_error: float | None = Field(
+        None, ge=0, description="explorer: the follow error the clearance ball of explore_ball grows with along the "
+        "path: its radius is explore_ball x (r_safe + this x the distance travelled). None: G's follow error "
+        "(explore_follow_error, the drift's 99 % quantile; the rule of explore11); 0.07: about the simulated "
+        "drift's median (a half-normal of mean drift_trans 0.08 has median 0.068), a ball that never shrinks "
+        "below r_safe and grows a quarter as fast (explore12).")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
         "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
@@ -164,6 +170,7 @@ class PlanConfig(_Section):
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
                                                 "explore_invented_share": 0.0, "explore_follow_error": None,
                                                 "explore_reach": 1.0, "explore_sky": "free", "explore_ball": 0.0,
+                                                "explore_ball_follow_error": None,
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")

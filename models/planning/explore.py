@@ -162,10 +162,12 @@ class ExplorerDetector(CollisionDetector):
     """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
 
     def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
-                 ball: float = 0.0, **kwargs) -> None:
+                 ball: float = 0.0, ball_follow_error: float | None = None, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.ball = float(ball)  # ``plan.explore_ball``: share of the clearance whose ball must be seen (0: off)
+        # ``plan.explore_ball_follow_error``: what the ball grows with along the path (None: G's follow error)
+        self.ball_follow_error = self.follow_error if ball_follow_error is None else float(ball_follow_error)
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
 
     def start_radius(self) -> float:
@@ -251,6 +253,7 @@ class ExplorerDetector(CollisionDetector):
         unseen = ~(free | (np.linalg.norm(x - start, axis=1) < self.start_radius()))
         ok_ground = self._above_ground(x)
         reach = self.vmap.reach(x)
+        ball_need = self.path_clearance(x, self.ball_follow_error) if self.ball > 0 else needed
         for t in np.flatnonzero(unseen):
             if t >= fixed and not occluded[t] and ok_ground[t] and reach[t] <= self.max_reach:
                 # an earlier frame of this clip (the latest first) looks at it, nothing in the way
@@ -261,7 +264,7 @@ class ExplorerDetector(CollisionDetector):
                         unseen[t] = False
                         break
                 if not unseen[t] and self.ball > 0:  # its clearance ball must have been seen too
-                    unseen[t] = not self.ball_seen(trajectory, t, self.ball * needed[t])
+                    unseen[t] = not self.ball_seen(trajectory, t, self.ball * ball_need[t])
             if first_only and unseen[t]:
                 unseen[t + 1:] = False
                 break
@@ -469,7 +472,8 @@ class ExplorerPlanner:
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
                                follow_error=cfg.follow_error if cfg.explore_follow_error is None
                                else cfg.explore_follow_error, vmap=vmap, prefix=cfg.explore_prefix,
-                               reach=cfg.explore_reach, visibility_views=free_views, ball=cfg.explore_ball)
+                               reach=cfg.explore_reach, visibility_views=free_views, ball=cfg.explore_ball,
+                               ball_follow_error=cfg.explore_ball_follow_error)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S

@@ -306,13 +306,13 @@ class CollisionDetector:
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return (self.clearance(x) < self.r_safe) | ~self.seen_free(x)
 
-    def path_clearance(self, positions: np.ndarray) -> np.ndarray:
-        """The clearance each sample of a path needs: ``r_safe`` plus ``follow_error`` times the distance travelled
-        from the path's start (a video model follows the requested cameras with an error that grows along the
-        clip)."""
+    def path_clearance(self, positions: np.ndarray, follow_error: float | None = None) -> np.ndarray:
+        """The clearance each sample of a path needs: ``r_safe`` plus ``follow_error`` (default: the detector's)
+        times the distance travelled from the path's start (a video model follows the requested cameras with an
+        error that grows along the clip)."""
         x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x, axis=0), axis=1))])
-        return self.r_safe + self.follow_error * travelled
+        return self.r_safe + (self.follow_error if follow_error is None else follow_error) * travelled
 
     def path_flags(self, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per pose of ``trajectory`` [T, 4, 4]: closer to a surface than the path's clearance (an escape from a

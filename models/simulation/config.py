@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import Field
 
@@ -123,6 +123,16 @@ class SimulationConfig(_Section):
         0.7, ge=0, le=1, description="Refiner stand-in: how far a render is moved toward the true view "
         "(refined = render + strength x (truth - render) + noise; 1: a perfect refiner).")
     refine_noise: float = Field(0.02, ge=0, description="Refiner stand-in: sigma of added pixel noise (0-1 range).")
+    common_random_numbers: bool = Field(
+        False, description="Every step's random seed from the run's base seed, the scene, the step and the iteration "
+        "(tasks/steps.py step_seed) instead of from its cache key, so two runs of one scene that differ in a setting "
+        "meet the same simulated errors at the same iteration (clip drift, hallucinated variant, geometry noise, "
+        "refiner stand-in; the planner's own draws too): paired comparisons of planner variants without the "
+        "simulation's redraw noise. The cache key still holds every setting; only the seed's source changes. "
+        "False: seeds from the keys (every setting, even one nothing reads, redraws the simulation).")
+
+    # added after stores existed: keys its steps only when set (schemas.keys), so default stores and seeds stay
+    keyed_when_set: ClassVar[dict[str, Any]] = {"common_random_numbers": False}
 
     @property
     def honest(self) -> bool:

@@ -22,3 +22,22 @@ def test_ours_plan_settings_reach_the_config_and_a_bad_one_fails_at_once(tmp_pat
     with pytest.raises(SystemExit):
         planning.main(["--out", str(tmp_path / "y"), "--quick", "--ours-plan", "explore_free_space"])
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_crn_and_base_seed_reach_every_method_and_runs_with_other_draws_are_not_merged(tmp_path):
+    import json
+
+    from benchmarks import planning
+
+    assert planning.bench_config("viewcrafter_nbv", True, crn=True).simulation.common_random_numbers
+    assert not planning.bench_config("explorer", True).simulation.common_random_numbers
+    assert planning.bench_config("explorer", True, base_seed=3).seed == 3
+    parts = []
+    for crn in (True, False):
+        p = tmp_path / f"crn{crn}.json"
+        p.write_text(json.dumps({"runs": [], "methods": {"ours": {}}, "seeds": [0, 0], "quick": True,
+                                 "common_random_numbers": crn}))
+        parts.append(str(p))
+    with pytest.raises(SystemExit):
+        planning.main(["--out", str(tmp_path / "merged"), "--merge", *parts])
+    assert not (tmp_path / "merged").exists()

@@ -136,6 +136,19 @@ def test_a_frame_in_unknown_space_needs_its_whole_clearance_ball_seen_not_only_i
     assert not flags["down", 0.0].any()  # the positions alone were looked at
     assert flags["down", 1.0][-1] and flags["down", 1.0][8:].sum() >= 6  # their space above was not
     assert not flags["level", 0.0].any() and not flags["level", 1.0].any()
+    # the ball's radius: explore_ball x (r_safe + its follow error x the distance travelled), G's follow error by
+    # default (explore11), explore_ball_follow_error when set (explore12); G's clearance keeps its own
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(looking_level[:, :3, 3], axis=0), axis=1))])
+    for ball_fe, grows in ((None, 0.26), (0.07, 0.07)):
+        det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25, reach=2.0,
+                               ball=0.5, follow_error=0.26, ball_follow_error=ball_fe)
+        radii = {}
+        det.ball_seen = lambda trajectory, t, radius, radii=radii: radii.setdefault(t, radius) > 0  # records
+        near, unseen, _ = det.path_flags(looking_level)
+        assert radii and not unseen.any()
+        t = np.array(sorted(radii))
+        assert np.allclose([radii[i] for i in t], 0.5 * (0.25 + grows * travelled[t]))
+        assert np.allclose(det.path_clearance(looking_level[:, :3, 3]), 0.25 + 0.26 * travelled)
 
 
 def test_the_input_photos_sky_is_free_space_a_generated_frames_is_not():
