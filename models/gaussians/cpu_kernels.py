@@ -959,23 +959,29 @@ def gather_entries(offsets, gids, n_tiles, tile_w, tile_size, width, height, rec
     n_all = offsets.shape[0] - 1
     n, n_rec = rec.shape[1], np.uintp(rec.shape[2])
     rf, ef = rec.reshape(-1), ent.reshape(-1)  # flat, unsigned offsets: 3.79 -> 3.17 ms (RGB, one thread)
-    nxt = np.zeros(1, np.int64)  # the next tile (_take)
-    for _ in numba.prange(n_all):  # each iteration takes tiles until none is left (the later ones find none)
-        while True:
-            t = _take(nxt)
-            if t >= n_all:
-                break
-            c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
-            area = 0
-            for k in range(offsets[t], offsets[t + 1]):
-                src, dst = np.uintp(c * n + gids[k]) * n_rec, np.uintp(k) * n_rec
-                for j in range(n_rec):
-                    ef[dst + j] = rf[src + j]
-                x0, x1 = max(int(rf[src + np.uintp(R_X0)]), x_lo), min(int(rf[src + np.uintp(R_X1)]), x_hi)
-                y0, y1 = max(int(rf[src + np.uintp(R_Y0)]), y_lo), min(int(rf[src + np.uintp(R_Y1)]), y_hi)
-                if x0 < x1 and y0 < y1:
-                    area += (x1 - x0) * (y1 - y0)
-            cap[t] = area
+    for it in numba.prange(n_all):
+        t = _interleave(it, n_all)
+        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
+        area = 0
+        for k in range(offsets[t], offsets[t + 1]):
+            src, dst = np.uintp(c * n + gids[k]) * n_rec, np.uintp(k) * n_rec
+            for j in range(n_rec):
+                ef[dst + j] = rf[src + j]
+            x0, x1 = max(int(rf[src + np.uintp(R_X0)]), x_lo), min(int(rf[src + np.uintp(R_X1)]), x_hi)
+            y0, y1 = max(int(rf[src + np.uintp(R_Y0)]), y_lo), min(int(rf[src + np.uintp(R_Y1)]), y_hi)
+            if x0 < x1 and y0 < y1:
+                area += (x1 - x0) * (y1 - y0)
+        cap[t] = area
+
+
+@_ijit
+def _interleave(i, n):
+    """The tile of parallel iteration ``i`` of ``n``: the even tiles first, then the odd ones. numba's pool gives
+    each thread one contiguous range of iterations, so each thread gets every other tile of the whole image
+    instead of its top or bottom half (a scene's sky and ground cost differently); which thread renders a tile
+    never changes its result."""
+    half = (n + 1) // 2
+    return 2 * i if i < half else 2 * (i - half) + 1
 
 
 @intrinsic
