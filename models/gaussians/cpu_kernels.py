@@ -20,6 +20,8 @@ import os
 
 import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 # numba's own thread pool, unless the user chose a layer: its OpenMP layer pays ~8 ms per parallel call when
 # torch's OpenMP threads spin beside it (OMP_WAIT_POLICY unset); callers serialise calls (cpu_rasterize's lock),
@@ -982,6 +984,21 @@ def _interleave(i, n):
     return 2 * i if i < half else 2 * (i - half) + 1
 
 
+@intrinsic
+def _take(typingctx, counter):
+    """``counter[0]``'s value before adding one to it, atomically (an int64 array): the compositing's threads
+    take their next tile from one counter (numba's pool gives each thread a fixed range of a ``prange``, so a
+    thread that starts late, or loses its core for a while, would hold the others up at the loop's end)."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
+        return None
+
+    def codegen(context, builder, sig, args):
+        arr = context.make_array(sig.args[0])(context, builder, args[0])
+        return builder.atomic_rmw("add", arr.data, context.get_constant(types.int64, 1), "monotonic")
+
+    return types.int64(counter), codegen
+
+
 @_ijit
 def _tile(t, n_tiles, tile_w, tile_size, width, height):
     """Camera and pixel bounds ``[x_lo, x_hi) x [y_lo, y_hi)`` of tile ``t`` (``camera * n_tiles + row *
@@ -1072,111 +1089,116 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
     n_feat = render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
-    for it in numba.prange(n_cam * n_tiles):
-        t = _interleave(it, n_cam * n_tiles)
-        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
-        lo, hi = offsets[t], offsets[t + 1]
-        tw = x_hi - x_lo
-        n_px = tw * (y_hi - y_lo)
-        T = np.ones(n_px, cst.dtype)
-        acc = np.zeros(n_px * n_feat, cst.dtype)
-        done = np.zeros(n_px, dtype=np.bool_)
-        cp = np.empty(n_px, np.uintp)  # one entry's candidate pixels: index in the tile,
-        cq = np.empty(n_px, np.int32)  # row << 16 | column (what forward records),
-        cs = np.empty(n_px, cst.dtype)  # sigma, then exp(-sigma)
-        xc = np.empty(tw, cst.dtype)
-        for i in range(tw):
-            xc[i] = x_lo + i + 0.5
-        yc = np.empty(y_hi - y_lo, cst.dtype)
-        for i in range(y_hi - y_lo):
-            yc[i] = y_lo + i + 0.5
-        n_done = 0
-        j = pbase[t]
-        for k in range(lo, hi):
-            if n_done == n_px:
-                for kk in range(k, hi):
-                    pend[kk] = j
+    n_all = n_cam * n_tiles
+    nxt = np.zeros(1, np.int64)  # the next tile (_take)
+    for _ in numba.prange(n_all):  # each iteration takes tiles until none is left (the later ones find none)
+        while True:
+            t = _take(nxt)
+            if t >= n_all:
                 break
-            e_ = ent[k]
-            x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
-            y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
-            if x0 < x1 and y0 < y1:
-                mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
-                o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
-                c0 = e_[R_FEAT] if n_feat > 0 else zero
-                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
-                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
-                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
-                # three passes per entry: (1) the candidates (sigma within the cut, pixel not stopped), compacted
-                # without branches; (2) their exp, a loop with nothing else live across libm's call (in one loop
-                # with the compositing, the call's clobbered registers made every value a stack reload: 21.2 ->
-                # 16.9 ms at 100k x 256², one thread); (3) the compositing of the candidates, in the same
-                # (row-major) order as a per-pixel loop: the same arithmetic, results and recorded pairs. The
-                # narrow and the spanned boxes are separate loop nests (a per-row choice cost ~1 ms there).
-                n = np.uintp(0)
-                if x1 - x0 <= NARROW_BOX:
-                    for py in range(y0, y1):
-                        dy = yc[py - y_lo] - my
-                        n = _row_candidates(py - y_lo, dy, x0, x1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero,
-                                            done, cp, cq, cs, n)
-                else:
-                    for py in range(y0, y1):
-                        dy = yc[py - y_lo] - my
-                        rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
-                        n = _row_candidates(py - y_lo, dy, rx0, rx1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero,
-                                            done, cp, cq, cs, n)
-                for i in range(n):
-                    cs[i] = math.exp(-cs[i])
-                # one loop per feature count (RGB, RGB + depth unrolled): no per-pair test of the count
-                # (measured: 18.1 -> 17.4 ms RGB, 18.0 -> 17.4 ms SH3 + RGB+ED, one thread, medians of 15)
-                if n_feat == 3:
+            c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
+            lo, hi = offsets[t], offsets[t + 1]
+            tw = x_hi - x_lo
+            n_px = tw * (y_hi - y_lo)
+            T = np.ones(n_px, cst.dtype)
+            acc = np.zeros(n_px * n_feat, cst.dtype)
+            done = np.zeros(n_px, dtype=np.bool_)
+            cp = np.empty(n_px, np.uintp)  # one entry's candidate pixels: index in the tile,
+            cq = np.empty(n_px, np.int32)  # row << 16 | column (what forward records),
+            cs = np.empty(n_px, cst.dtype)  # sigma, then exp(-sigma)
+            xc = np.empty(tw, cst.dtype)
+            for i in range(tw):
+                xc[i] = x_lo + i + 0.5
+            yc = np.empty(y_hi - y_lo, cst.dtype)
+            for i in range(y_hi - y_lo):
+                yc[i] = y_lo + i + 0.5
+            n_done = 0
+            j = pbase[t]
+            for k in range(lo, hi):
+                if n_done == n_px:
+                    for kk in range(k, hi):
+                        pend[kk] = j
+                    break
+                e_ = ent[k]
+                x0, x1 = max(int(e_[R_X0]), x_lo), min(int(e_[R_X1]), x_hi)
+                y0, y1 = max(int(e_[R_Y0]), y_lo), min(int(e_[R_Y1]), y_hi)
+                if x0 < x1 and y0 < y1:
+                    mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
+                    o, cut, inv_q0 = e_[R_O], e_[R_CUT], e_[R_INVQ0]
+                    c0 = e_[R_FEAT] if n_feat > 0 else zero
+                    c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                    c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                    c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                    # three passes per entry: (1) the candidates (sigma within the cut, pixel not stopped), compacted
+                    # without branches; (2) their exp, a loop with nothing else live across libm's call (in one loop
+                    # with the compositing, the call's clobbered registers made every value a stack reload: 21.2 ->
+                    # 16.9 ms at 100k x 256², one thread); (3) the compositing of the candidates, in the same
+                    # (row-major) order as a per-pixel loop: the same arithmetic, results and recorded pairs. The
+                    # narrow and the spanned boxes are separate loop nests (a per-row choice cost ~1 ms there).
+                    n = np.uintp(0)
+                    if x1 - x0 <= NARROW_BOX:
+                        for py in range(y0, y1):
+                            dy = yc[py - y_lo] - my
+                            n = _row_candidates(py - y_lo, dy, x0, x1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero,
+                                                done, cp, cq, cs, n)
+                    else:
+                        for py in range(y0, y1):
+                            dy = yc[py - y_lo] - my
+                            rx0, rx1 = _row_span(dy, mx, q0, inv_q0, q1, q2, cut, half, zero, two, x0, x1)
+                            n = _row_candidates(py - y_lo, dy, rx0, rx1, x_lo, tw, xc, mx, q0, q1, q2, cut, half, zero,
+                                                done, cp, cq, cs, n)
                     for i in range(n):
-                        p = cp[i]
-                        w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
-                        if state != 2:
-                            n_done += state  # 1: the pixel stopped here
-                            continue
-                        b3 = p * _U3
-                        acc[b3] += w * c0
-                        acc[b3 + _U1] += w * c1
-                        acc[b3 + _U2] += w * c2
-                        if record:
-                            _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
-                            j += 1
-                elif n_feat == 4:
-                    for i in range(n):
-                        p = cp[i]
-                        w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
-                        if state != 2:
-                            n_done += state  # 1: the pixel stopped here
-                            continue
-                        b4 = p * _U4
-                        acc[b4] += w * c0
-                        acc[b4 + _U1] += w * c1
-                        acc[b4 + _U2] += w * c2
-                        acc[b4 + _U3] += w * c3
-                        if record:
-                            _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
-                            j += 1
-                else:
-                    for i in range(n):
-                        p = cp[i]
-                        w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
-                        if state != 2:
-                            n_done += state  # 1: the pixel stopped here
-                            continue
-                        for f in range(n_feat):
-                            acc[p * np.uintp(n_feat) + np.uintp(f)] += w * e_[R_FEAT + f]
-                        if record:
-                            _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
-                            j += 1
-            pend[k] = j
-        for py in range(y_lo, y_hi):
-            for px in range(x_lo, x_hi):
-                p = (py - y_lo) * tw + (px - x_lo)
-                for f in range(n_feat):
-                    render[c, py, px, f] = acc[p * n_feat + f] + (T[p] * backgrounds[c, f] if use_bg else zero)
-                t_final[c, py, px] = T[p]
+                        cs[i] = math.exp(-cs[i])
+                    # one loop per feature count (RGB, RGB + depth unrolled): no per-pair test of the count
+                    # (measured: 18.1 -> 17.4 ms RGB, 18.0 -> 17.4 ms SH3 + RGB+ED, one thread, medians of 15)
+                    if n_feat == 3:
+                        for i in range(n):
+                            p = cp[i]
+                            w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
+                            if state != 2:
+                                n_done += state  # 1: the pixel stopped here
+                                continue
+                            b3 = p * _U3
+                            acc[b3] += w * c0
+                            acc[b3 + _U1] += w * c1
+                            acc[b3 + _U2] += w * c2
+                            if record:
+                                _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
+                                j += 1
+                    elif n_feat == 4:
+                        for i in range(n):
+                            p = cp[i]
+                            w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
+                            if state != 2:
+                                n_done += state  # 1: the pixel stopped here
+                                continue
+                            b4 = p * _U4
+                            acc[b4] += w * c0
+                            acc[b4 + _U1] += w * c1
+                            acc[b4 + _U2] += w * c2
+                            acc[b4 + _U3] += w * c3
+                            if record:
+                                _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
+                                j += 1
+                    else:
+                        for i in range(n):
+                            p = cp[i]
+                            w, tp, state = _pair_weight(p, cs[i], o, alpha_clamp, athr, tstop, one, zero, T, done)
+                            if state != 2:
+                                n_done += state  # 1: the pixel stopped here
+                                continue
+                            for f in range(n_feat):
+                                acc[p * np.uintp(n_feat) + np.uintp(f)] += w * e_[R_FEAT + f]
+                            if record:
+                                _record_pair(pix, pes, pts, np.uintp(j), cq[i], cs[i], tp)
+                                j += 1
+                pend[k] = j
+            for py in range(y_lo, y_hi):
+                for px in range(x_lo, x_hi):
+                    p = (py - y_lo) * tw + (px - x_lo)
+                    for f in range(n_feat):
+                        render[c, py, px, f] = acc[p * n_feat + f] + (T[p] * backgrounds[c, f] if use_bg else zero)
+                    t_final[c, py, px] = T[p]
 
 
 @_pfjit
@@ -1201,99 +1223,104 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
     n_feat = v_render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
     n_tiles = tile_w * tile_h
-    for it in numba.prange(n_cam * n_tiles):
-        t = _interleave(it, n_cam * n_tiles)
-        c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
-        lo, hi = offsets[t], offsets[t + 1]
-        tw = x_hi - x_lo
-        n_px = tw * (y_hi - y_lo)
-        B = np.empty(n_px, cst.dtype)
-        vr = np.empty(n_px * n_feat, cst.dtype)
-        gcol = np.empty(n_feat, cst.dtype)
-        utw, unf = np.uintp(tw), np.uintp(n_feat)
-        xc = np.empty(tw, cst.dtype)
-        for i in range(tw):
-            xc[i] = x_lo + i + 0.5
-        yc = np.empty(y_hi - y_lo, cst.dtype)
-        for i in range(y_hi - y_lo):
-            yc[i] = y_lo + i + 0.5
-        for py in range(y_lo, y_hi):
-            for px in range(x_lo, x_hi):
-                p = (py - y_lo) * tw + (px - x_lo)
-                bp = -v_alphas[c, py, px]
+    n_all = n_cam * n_tiles
+    nxt = np.zeros(1, np.int64)  # the next tile (_take)
+    for _ in numba.prange(n_all):  # each iteration takes tiles until none is left (the later ones find none)
+        while True:
+            t = _take(nxt)
+            if t >= n_all:
+                break
+            c, x_lo, x_hi, y_lo, y_hi = _tile(t, n_tiles, tile_w, tile_size, width, height)
+            lo, hi = offsets[t], offsets[t + 1]
+            tw = x_hi - x_lo
+            n_px = tw * (y_hi - y_lo)
+            B = np.empty(n_px, cst.dtype)
+            vr = np.empty(n_px * n_feat, cst.dtype)
+            gcol = np.empty(n_feat, cst.dtype)
+            utw, unf = np.uintp(tw), np.uintp(n_feat)
+            xc = np.empty(tw, cst.dtype)
+            for i in range(tw):
+                xc[i] = x_lo + i + 0.5
+            yc = np.empty(y_hi - y_lo, cst.dtype)
+            for i in range(y_hi - y_lo):
+                yc[i] = y_lo + i + 0.5
+            for py in range(y_lo, y_hi):
+                for px in range(x_lo, x_hi):
+                    p = (py - y_lo) * tw + (px - x_lo)
+                    bp = -v_alphas[c, py, px]
+                    for f in range(n_feat):
+                        vf = v_render[c, py, px, f]
+                        vr[p * n_feat + f] = vf
+                        if use_bg:
+                            bp += vf * backgrounds[c, f]
+                    B[p] = bp
+            for k in range(hi - 1, lo - 1, -1):
+                # per-entry sums in the compositing dtype (float32 in a fit: ~12 pairs per entry at 100k x 256²; no
+                # float64 conversion and add per term), summed over entries in float64 by gather_slots
+                g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = zero
+                g0 = g1 = g2 = g3 = zero  # the unrolled features' sums (gcol otherwise)
                 for f in range(n_feat):
-                    vf = v_render[c, py, px, f]
-                    vr[p * n_feat + f] = vf
-                    if use_bg:
-                        bp += vf * backgrounds[c, f]
-                B[p] = bp
-        for k in range(hi - 1, lo - 1, -1):
-            # per-entry sums in the compositing dtype (float32 in a fit: ~12 pairs per entry at 100k x 256²; no
-            # float64 conversion and add per term), summed over entries in float64 by gather_slots
-            g_mx = g_my = g_q0 = g_q1 = g_q2 = g_o = zero
-            g0 = g1 = g2 = g3 = zero  # the unrolled features' sums (gcol otherwise)
-            for f in range(n_feat):
-                gcol[f] = zero
-            j0 = pend[k - 1] if k > lo else pbase[t]
-            j1 = pend[k]
-            if j1 > j0:
-                e_ = ent[k]
-                mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
-                o = e_[R_O]
-                c0 = e_[R_FEAT] if n_feat > 0 else zero
-                c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
-                c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
-                c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
-                for jj in range(j0, j1):
-                    j = np.uintp(jj)  # unsigned indices: no negative-index wraparound on every access
-                    pv = np.uintp(pix[j])
-                    lx, ly = pv & _UFFFF, pv >> _U16
-                    p = ly * utw + lx
-                    e = pes[j]
-                    Ti = pts[j]
-                    raw = o * e
-                    alpha = min(alpha_clamp, raw)
-                    w = alpha * Ti
-                    if n_feat == 3 or n_feat == 4:  # RGB, RGB + depth: unrolled
-                        b = p * unf
-                        vc0, vc1, vc2 = vr[b], vr[b + _U1], vr[b + _U2]
-                        g0 += w * vc0
-                        g1 += w * vc1
-                        g2 += w * vc2
-                        d = vc0 * c0 + vc1 * c1 + vc2 * c2
-                        if n_feat == 4:
-                            vc3 = vr[b + _U3]
-                            g3 += w * vc3
-                            d += vc3 * c3
-                    else:
-                        d = zero
-                        for f in range(n_feat):
-                            vc = vr[p * unf + np.uintp(f)]
-                            gcol[f] += w * vc
-                            d += vc * e_[R_FEAT + f]
-                    bp = B[p]
-                    diff = d - bp
-                    B[p] = bp + alpha * diff
-                    if raw <= alpha_clamp:
-                        v_alpha = Ti * diff
-                        g_o += v_alpha * e
-                        v_sigma = -v_alpha * alpha
-                        hv = half * v_sigma
-                        dx = xc[lx] - mx
-                        dy = yc[ly] - my
-                        g_q0 += hv * dx * dx
-                        g_q1 += v_sigma * dx * dy
-                        g_q2 += hv * dy * dy
-                        g_mx -= v_sigma * (q0 * dx + q1 * dy)
-                        g_my -= v_sigma * (q1 * dx + q2 * dy)
-            slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
-            slots[k, 5] = g_o
-            if n_feat == 3 or n_feat == 4:
-                gcol[0], gcol[1], gcol[2] = g0, g1, g2
-                if n_feat == 4:
-                    gcol[3] = g3
-            for f in range(n_feat):
-                slots[k, 6 + f] = gcol[f]
+                    gcol[f] = zero
+                j0 = pend[k - 1] if k > lo else pbase[t]
+                j1 = pend[k]
+                if j1 > j0:
+                    e_ = ent[k]
+                    mx, my, q0, q1, q2 = e_[R_MX], e_[R_MY], e_[R_Q0], e_[R_Q1], e_[R_Q2]
+                    o = e_[R_O]
+                    c0 = e_[R_FEAT] if n_feat > 0 else zero
+                    c1 = e_[R_FEAT + 1] if n_feat > 1 else zero
+                    c2 = e_[R_FEAT + 2] if n_feat > 2 else zero
+                    c3 = e_[R_FEAT + 3] if n_feat > 3 else zero
+                    for jj in range(j0, j1):
+                        j = np.uintp(jj)  # unsigned indices: no negative-index wraparound on every access
+                        pv = np.uintp(pix[j])
+                        lx, ly = pv & _UFFFF, pv >> _U16
+                        p = ly * utw + lx
+                        e = pes[j]
+                        Ti = pts[j]
+                        raw = o * e
+                        alpha = min(alpha_clamp, raw)
+                        w = alpha * Ti
+                        if n_feat == 3 or n_feat == 4:  # RGB, RGB + depth: unrolled
+                            b = p * unf
+                            vc0, vc1, vc2 = vr[b], vr[b + _U1], vr[b + _U2]
+                            g0 += w * vc0
+                            g1 += w * vc1
+                            g2 += w * vc2
+                            d = vc0 * c0 + vc1 * c1 + vc2 * c2
+                            if n_feat == 4:
+                                vc3 = vr[b + _U3]
+                                g3 += w * vc3
+                                d += vc3 * c3
+                        else:
+                            d = zero
+                            for f in range(n_feat):
+                                vc = vr[p * unf + np.uintp(f)]
+                                gcol[f] += w * vc
+                                d += vc * e_[R_FEAT + f]
+                        bp = B[p]
+                        diff = d - bp
+                        B[p] = bp + alpha * diff
+                        if raw <= alpha_clamp:
+                            v_alpha = Ti * diff
+                            g_o += v_alpha * e
+                            v_sigma = -v_alpha * alpha
+                            hv = half * v_sigma
+                            dx = xc[lx] - mx
+                            dy = yc[ly] - my
+                            g_q0 += hv * dx * dx
+                            g_q1 += v_sigma * dx * dy
+                            g_q2 += hv * dy * dy
+                            g_mx -= v_sigma * (q0 * dx + q1 * dy)
+                            g_my -= v_sigma * (q1 * dx + q2 * dy)
+                slots[k, 0], slots[k, 1], slots[k, 2], slots[k, 3], slots[k, 4] = g_mx, g_my, g_q0, g_q1, g_q2
+                slots[k, 5] = g_o
+                if n_feat == 3 or n_feat == 4:
+                    gcol[0], gcol[1], gcol[2] = g0, g1, g2
+                    if n_feat == 4:
+                        gcol[3] = g3
+                for f in range(n_feat):
+                    slots[k, 6 + f] = gcol[f]
 
 
 @_pjit
