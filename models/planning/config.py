@@ -122,6 +122,12 @@ class PlanConfig(_Section):
         "(explore_follow_error, the drift's 99 % quantile; the rule of explore11); 0.07: about the simulated "
         "drift's median (a half-normal of mean drift_trans 0.08 has median 0.068), a ball that never shrinks "
         "below r_safe and grows a quarter as fast (explore12).")
+    explore_ball_up: bool = Field(
+        False, description="explorer: the clearance ball of explore_ball probed only above the frame (the 9 of its 26 "
+        "directions that rise from the ground plane by more than 30 deg); the space beside and below it is not asked "
+        "for. False: every direction (explore11). Why: development room 2 of CRN base seed 1 (collide13): the "
+        "default's clip 3 ended 0.53 m below a ceiling no frame had seen, admitted in unknown space; the full ball "
+        "costs streets seen.")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
         "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
@@ -170,7 +176,7 @@ class PlanConfig(_Section):
                                                 "explore_free_space": "anchored", "explore_anchor_tolerance": 0.08,
                                                 "explore_invented_share": 0.0, "explore_follow_error": None,
                                                 "explore_reach": 1.0, "explore_sky": "free", "explore_ball": 0.0,
-                                                "explore_ball_follow_error": None,
+                                                "explore_ball_follow_error": None, "explore_ball_up": False,
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")

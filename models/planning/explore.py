@@ -31,7 +31,8 @@ with three levers:
    are free or unknown (nothing observed in the way): the clip then shows that space before the camera enters it.
    The first ``explore_prefix`` of the clip's frames stay in seen free space, a prefix to fall back on. The clearance
    (r_safe plus the follow error along the path) from every observed surface is G's. With ``explore_ball`` > 0 such a
-   frame's clearance ball must have been seen or looked at too (``ExplorerDetector.ball_seen``).
+   frame's clearance ball must have been seen or looked at too (``ExplorerDetector.ball_seen``; with
+   ``explore_ball_up`` only the part of it above the frame).
 
 The best trajectory that G passes is taken; when none passes, the best few are handed to the collision
 optimisation (with their end poses), then the next ones; with no safe path the camera stays put.
@@ -162,12 +163,14 @@ class ExplorerDetector(CollisionDetector):
     """G with optimistic-but-safe unknown space (module docstring, lever 3) for whole trajectories."""
 
     def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
-                 ball: float = 0.0, ball_follow_error: float | None = None, **kwargs) -> None:
+                 ball: float = 0.0, ball_follow_error: float | None = None, ball_up: bool = False,
+                 **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.ball = float(ball)  # ``plan.explore_ball``: share of the clearance whose ball must be seen (0: off)
         # ``plan.explore_ball_follow_error``: what the ball grows with along the path (None: G's follow error)
         self.ball_follow_error = self.follow_error if ball_follow_error is None else float(ball_follow_error)
+        self.ball_up = bool(ball_up)  # ``plan.explore_ball_up``: the ball's probes only above the frame
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
 
     def start_radius(self) -> float:
@@ -214,7 +217,11 @@ class ExplorerDetector(CollisionDetector):
         the space above a frame high in S (a ceiling) lies outside every frustum of its clip though the position
         itself was in view (explore10: room 0, an unseen ceiling 0.30 m above a dolly's end)."""
         x = trajectory[t, :3, 3]
-        probes = (x[None, None] + np.array([0.5, 1.0])[:, None, None] * radius * _directions26()[None]).reshape(-1, 3)
+        dirs = _directions26()
+        if self.ball_up:  # only the directions rising from the ground plane (from the clip's first camera without one)
+            up = self.ground[0] if self.ground is not None else -trajectory[0, :3, 1]
+            dirs = dirs[dirs @ (up / np.linalg.norm(up)) > 0.5]
+        probes = (x[None, None] + np.array([0.5, 1.0])[:, None, None] * radius * dirs[None]).reshape(-1, 3)
         free, occluded = self._visibility(probes)
         idx, _ = self.vmap.lookup(probes)
         occluded = occluded | np.where(idx >= 0, self.vmap.occluded[np.maximum(idx, 0)], False)
@@ -473,7 +480,7 @@ class ExplorerPlanner:
                                follow_error=cfg.follow_error if cfg.explore_follow_error is None
                                else cfg.explore_follow_error, vmap=vmap, prefix=cfg.explore_prefix,
                                reach=cfg.explore_reach, visibility_views=free_views, ball=cfg.explore_ball,
-                               ball_follow_error=cfg.explore_ball_follow_error)
+                               ball_follow_error=cfg.explore_ball_follow_error, ball_up=cfg.explore_ball_up)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S

@@ -136,6 +136,17 @@ def test_a_frame_in_unknown_space_needs_its_whole_clearance_ball_seen_not_only_i
     assert not flags["down", 0.0].any()  # the positions alone were looked at
     assert flags["down", 1.0][-1] and flags["down", 1.0][8:].sum() >= 6  # their space above was not
     assert not flags["level", 0.0].any() and not flags["level", 1.0].any()
+    # explore_ball_up (collide13): only the ball above the frame is asked for. Looking up instead (the space above
+    # each position in view, the space below never), the whole ball refuses the clip and the upper ball admits it;
+    # looking down, the upper ball refuses it as the whole ball does
+    looking_up = clip(heading - down)
+    for name, path, refused in (("up", looking_up, (True, False)), ("down", looking_down, (True, True))):
+        for up, want in zip((False, True), refused):
+            det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25,
+                                   reach=2.0, ball=1.0, ball_up=up)
+            near, unseen, _ = det.path_flags(path)
+            assert not near.any()
+            assert bool(unseen[8:].any()) == want, (name, up)
     # the ball's radius: explore_ball x (r_safe + its follow error x the distance travelled), G's follow error by
     # default (explore11), explore_ball_follow_error when set (explore12); G's clearance keeps its own
     travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(looking_level[:, :3, 3], axis=0), axis=1))])
