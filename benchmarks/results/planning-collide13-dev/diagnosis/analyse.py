@@ -29,24 +29,18 @@ from navcrafter.tasks.plan import planning_state  # noqa: E402
 from navcrafter.tasks.readers import true_cameras  # noqa: E402
 from navcrafter.tasks.steps import step_seed  # noqa: E402
 
-path, base = sys.argv[1], int(sys.argv[2])
-variant = dict(a.split("=", 1) for a in sys.argv[3:])
-config = planning.bench_config("explorer", True, None, variant or None, crn=True, base_seed=base)
-cfg = config.plan
-e = cfg.follow_error if cfg.explore_follow_error is None else cfg.explore_follow_error
-store = Store(path)
-sid = store.scene_ids()[0]
-scene = store.scene(sid)
-truth = simulation_truth(scene)
-ws = truth.world_scale
-r_m = cfg.safe_radius / ws
-rc, _ = truth.scene.raycasting()
-names = [o.name for o in truth.scene.objects]
-Kt = truth.intrinsics_for(128, 128)
-print(f"r_safe {cfg.safe_radius:.3f} u = {r_m:.3f} m; follow error {e}; world_scale {ws:.4f}")
+
+def setup(path: str, base: int, variant: dict):
+    """The store's scene, its truth and the run's config (the CRN bench config with ``variant``)."""
+    config = planning.bench_config("explorer", True, None, variant or None, crn=True, base_seed=base)
+    store = Store(path)
+    sid = store.scene_ids()[0]
+    return config, sid, store.scene(sid)
 
 
-def detector(k: int):
+def detector(scene, sid: str, config, k: int):
+    """G as the explorer built it at iteration ``k`` (CRN: the plan step's seed from base seed, scene, step, k)."""
+    cfg = config.plan
     state = planning_state(scene, k, config)
     rng = np.random.default_rng(step_seed(sid, PLAN, k, config, ""))
     points = planning_cloud(state, cfg.safe_radius)
@@ -54,54 +48,71 @@ def detector(k: int):
     seen = replace(state, views=ex.open_sky(state.views)) if cfg.explore_sky == "free" else state
     free_views = ex.carving_views(seen.views, cfg.explore_free_space, cfg.explore_invented_share)
     vmap = ex.VoxelMap.build(seen, points, cfg.explore_voxels, free_views=free_views)
-    return ex.ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground, follow_error=e,
-                               vmap=vmap, prefix=cfg.explore_prefix, reach=cfg.explore_reach,
-                               visibility_views=free_views, ball=cfg.explore_ball,
-                               ball_follow_error=cfg.explore_ball_follow_error)
+    e = cfg.follow_error if cfg.explore_follow_error is None else cfg.explore_follow_error
+    return state, ex.ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
+                                      follow_error=e, vmap=vmap, prefix=cfg.explore_prefix, reach=cfg.explore_reach,
+                                      visibility_views=free_views, ball=cfg.explore_ball,
+                                      ball_follow_error=cfg.explore_ball_follow_error, ball_up=cfg.explore_ball_up)
 
 
-for k in range(1, config.iterations + 1):
-    plan = np.asarray(scene.read(PLAN, k, "trajectory"), dtype=np.float64)
-    true = np.asarray(scene.read(SYNTHESIZE, k, "true_c2w"), dtype=np.float64)
-    xp, xt = plan[:, :3, 3], true[:, :3, 3]
-    travelled = np.r_[0, np.cumsum(np.linalg.norm(np.diff(xp, axis=0), axis=1))]
-    L = float(travelled[-1])
-    moved = true[0] @ np.linalg.inv(plan[0]) @ plan
-    drift = np.linalg.norm(xt - moved[:, :3, 3], axis=1)
-    need_m = (cfg.safe_radius + e * travelled) / ws
-    cp = truth.scene.distance(truth.gt_points(xp))
-    ct = truth.scene.distance(truth.gt_points(xt))
-    a = scene.status(PLAN, k).attrs
-    print(f"clip {k} ({a.get('fallback') or 'best'}/{a.get('shape')}): path {L:.2f} u, end drift {drift[-1]:.3f} u "
-          f"({drift[-1] / max(L, 1e-9):.1%} of path; G allows {e:.0%}), margin (planned true clearance / demanded) "
-          f"{(cp / need_m).min():.2f}, min true clearance planned {cp.min():.3f} m / true {ct.min():.3f} m")
-    hit = np.flatnonzero(ct < r_m)
-    if len(hit) == 0:
-        continue
-    det = detector(k)
-    near, unseen, _ = det.path_flags(plan)
-    free, _ = det._visibility(xp)
-    start_nb = np.linalg.norm(xp - xp[0], axis=1) < det.start_radius()
-    cams = np.concatenate([truth.photo_c2w[None]] + [truth.gt_pose(true_cameras(scene, j)) for j in range(1, k)]
-                          + [truth.gt_pose(true[:i]) for i in [int(hit[0])] if i > 0])
-    depths = list(render_many(truth.scene, cams, Kt, colour=False).depth)
-    cloud = truth.gt_points(load_cloud(scene, k - 1).points)
-    tree = cKDTree(cloud)
-    print(f"   G of these settings on the stored plan: near flags {np.flatnonzero(near).tolist()}, unadmitted "
-          f"{np.flatnonzero(unseen).tolist()} (the default planned it: [] [] under the default's settings)")
-    for i in hit:
-        x_gt = truth.gt_points(xt[i][None])
-        ans = rc.compute_closest_points(o3d.core.Tensor(x_gt.astype(np.float32)))
-        P = ans["points"].numpy()[0]
-        gid = int(ans["geometry_ids"].numpy()[0])
-        how = "seen free" if free[i] else ("start neighbourhood" if start_nb[i] else "rule 3 (looked at)")
-        g = P + np.stack(np.meshgrid(*[np.linspace(-0.3, 0.3, 13)] * 3, indexing="ij"), -1).reshape(-1, 3)
-        sp = rc.compute_closest_points(o3d.core.Tensor(g.astype(np.float32)))["points"].numpy()
-        sp = np.unique(np.round(sp[np.linalg.norm(sp - P, axis=1) < 0.3], 3), axis=0)
-        s = seen_mask(sp, cams, Kt.K, depths)
-        dcl, _ = tree.query(P)
-        print(f"   frame {i}: true clr {ct[i]:.3f} m (planned {cp[i]:.3f} m, demanded {need_m[i]:.3f} m); "
-              f"drift {drift[i]:.3f} u = {drift[i] / max(travelled[i], 1e-9):.1%} of distance travelled "
-              f"{travelled[i]:.2f} u; nearest surface '{names[gid]}' offset {np.round(P - x_gt[0], 2)} m; "
-              f"planned pose admitted: {how}; surface seen by earlier true frames {s.mean():.2f} "
-              f"({len(sp)} pts), nearest cloud point {dcl:.2f} m")
+def main() -> None:
+    path, base = sys.argv[1], int(sys.argv[2])
+    config, sid, scene = setup(path, base, dict(a.split("=", 1) for a in sys.argv[3:]))
+    cfg = config.plan
+    e = cfg.follow_error if cfg.explore_follow_error is None else cfg.explore_follow_error
+    truth = simulation_truth(scene)
+    ws = truth.world_scale
+    r_m = cfg.safe_radius / ws
+    rc, _ = truth.scene.raycasting()
+    names = [o.name for o in truth.scene.objects]
+    Kt = truth.intrinsics_for(128, 128)
+    print(f"r_safe {cfg.safe_radius:.3f} u = {r_m:.3f} m; follow error {e}; world_scale {ws:.4f}")
+    for k in range(1, config.iterations + 1):
+        plan = np.asarray(scene.read(PLAN, k, "trajectory"), dtype=np.float64)
+        true = np.asarray(scene.read(SYNTHESIZE, k, "true_c2w"), dtype=np.float64)
+        xp, xt = plan[:, :3, 3], true[:, :3, 3]
+        travelled = np.r_[0, np.cumsum(np.linalg.norm(np.diff(xp, axis=0), axis=1))]
+        L = float(travelled[-1])
+        moved = true[0] @ np.linalg.inv(plan[0]) @ plan
+        drift = np.linalg.norm(xt - moved[:, :3, 3], axis=1)
+        need_m = (cfg.safe_radius + e * travelled) / ws
+        cp = truth.scene.distance(truth.gt_points(xp))
+        ct = truth.scene.distance(truth.gt_points(xt))
+        a = scene.status(PLAN, k).attrs
+        print(f"clip {k} ({a.get('fallback') or 'best'}/{a.get('shape')}): path {L:.2f} u, end drift {drift[-1]:.3f} u "
+              f"({drift[-1] / max(L, 1e-9):.1%} of path; G allows {e:.0%}), margin (planned true clearance / demanded) "
+              f"{(cp / need_m).min():.2f}, min true clearance planned {cp.min():.3f} m / true {ct.min():.3f} m")
+        hit = np.flatnonzero(ct < r_m)
+        if len(hit) == 0:
+            continue
+        _, det = detector(scene, sid, config, k)
+        near, unseen, _ = det.path_flags(plan)
+        free, _ = det._visibility(xp)
+        start_nb = np.linalg.norm(xp - xp[0], axis=1) < det.start_radius()
+        cams = np.concatenate([truth.photo_c2w[None]] + [truth.gt_pose(true_cameras(scene, j)) for j in range(1, k)]
+                              + [truth.gt_pose(true[:i]) for i in [int(hit[0])] if i > 0])
+        depths = list(render_many(truth.scene, cams, Kt, colour=False).depth)
+        cloud = truth.gt_points(load_cloud(scene, k - 1).points)
+        tree = cKDTree(cloud)
+        print(f"   G of these settings on the stored plan: near flags {np.flatnonzero(near).tolist()}, unadmitted "
+              f"{np.flatnonzero(unseen).tolist()} (the default planned it: [] [] under the default's settings)")
+        for i in hit:
+            x_gt = truth.gt_points(xt[i][None])
+            ans = rc.compute_closest_points(o3d.core.Tensor(x_gt.astype(np.float32)))
+            P = ans["points"].numpy()[0]
+            gid = int(ans["geometry_ids"].numpy()[0])
+            how = "seen free" if free[i] else ("start neighbourhood" if start_nb[i] else "rule 3 (looked at)")
+            g = P + np.stack(np.meshgrid(*[np.linspace(-0.3, 0.3, 13)] * 3, indexing="ij"), -1).reshape(-1, 3)
+            sp = rc.compute_closest_points(o3d.core.Tensor(g.astype(np.float32)))["points"].numpy()
+            sp = np.unique(np.round(sp[np.linalg.norm(sp - P, axis=1) < 0.3], 3), axis=0)
+            s = seen_mask(sp, cams, Kt.K, depths)
+            dcl, _ = tree.query(P)
+            print(f"   frame {i}: true clr {ct[i]:.3f} m (planned {cp[i]:.3f} m, demanded {need_m[i]:.3f} m); "
+                  f"drift {drift[i]:.3f} u = {drift[i] / max(travelled[i], 1e-9):.1%} of distance travelled "
+                  f"{travelled[i]:.2f} u; nearest surface '{names[gid]}' offset {np.round(P - x_gt[0], 2)} m; "
+                  f"planned pose admitted: {how}; surface seen by earlier true frames {s.mean():.2f} "
+                  f"({len(sp)} pts), nearest cloud point {dcl:.2f} m")
+
+
+if __name__ == "__main__":
+    main()
