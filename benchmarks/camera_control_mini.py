@@ -646,7 +646,7 @@ def sample_videos(model, clips: list[dict], encoders, *, plucker_from: list[dict
             if plucker_from is not None:
                 c["plucker"] = clip_conditions(model, plucker_from[i], device)["plucker"]
             cs.append(c)
-        z = sample_clip(net, cs[0] if len(cs) == 1 else stack_conditions(cs),
+        z = sample_clip(net, stack_conditions(cs),
                         seed=[seed + start + j for j in range(len(cs))], steps=steps, guidance_scale=1.0,
                         lora_scale=lora, flow_shift=shift)
         out.extend(video_to_frames(encoders.decode_video(zi.float().cpu().numpy())) for zi in z)
