@@ -10,9 +10,10 @@ optionally beside the kernels of another git revision in the same process (the t
 Process CPU time (``time.process_time``) on one numba thread and one torch thread is the stable figure on a
 shared machine (wall time counts other processes' turns). Each kernel the autograd glue calls through the
 ``cpu_kernels`` module is timed; "Python / PyTorch" is the rest of the forward + backward (conversions, the
-render modes' tensor ops, the loss and autograd). The baseline is ``git show REV:`` of ``cpu_kernels.py`` and
-``cpu_rasterize.py`` written to a directory per commit under the system's temporary directory (kept: numba caches
-the baseline's kernels there) and imported from there (the rest of the package is this tree's). **Both versions
+render modes' tensor ops, the loss and autograd). The baseline is ``git show REV:`` of ``cpu_kernels.py``,
+``cpu_rasterize.py`` and ``rasterize.py`` (the render modes around the kernels) written to a directory per commit
+under the system's temporary directory (kept: numba caches the baseline's kernels there) and imported from there
+(the rest of the package is this tree's). **Both versions
 run cache-loaded kernels**: when a kernel had to be compiled in this process (no cache yet, or a changed source),
 the script runs itself again after the warm-up (once; ``benchmarks.rasterizer.rerun_if_compiled``: code compiled
 in the timing process runs slower than the same code loaded from numba's cache).
@@ -47,31 +48,35 @@ from navcrafter.models.gaussians import cpu_kernels, cpu_rasterize  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 KERNELS = "models/gaussians/cpu_kernels.py"
 GLUE = "models/gaussians/cpu_rasterize.py"
+MODES = "models/gaussians/rasterize.py"
 IMPORT_LINE = "from navcrafter.models.gaussians import cpu_kernels as K"
+MODES_IMPORT = "from navcrafter.models.gaussians.rasterize import"
 
 
 def load_baseline(rev: str, tmp: Path):
     """The (kernels, glue) modules of git revision ``rev``, imported from files under ``tmp`` (written there
-    unless they already hold the same text: rewriting them would invalidate numba's cache of them)."""
-    kernels = subprocess.run(["git", "show", f"{rev}:{KERNELS}"], cwd=ROOT, check=True, capture_output=True,
-                             text=True).stdout
-    glue = subprocess.run(["git", "show", f"{rev}:{GLUE}"], cwd=ROOT, check=True, capture_output=True,
-                          text=True).stdout
-    if IMPORT_LINE not in glue:
-        raise SystemExit(f"{rev}:{GLUE} does not import the kernels as {IMPORT_LINE!r}; cannot rebind it")
-    for name, text in (("baseline_cpu_kernels.py", kernels),
-                       ("baseline_cpu_rasterize.py", glue.replace(IMPORT_LINE, "import baseline_cpu_kernels as K"))):
+    unless they already hold the same text: rewriting them would invalidate numba's cache of them); the glue
+    renders through that revision's ``rasterize.py`` (its render modes around the kernels)."""
+    kernels, glue, modes = (subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True,
+                                           capture_output=True, text=True).stdout for path in (KERNELS, GLUE, MODES))
+    for line in (IMPORT_LINE, MODES_IMPORT):
+        if line not in glue:
+            raise SystemExit(f"{rev}:{GLUE} does not import {line!r}; cannot rebind it")
+    glue = glue.replace(IMPORT_LINE, "import baseline_cpu_kernels as K").replace(MODES_IMPORT,
+                                                                                "from baseline_rasterize import")
+    for name, text in (("baseline_cpu_kernels.py", kernels), ("baseline_rasterize.py", modes),
+                       ("baseline_cpu_rasterize.py", glue)):
         if not (tmp / name).exists() or (tmp / name).read_text() != text:
             (tmp / name).write_text(text)
     sys.path.insert(0, str(tmp))
     mods = []
-    for name in ("baseline_cpu_kernels", "baseline_cpu_rasterize"):
+    for name in ("baseline_cpu_kernels", "baseline_rasterize", "baseline_cpu_rasterize"):
         spec = importlib.util.spec_from_file_location(name, tmp / f"{name}.py")
         mod = importlib.util.module_from_spec(spec)
         sys.modules[name] = mod
         spec.loader.exec_module(mod)
         mods.append(mod)
-    return mods[0], mods[1]
+    return mods[0], mods[2]
 
 
 CLOCK = time.process_time  # --wall: time.perf_counter

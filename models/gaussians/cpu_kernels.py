@@ -857,10 +857,31 @@ NARROW_BOX = 8  # boxes this wide (pixels) or narrower skip the row spans: testi
 BOX_MARGIN = 1e-3
 
 
-def composite_constants(alpha_clamp: float, dtype) -> np.ndarray:
+def composite_constants(alpha_clamp: float, ed_alpha_min: float, dtype) -> np.ndarray:
     """The compositing kernels' constants in the arithmetic's dtype: alpha clamp, 1/255, the transmittance
-    stop, 0.5, 1, 0, 2."""
-    return np.array([alpha_clamp, ALPHA_THRESHOLD, TRANSMITTANCE_STOP, 0.5, 1.0, 0.0, 2.0], dtype=dtype)
+    stop, 0.5, 1, 0, 2, and the expected depth's least alpha (``D / max(alpha, ed_alpha_min)``)."""
+    return np.array([alpha_clamp, ALPHA_THRESHOLD, TRANSMITTANCE_STOP, 0.5, 1.0, 0.0, 2.0, ed_alpha_min], dtype=dtype)
+
+
+# The expected depth ("ED" render modes) per pixel, in the compositing kernels (no PyTorch pass over the image
+# forward, none backward): compiled without fast-math and not inlined, so that each operation rounds as
+# PyTorch's ``D / alphas.clamp(min=ed_alpha_min)`` and its backward do (the kernels' fast-math would contract the
+# backward's multiply-add and share one reciprocal between its two divisions).
+@_jit
+def _ed_forward(raw, T, one, ed_min):
+    """The expected depth of a pixel of accumulated depth ``raw`` and final transmittance ``T``."""
+    return raw / max(one - T, ed_min)
+
+
+@_jit
+def _ed_backward(v_ed, va, T, ed, one, zero, ed_min):
+    """(dL/dD, dL/dalpha) of a pixel of final transmittance ``T`` whose expected depth ``ed`` got the gradient
+    ``v_ed`` and whose alpha got ``va``: PyTorch's backward of ``D / alphas.clamp(min=ed_min)`` (the division:
+    ``v / a`` and ``-v * ((D / a) / a)``; the clamp: the gradient where ``alpha >= ed_min``) added to ``va``."""
+    a = one - T
+    ca = max(a, ed_min)
+    v_ca = -v_ed * (ed / ca)
+    return v_ed / ca, va + (v_ca if a >= ed_min else zero)
 
 
 # A list entry's record (:func:`pack_gaussians`, gathered per tile in list order by :func:`gather_entries`): the
@@ -1071,7 +1092,7 @@ def _record_pair(pix, pes, pts, j, q, e, tp):
 
 @_pfjit
 def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, render, t_final,
-                      pbase, pend, pix, pes, pts, record):
+                      pbase, pend, pix, pes, pts, record, ed, ed_val):
     """Front-to-back compositing: ``render`` [C, H, W, D], ``t_final`` [C, H, W] (final transmittance).
 
     Per tile, Gaussian-major: the tile's list is walked once in depth order and each entry visits only the
@@ -1083,8 +1104,12 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
     (no spans, cut tests, ``exp`` or divisions again): per pair its pixel in the tile ``pix`` (row << 16 |
     column), ``exp(-sigma)`` ``pes`` and the pixel's transmittance in front of it ``pts``, from the tile's slot
     ``pbase[t]`` (its capacity: :func:`gather_entries`' box areas) on, and per list entry the end of its pairs
-    ``pend`` [n_isects] (written whether or not recording)."""
+    ``pend`` [n_isects] (written whether or not recording).
+
+    With ``ed`` the last feature (a depth) is rendered as the expected depth (``_ed_forward``), also written to
+    ``ed_val`` [C, H, W] for the backward pass."""
     alpha_clamp, athr, tstop, half, one, zero, two = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
+    ed_min = cst[7]
     n_cam = render.shape[0]
     n_feat = render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
@@ -1199,11 +1224,15 @@ def composite_forward(ent, offsets, width, height, tile_size, tile_w, cst, backg
                     for f in range(n_feat):
                         render[c, py, px, f] = acc[p * n_feat + f] + (T[p] * backgrounds[c, f] if use_bg else zero)
                     t_final[c, py, px] = T[p]
+                    if ed:
+                        edv = _ed_forward(render[c, py, px, n_feat - 1], T[p], one, ed_min)
+                        render[c, py, px, n_feat - 1] = edv
+                        ed_val[c, py, px] = edv
 
 
 @_pfjit
 def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, backgrounds, use_bg, v_render, v_alphas,
-                       pbase, pend, pix, pes, pts, slots):
+                       pbase, pend, pix, pes, pts, slots, ed, t_final, ed_val):
     """Gradients of each list entry (tile, Gaussian) into the slots [n_isects, 6 + D] (a tile writes only its
     own entries; :func:`gather_slots` sums them per Gaussian). The tile's list is walked back to front over the
     pairs forward recorded (``composite_forward``'s ``record``: pixel, ``exp(-sigma)`` and the transmittance
@@ -1217,8 +1246,9 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
     pixel, no transmittance recovered by division (the same gradients up to rounding as gsplat's per-feature
     ``buffer`` form).
     Per-entry sums are in the compositing dtype (float32 in a fit); :func:`gather_slots` adds the entries of a
-    Gaussian in float64."""
-    alpha_clamp, half, zero = cst[0], cst[3], cst[5]
+    Gaussian in float64. With ``ed`` (``composite_forward``'s), the last feature's gradient is the expected
+    depth's, taken back to the accumulated depth and the alpha (``_ed_backward``, from ``t_final`` and ``ed_val``)."""
+    alpha_clamp, half, one, zero, ed_min = cst[0], cst[3], cst[4], cst[5], cst[7]
     n_cam = v_render.shape[0]
     n_feat = v_render.shape[3]
     tile_h = (height + tile_size - 1) // tile_size
@@ -1247,9 +1277,13 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
             for py in range(y_lo, y_hi):
                 for px in range(x_lo, x_hi):
                     p = (py - y_lo) * tw + (px - x_lo)
-                    bp = -v_alphas[c, py, px]
+                    va, v_last = v_alphas[c, py, px], (v_render[c, py, px, n_feat - 1] if n_feat > 0 else zero)
+                    if ed:
+                        v_last, va = _ed_backward(v_last, va, t_final[c, py, px], ed_val[c, py, px], one, zero,
+                                                  ed_min)
+                    bp = -va
                     for f in range(n_feat):
-                        vf = v_render[c, py, px, f]
+                        vf = v_render[c, py, px, f] if f < n_feat - 1 else v_last
                         vr[p * n_feat + f] = vf
                         if use_bg:
                             bp += vf * backgrounds[c, f]

@@ -36,6 +36,7 @@ from torch import Tensor
 from navcrafter.models.gaussians import cpu_kernels as K
 from navcrafter.models.gaussians.rasterize import (
     DEFAULT_ALPHA_CLAMP,
+    ED_ALPHA_MIN,
     RenderMode,
     render_gaussians,
 )
@@ -347,7 +348,7 @@ def project_gaussians_qs(means: Tensor, quats: Tensor, scales: Tensor, viewmats:
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size,
-                alpha_clamp, record, info):
+                alpha_clamp, record, ed, info):
         n_cam, n = radii.shape
         d = colors.shape[-1]
         tile_w, tile_h = -(-width // tile_size), -(-height // tile_size)
@@ -356,12 +357,14 @@ class _Composite(torch.autograd.Function):
         m2, con, col, opa = (_np_view(x, dt) for x in (means2d, conics, colors, opacities))
         use_bg = backgrounds is not None
         bg = _np_native(backgrounds, dt) if use_bg else np.zeros((n_cam, d), dt)
-        cst = K.composite_constants(alpha_clamp, dt)
+        cst = K.composite_constants(alpha_clamp, ED_ALPHA_MIN, dt)
         rad = np.ascontiguousarray(radii.cpu().numpy())
         cbox = _SCRATCH.get("cbox", (n_cam, n), np.int64)
         rec = _SCRATCH.get("rec", (n_cam, n, K.R_FEAT + d), dt)
         render = _SCRATCH.get("render", (n_cam, height, width, d), dt)
         t_final = _SCRATCH.get("t_final", (n_cam, height, width), dt)
+        # the expected depths ("ED" modes), kept for the backward pass
+        ed_val = _SCRATCH.get("ed_val", (n_cam, height, width) if ed else (0, 0, 0), dt)
         # compositing tiles (K.composite_tile_size) apart from the API's tile_size, which decides n_isects and
         # which pixels a Gaussian may touch (its boxes are clipped to its tile_size squares)
         ctile = K.composite_tile_size(width, height)
@@ -392,10 +395,10 @@ class _Composite(torch.autograd.Function):
             pes = _SCRATCH.get("pes", pbase[-1], dt)
             pts = _SCRATCH.get("pts", pbase[-1], dt)
             K.composite_forward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, render, t_final,
-                                pbase, pend, pix, pes, pts, record)
-        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes, pts)
+                                pbase, pend, pix, pes, pts, record, ed, ed_val)
+        ctx.arrays = (ent, bg, cst, offsets, gids, order, roff, epos, t_final, ed_val, pbase, pend, pix, pes, pts)
         ctx.shape = (n_cam, n, d)
-        ctx.scalars = (width, height, ctile, ctw, use_bg)
+        ctx.scalars = (width, height, ctile, ctw, use_bg, ed)
         ctx.likes = (means2d, conics, colors, opacities, backgrounds)
         info.update({"tile_width": tile_w, "tile_height": tile_h, "n_isects": int(n_isects),
                      "tiles_per_gauss": torch.from_numpy(tiles_per_gauss)})
@@ -404,8 +407,8 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        ent, bg, cst, offsets, gids, order, roff, epos, t_final, pbase, pend, pix, pes, pts = ctx.arrays
-        width, height, ctile, ctw, use_bg = ctx.scalars
+        ent, bg, cst, offsets, gids, order, roff, epos, t_final, ed_val, pbase, pend, pix, pes, pts = ctx.arrays
+        width, height, ctile, ctw, use_bg, ed = ctx.scalars
         n_cam, n, d = ctx.shape
         dt = ent.dtype
         vr = np.zeros((n_cam, height, width, d), dt) if v_render is None else _np_view(v_render, dt)
@@ -416,27 +419,32 @@ class _Composite(torch.autograd.Function):
         grads.fill(0)  # Gaussians without entries keep zeros
         with _LOCK:
             K.composite_backward(ent, offsets, width, height, ctile, ctw, cst, bg, use_bg, vr, va,
-                                 pbase, pend, pix, pes, pts, slots)
+                                 pbase, pend, pix, pes, pts, slots, ed, t_final, ed_val)
             K.gather_slots(order, roff, epos, slots, grads)
         v_m2, v_con, v_opa, v_col = grads[..., 0:2], grads[..., 2:5], grads[..., 5], grads[..., 6:]
         l_m2, l_con, l_col, l_opa, l_bg = ctx.likes
         v_bg = None
         if use_bg and ctx.needs_input_grad[4]:
+            if ed:  # the accumulated depth's gradient (the kernel's, from the expected depth's)
+                vr = vr.copy()
+                vr[..., -1] /= np.maximum(1.0 - t_final, cst[7])
             v_bg = _out(np.einsum("chw,chwd->cd", t_final.astype(np.float64), vr.astype(np.float64)), l_bg)
         return (_out(v_m2, l_m2), _out(v_con, l_con), _out(v_col, l_col), _out(v_opa, l_opa), v_bg,
-                None, None, None, None, None, None, None, None)
+                None, None, None, None, None, None, None, None, None)
 
 
 def rasterize_to_pixels(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, radii: Tensor,
                         depths: Tensor, width: int, height: int, *, tile_size: int = 16,
-                        backgrounds: Tensor | None = None, alpha_clamp: float = DEFAULT_ALPHA_CLAMP
-                        ) -> tuple[Tensor, Tensor, dict]:
-    """:func:`~navcrafter.models.gaussians.rasterize.rasterize_to_pixels` on the compiled kernels."""
+                        backgrounds: Tensor | None = None, alpha_clamp: float = DEFAULT_ALPHA_CLAMP,
+                        expected_depth: bool = False) -> tuple[Tensor, Tensor, dict]:
+    """:func:`~navcrafter.models.gaussians.rasterize.rasterize_to_pixels` on the compiled kernels (the expected
+    depth made in the compositing kernels)."""
     info: dict = {}
     # forward keeps the contributing pairs for the backward pass only when one can follow
     record = torch.is_grad_enabled() and any(x.requires_grad for x in (means2d, conics, colors, opacities))
     render, alphas = _Composite.apply(means2d, conics, colors, opacities, backgrounds, radii, depths.detach(),
-                                      int(width), int(height), int(tile_size), float(alpha_clamp), record, info)
+                                      int(width), int(height), int(tile_size), float(alpha_clamp), record,
+                                      bool(expected_depth), info)
     return render, alphas, info
 
 

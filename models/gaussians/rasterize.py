@@ -54,6 +54,7 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 ALPHA_THRESHOLD = 1.0 / 255.0  # contributions below this are skipped (3DGS, gsplat)
 TRANSMITTANCE_STOP = 1e-4  # a pixel stops before the Gaussian that would take T to <= this
 DEFAULT_ALPHA_CLAMP = 0.99  # original 3DGS; gsplat uses 0.999
+ED_ALPHA_MIN = 1e-10  # "ED": the accumulated depth over max(alpha, this)
 _PAIRS_PER_CHUNK = 1 << 20  # pixel-Gaussian candidate pairs tested at once (bounds peak memory)
 
 
@@ -215,9 +216,11 @@ def rasterize_to_pixels(
     tile_size: int = 16,
     backgrounds: Tensor | None = None,
     alpha_clamp: float = DEFAULT_ALPHA_CLAMP,
+    expected_depth: bool = False,
 ) -> tuple[Tensor, Tensor, dict[str, int]]:
     """Composite projected Gaussians front to back: ``colors`` [C, N, D], ``opacities`` [C, N] ->
-    (``render`` [C, H, W, D], ``alphas`` [C, H, W, 1], counts). See the module docstring."""
+    (``render`` [C, H, W, D], ``alphas`` [C, H, W, 1], counts). See the module docstring. With
+    ``expected_depth`` the last feature (a depth) is rendered as the expected depth (:func:`normalize_depth`)."""
     n_cam, n = radii.shape
     d = colors.shape[-1]
     dtype, device = means2d.dtype, means2d.device
@@ -314,6 +317,8 @@ def rasterize_to_pixels(
         render = render + t_final[:, None] * bg
     render = render.reshape(n_cam, height, width, d)
     alphas = (1.0 - t_final).reshape(n_cam, height, width, 1)
+    if expected_depth:
+        render = normalize_depth(render, alphas)
     info = {
         "tile_width": tile_w,
         "tile_height": tile_h,
@@ -323,6 +328,12 @@ def rasterize_to_pixels(
         "n_pairs": int(len(pix)),
     }
     return render, alphas, info
+
+
+def normalize_depth(render: Tensor, alphas: Tensor) -> Tensor:
+    """``render`` with its last feature, an accumulated depth ``D``, as the expected depth ``D / max(alpha,
+    ED_ALPHA_MIN)`` (the render modes "ED" and "RGB+ED")."""
+    return torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp(min=ED_ALPHA_MIN)], dim=-1)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -478,9 +489,8 @@ def render_gaussians(project, composite, means, quats, scales, opacities, colors
         tile_size=tile_size,
         backgrounds=backgrounds,
         alpha_clamp=alpha_clamp,
+        expected_depth=render_mode in ("ED", "RGB+ED"),
     )
-    if render_mode in ("ED", "RGB+ED"):
-        render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp(min=1e-10)], dim=-1)
     meta = {
         "camera_ids": None,
         "gaussian_ids": None,

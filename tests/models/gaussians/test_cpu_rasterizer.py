@@ -18,8 +18,10 @@ from test_gaussians import H, W, cameras, one_gaussian, random_scene  # the modu
 
 from navcrafter.models.gaussians import cpu_rasterize
 from navcrafter.models.gaussians.cpu_rasterize import rasterization as cpu_rasterization
-from navcrafter.models.gaussians.rasterize import quat_scale_to_covar
+from navcrafter.models.gaussians.rasterize import normalize_depth, quat_scale_to_covar
+from navcrafter.models.gaussians.rasterize import project_gaussians as torch_project
 from navcrafter.models.gaussians.rasterize import rasterization as torch_rasterization
+from navcrafter.models.gaussians.rasterize import rasterize_to_pixels as torch_rasterize_to_pixels
 from navcrafter.models.gaussians.reference import rasterize_reference
 from navcrafter.models.gaussians.renderer import rasterize, resolve_backend
 
@@ -407,6 +409,41 @@ def test_means2d_retain_grad_equals_torch():
     assert g is not None and g.shape == (3, 60, 2) and r.abs().max() > 0
     assert rel_err(g, r) <= 1e-9
     assert not g[meta["radii"] == 0].any()  # culled Gaussians get none (densification counts the others)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_expected_depth_in_the_compositing_matches_torch(dtype):
+    """``rasterize_to_pixels(..., expected_depth=True)``: the compiled kernels divide the last feature by the
+    clamped alpha (forward) and take its gradient back (backward) bit for bit as PyTorch's ``normalize_depth`` on
+    the kernels' accumulated depth does, and to rounding as the PyTorch renderer; the backgrounds' gradient too, in
+    every column (through ``rasterization`` the depth column's background is a constant zero: only a direct call
+    sees it)."""
+    inputs = scene_inputs(60, seed=5, dtype=dtype, n_cam=2)
+    viewmats, Ks = cameras(dtype=dtype, n=2)
+    proj = torch_project(inputs["means"], quat_scale_to_covar(inputs["quats"], inputs["scales"]), viewmats, Ks, W, H)
+    feats = torch.cat([torch.rand(2, 60, 3, dtype=dtype, generator=torch.Generator().manual_seed(6)),
+                       proj["depths"][..., None]], dim=-1)
+    bg = torch.rand(2, 4, dtype=dtype, generator=torch.Generator().manual_seed(7))
+    leaves = (proj["means2d"], proj["conics"], feats, inputs["opacities"][None].expand(2, -1), bg)
+
+    def run(fn, fused):
+        xs = [x.detach().clone().requires_grad_() for x in leaves]
+        img, alpha, _ = fn(*xs[:4], proj["radii"], proj["depths"], W, H, backgrounds=xs[4], expected_depth=fused)
+        if not fused:
+            img = normalize_depth(img, alpha)
+        w, wa = loss_weights(img.shape, 0, dtype), loss_weights(alpha.shape, 1, dtype)
+        ((img * w).sum() + (alpha * wa).sum()).backward()
+        return (img.detach(), alpha.detach(), *(x.grad for x in xs))
+
+    names = ("render", "alpha", "means2d", "conics", "features", "opacities", "backgrounds")
+    ours = run(cpu_rasterize.rasterize_to_pixels, True)
+    ref = run(torch_rasterize_to_pixels, True)
+    assert (ref[1][..., 0] < 1e-3).any() and (ref[1][..., 0] > 0.5).any()  # empty and covered pixels
+    for name, g, r in zip(names, ours, ref):
+        assert g is not None and r.abs().max() > 0, name
+        assert rel_err(g, r) <= (1e-9 if dtype == torch.float64 else 1e-4), (name, rel_err(g, r))
+    for name, g, r in zip(names, ours, run(cpu_rasterize.rasterize_to_pixels, False)):
+        assert torch.equal(g, r), (name, rel_err(g, r))
 
 
 # --------------------------------------------------------------------------------------------------
