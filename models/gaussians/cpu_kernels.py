@@ -1477,17 +1477,29 @@ def _set_coef(v_dc, v_rest, g, k, x, y, z):
 
 
 @_pfjit
-def sh_forward(degree, means, campos, dc, rest, rgb, cut):
+def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, ``dc`` [N, 3] (k = 0)
     and ``rest`` [N, K - 1, 3] (float32 or float64, read as they are; float64 arithmetic)
     along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``);
-    ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient)."""
+    ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient).
+
+    The compositing's features, when ``radii`` [C, N] has rows (the projection's): a Gaussian culled in a camera
+    (radius 0, never composited) gets zeros there, without its SH; with ``rgb`` [C, N, 4] its last column is
+    ``depths`` [C, N] (the "RGB+D" modes' features in one array). ``radii`` [0, 0]: every colour evaluated."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
+    culls = radii.shape[0] > 0
+    with_depth = rgb.shape[2] == 4
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db = np.empty(16), np.empty((0, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
             for c in range(n_cam):
+                if with_depth:
+                    rgb[c, g, 3] = depths[c, g]
+                if culls and radii[c, g] == 0:
+                    rgb[c, g, 0] = rgb[c, g, 1] = rgb[c, g, 2] = 0.0
+                    cut[c, g] = 0
+                    continue
                 x, y, z, _ = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
                 a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
@@ -1529,16 +1541,19 @@ def _sh_dir_grad(degree, x, y, z, w):
 
 
 @_pfjit
-def sh_backward(degree, means, campos, dc, rest, cut, v_rgb, v_means, v_dc, v_rest):
+def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_dc, v_rest):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' ``v_dc`` [N, 3] and
     ``v_rest`` [N, K - 1, 3] (cameras summed in order, in float64, whatever the dtype of the coefficients and
     their gradients; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``: where
     :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again). The direction's gradient
     contracts the basis derivatives with each basis function's coefficient gradient (:func:`_sh_dir_grad`) instead
-    of a [16, 3] table per pair."""
+    of a [16, 3] table per pair. ``v_rgb``'s first three columns are read (any strides). With ``radii`` rows
+    (:func:`sh_forward`'s): a camera where the Gaussian was culled adds nothing (its colour was never composited:
+    the compositing gives it a zero gradient, which would add zeros), so a Gaussian culled everywhere gets zeros."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     n_k = v_rest.shape[1] + 1
+    culls = radii.shape[0] > 0
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
@@ -1549,6 +1564,11 @@ def sh_backward(degree, means, campos, dc, rest, cut, v_rgb, v_means, v_dc, v_re
                     vco[k, 0] = vco[k, 1] = vco[k, 2] = 0.0
             vm0 = vm1 = vm2 = 0.0  # float64 sums over the cameras, written once in the output's dtype
             for c in range(n_cam):
+                if culls and radii[c, g] == 0:
+                    if one_cam:
+                        for k in range(nb):
+                            _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
+                    continue
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
                 cg = cut[c, g]

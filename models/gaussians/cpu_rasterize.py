@@ -40,6 +40,7 @@ from navcrafter.models.gaussians.rasterize import (
     RenderMode,
     render_gaussians,
 )
+from navcrafter.models.gaussians.rasterize import composite_features as torch_composite_features
 from navcrafter.models.gaussians.rasterize import resolve_colors as torch_resolve_colors
 
 _LOCK = threading.Lock()
@@ -164,37 +165,43 @@ def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
 
 class _SH(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, degree, means, campos, dc, rest):
+    def forward(ctx, degree, means, campos, dc, rest, radii, depths):
         # the coefficients: ``dc`` [N, K, 3] alone (``rest`` None), or ``dc`` [N, 3] and ``rest`` [N, K - 1, 3]
         # (a fit's two parameters: no [N, K, 3] concatenation, and contiguous gradients for each); read in their
         # own dtype, not copied (the biggest input of a fit): saved for backward, so an in-place change before it
-        # is caught by autograd's version check
+        # is caught by autograd's version check. ``radii`` (the projection's; None: every colour) and ``depths``
+        # (None: no depth column): the compositing's features (K.sh_forward).
         ins = (dc,) if rest is None else (dc, rest)
         co_t = tuple(t.detach().contiguous() for t in ins)
         dt = _dt(means)
         # the means read in place too (saved for backward: autograd's version check guards them)
         m = _np_view(means, dt)
-        rgb = _SCRATCH.get("sh_rgb", (len(campos), len(m), 3), dt)
-        cut = _SCRATCH.get("sh_cut", (len(campos), len(m)), np.uint8)  # where the clamp stops the gradient (3 bits)
+        n_cam = len(campos)
+        rad = np.zeros((0, 0), np.int32) if radii is None else np.ascontiguousarray(radii.numpy())
+        dep = np.zeros((0, 0), dt) if depths is None else _np_view(depths, dt)
+        rgb = _SCRATCH.get("sh_rgb", (n_cam, len(m), 3 if depths is None else 4), dt)
+        cut = _SCRATCH.get("sh_cut", (n_cam, len(m)), np.uint8)  # where the clamp stops the gradient (3 bits)
         with _LOCK:
-            K.sh_forward(degree, m, campos, *_coef_arrays(co_t), rgb, cut)
+            K.sh_forward(degree, m, campos, *_coef_arrays(co_t), rad, dep, rgb, cut)
         ctx.save_for_backward(*co_t, means)
-        ctx.arrays, ctx.degree, ctx.likes = (campos, cut), degree, (means,) + ins
+        ctx.arrays, ctx.degree, ctx.likes = (campos, rad, cut), degree, (means,) + ins
+        ctx.with_depth = depths is not None
         return _out(rgb, means)
 
     @staticmethod
     def backward(ctx, v_rgb):
-        cp, cut = ctx.arrays
+        cp, rad, cut = ctx.arrays
         *co_t, means = ctx.saved_tensors
         m = _np_view(means, _dt(means))
         cos = [_coef_array(t) for t in co_t]
         v_m = _SCRATCH.get("sh_v_means", m.shape, m.dtype)
         v_cos = [_SCRATCH.get(f"sh_v_coef{i}", c.shape, c.dtype) for i, c in enumerate(cos)]
         with _LOCK:  # v_rgb read in place (a view of the compositing's gradients: any strides)
-            K.sh_backward(ctx.degree, m, cp, *_coef_arrays(cos), cut, _as_kernel_dtype(v_rgb, m.dtype), v_m,
+            K.sh_backward(ctx.degree, m, cp, *_coef_arrays(cos), rad, cut, _as_kernel_dtype(v_rgb, m.dtype), v_m,
                           *_coef_arrays(v_cos))
         v_co = [_out(v, like) for v, like in zip(v_cos, ctx.likes[1:])]
-        return None, _out(v_m, ctx.likes[0]), None, v_co[0], v_co[1] if len(v_co) > 1 else None
+        v_depths = v_rgb[..., 3] if ctx.with_depth else None
+        return None, _out(v_m, ctx.likes[0]), None, v_co[0], v_co[1] if len(v_co) > 1 else None, None, v_depths
 
 
 def _coef_array(t) -> np.ndarray:
@@ -214,14 +221,32 @@ def _campos(viewmats: Tensor) -> np.ndarray:
     return _np(torch.linalg.inv(viewmats.detach())[:, :3, 3])
 
 
+def _compiled_sh(colors: Tensor, sh_degree: int | None) -> bool:
+    """Whether ``colors`` are SH coefficients [N, K, 3] shared by the cameras, valid for ``sh_degree``: what the
+    compiled SH evaluates (per-camera coefficients, plain features and invalid ones go to PyTorch's, whose checks
+    name the problem)."""
+    return (sh_degree is not None and colors.dim() == 3 and colors.shape[-1] == 3
+            and colors.shape[-2] >= (sh_degree + 1) ** 2 and 0 <= sh_degree <= 3)
+
+
 def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: int | None) -> Tensor:
     """:func:`~navcrafter.models.gaussians.rasterize.resolve_colors` with the SH of shared coefficients
     [N, K, 3] evaluated by the compiled kernels (per-camera coefficients and plain features: PyTorch's)."""
-    if sh_degree is None or colors.dim() != 3:
+    if not _compiled_sh(colors, sh_degree):
         return torch_resolve_colors(means, colors, viewmats, sh_degree)
-    if colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2 or not 0 <= sh_degree <= 3:
-        return torch_resolve_colors(means, colors, viewmats, sh_degree)  # its checks name the problem
-    return _SH.apply(int(sh_degree), means, _campos(viewmats), colors, None)
+    return _SH.apply(int(sh_degree), means, _campos(viewmats), colors, None, None, None)
+
+
+def composite_features(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: int | None, radii: Tensor,
+                       depths: Tensor, with_depth: bool) -> Tensor:
+    """:func:`~navcrafter.models.gaussians.rasterize.composite_features` with the SH of shared coefficients [N, K,
+    3] evaluated by the compiled kernels, the depth column written beside the colours (no concatenation), and the
+    SH of Gaussians culled in a camera (radius 0: never composited) not evaluated there: zeros; what the
+    compositing reads is :func:`resolve_colors`' bit for bit, and so are the gradients (per-camera coefficients and
+    plain features: PyTorch's)."""
+    if not _compiled_sh(colors, sh_degree):
+        return torch_composite_features(means, colors, viewmats, sh_degree, radii, depths, with_depth)
+    return _SH.apply(int(sh_degree), means, _campos(viewmats), colors, None, radii, depths if with_depth else None)
 
 
 def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, viewmats: Tensor, sh_degree: int) -> Tensor:
@@ -236,7 +261,7 @@ def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, viewmats: Tensor, s
     if not 0 <= sh_degree <= 3 or sh_rest.shape[1] + 1 < (sh_degree + 1) ** 2:
         raise ValueError(f"sh_degree {sh_degree} needs 0..3 and K >= {(sh_degree + 1) ** 2} coefficients, got "
                          f"K = {sh_rest.shape[1] + 1}")
-    return _SH.apply(int(sh_degree), means, _campos(viewmats), sh_dc, sh_rest)
+    return _SH.apply(int(sh_degree), means, _campos(viewmats), sh_dc, sh_rest, None, None)
 
 
 class _Project(torch.autograd.Function):
@@ -481,4 +506,4 @@ def rasterization(
                             Ks, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
                             eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
-                            alpha_clamp=alpha_clamp, colors_fn=resolve_colors, project_qs=project_gaussians_qs)
+                            alpha_clamp=alpha_clamp, features_fn=composite_features, project_qs=project_gaussians_qs)

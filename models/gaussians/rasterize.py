@@ -395,6 +395,16 @@ def resolve_colors(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: i
     return sh_to_rgb(sh_degree, dirs, coeffs)
 
 
+def composite_features(means: Tensor, colors: Tensor, viewmats: Tensor, sh_degree: int | None, radii: Tensor,
+                       depths: Tensor, with_depth: bool) -> Tensor:
+    """The features the compositing reads [C, N, D], or [C, N, D + 1] with the depth last (``with_depth``: the
+    "RGB+D" / "RGB+ED" modes): :func:`resolve_colors`. ``radii`` (the projection's, 0 where culled) are not read
+    here; the compiled renderer does not evaluate the SH of culled Gaussians (their features are never read)."""
+    del radii
+    feats = resolve_colors(means, colors, viewmats, sh_degree)
+    return torch.cat([feats, depths[..., None]], dim=-1) if with_depth else feats
+
+
 def rasterization(
     means: Tensor,
     quats: Tensor | None,
@@ -435,10 +445,10 @@ def rasterization(
 
 def render_gaussians(project, composite, means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
                      near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
-                     rasterize_mode, covars, alpha_clamp, colors_fn=None,
+                     rasterize_mode, covars, alpha_clamp, features_fn=None,
                      project_qs=None) -> tuple[Tensor, Tensor, dict]:
     """:func:`rasterization`'s body over a pair of kernels: ``project`` (:func:`project_gaussians`'s contract)
-    and ``composite`` (:func:`rasterize_to_pixels`'s), and optionally ``colors_fn`` (:func:`resolve_colors`'s;
+    and ``composite`` (:func:`rasterize_to_pixels`'s), and optionally ``features_fn`` (:func:`composite_features`'s;
     the default); the compiled CPU kernels (``models.gaussians.cpu_rasterize``) plug in here, so the render
     modes, SH and checks are written once. ``project_qs``, if given, projects from ``quats`` and ``scales``
     directly when no ``covars`` are given (``project``'s contract with the two in place of ``covars``)."""
@@ -468,9 +478,10 @@ def render_gaussians(project, composite, means, quats, scales, opacities, colors
         if backgrounds is not None:
             backgrounds = torch.zeros(n_cam, 1, dtype=means.dtype, device=means.device)
     else:
-        feats = (colors_fn or resolve_colors)(means, colors, viewmats, sh_degree)
-        if render_mode in ("RGB+D", "RGB+ED"):
-            feats = torch.cat([feats, depths[..., None]], dim=-1)
+        with_depth = render_mode in ("RGB+D", "RGB+ED")
+        feats = (features_fn or composite_features)(means, colors, viewmats, sh_degree, proj["radii"], depths,
+                                                    with_depth)
+        if with_depth:
             if backgrounds is not None:
                 zeros = torch.zeros(n_cam, 1, dtype=backgrounds.dtype, device=backgrounds.device)
                 backgrounds = torch.cat([backgrounds, zeros], dim=-1)

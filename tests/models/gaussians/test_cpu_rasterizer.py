@@ -18,7 +18,7 @@ from test_gaussians import H, W, cameras, one_gaussian, random_scene  # the modu
 
 from navcrafter.models.gaussians import cpu_rasterize
 from navcrafter.models.gaussians.cpu_rasterize import rasterization as cpu_rasterization
-from navcrafter.models.gaussians.rasterize import normalize_depth, quat_scale_to_covar
+from navcrafter.models.gaussians.rasterize import normalize_depth, quat_scale_to_covar, render_gaussians
 from navcrafter.models.gaussians.rasterize import project_gaussians as torch_project
 from navcrafter.models.gaussians.rasterize import rasterization as torch_rasterization
 from navcrafter.models.gaussians.rasterize import rasterize_to_pixels as torch_rasterize_to_pixels
@@ -313,6 +313,39 @@ def test_culled_gaussians_in_a_scene_get_no_gradient():
         assert not grads[name][:2].any(), name
         assert grads[name][3:].abs().max() > 0, name
         assert rel_err(grads[name], ref_grads[name]) <= 1e-9, name
+
+
+@pytest.mark.parametrize("n_cam", [1, 3])
+@pytest.mark.parametrize("mode", ["RGB", "RGB+ED"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_features_skip_culled_gaussians_bit_for_bit(dtype, mode, n_cam):
+    """The compiled SH features (``composite_features``: culled Gaussians' SH not evaluated, the depth column
+    written beside the colours) give the renders and every gradient bit for bit as the compiled ``resolve_colors``
+    (every colour evaluated) and PyTorch's concatenation, with Gaussians culled in some cameras and not others."""
+    inputs = scene_inputs(60, seed=11, sh_degree=3, dtype=dtype, n_cam=n_cam)
+    inputs["means"] = inputs["means"] * torch.tensor([2.5, 2.5, 1.0], dtype=dtype)  # many off-screen in some cameras
+    viewmats, Ks = cameras(dtype=dtype, n=n_cam)
+
+    def concatenated(means, colors, viewmats, sh_degree, radii, depths, with_depth):
+        feats = cpu_rasterize.resolve_colors(means, colors, viewmats, sh_degree)
+        return torch.cat([feats, depths[..., None]], dim=-1) if with_depth else feats
+
+    def old_path(*args, **kw):
+        return render_gaussians(cpu_rasterize.project_gaussians, cpu_rasterize.rasterize_to_pixels, *args,
+                                features_fn=concatenated, project_qs=cpu_rasterize.project_gaussians_qs, **kw)
+
+    kw = {"sh_degree": 3, "render_mode": mode, "near_plane": 0.01, "far_plane": 1e10, "radius_clip": 0.0,
+          "eps2d": 0.3, "tile_size": 16, "rasterize_mode": "classic", "covars": None, "alpha_clamp": 0.99}
+    img, alpha, meta, grads = run_with_grads(cpu_rasterization, inputs, viewmats, Ks, **kw)
+    ref, ref_alpha, _, ref_grads = run_with_grads(old_path, inputs, viewmats, Ks, **kw)
+    culled = meta["radii"] == 0
+    assert culled.sum() >= 5 and (~culled).sum() >= 5
+    assert n_cam == 1 or (culled.any(0) & ~culled.all(0)).any()  # culled in one camera, composited in another
+    assert torch.equal(img, ref) and torch.equal(alpha, ref_alpha)
+    assert grads.keys() == ref_grads.keys()
+    for name, g in grads.items():
+        assert ref_grads[name].abs().max() > 0, name
+        assert torch.equal(g, ref_grads[name]), (name, rel_err(g, ref_grads[name]))
 
 
 def test_many_stacked_opaque_gaussians_match_torch():
