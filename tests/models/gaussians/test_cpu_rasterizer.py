@@ -315,6 +315,19 @@ def test_culled_gaussians_in_a_scene_get_no_gradient():
         assert rel_err(grads[name], ref_grads[name]) <= 1e-9, name
 
 
+def test_gradient_of_the_backgrounds_alone_matches_torch():
+    """Only the backgrounds want a gradient: the forward keeps no pairs, the backward still gives theirs."""
+    inputs = scene_inputs(40, seed=4, n_cam=2)
+    viewmats, Ks = cameras(n=2)
+    grads = []
+    for fn in (cpu_rasterization, torch_rasterization):
+        bg = inputs["backgrounds"].clone().requires_grad_()
+        img, alpha, _ = fn(*positional(inputs), viewmats, Ks, W, H, backgrounds=bg, render_mode="RGB+ED")
+        ((img * loss_weights(img.shape)).sum() + alpha.sum()).backward()
+        grads.append(bg.grad)
+    assert grads[1].abs().min() > 0 and rel_err(grads[0], grads[1]) <= 1e-9
+
+
 @pytest.mark.parametrize("n_cam", [1, 3])
 @pytest.mark.parametrize("mode", ["RGB", "RGB+ED"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
