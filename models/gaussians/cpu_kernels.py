@@ -893,7 +893,7 @@ def composite_tile_size(width: int, height: int) -> int:
 
 @_pfjit
 def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size, tile_w, tile_h, ctile, width,
-                   height, rec, cbox, depth64, tiles_per_gauss, grads):
+                   height, rec, cbox, depth64, tiles_per_gauss):
     """Per (camera, Gaussian), computed once per call instead of once per list entry, in parallel (gsplat's
     ``isect_tiles`` squares, half-open in ``tile_size`` tiles of ``tile_w`` x ``tile_h``, empty when culled,
     decide ``n_isects`` and clip the pixel box):
@@ -908,9 +908,7 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
     - ``cbox`` [C, N] = the compositing tiles (side ``ctile``) the box touches, packed into one integer
       ``x0 | x1 << 16 | y0 << 32 | y1 << 48`` (0 with an empty box; :func:`bin_gaussians` reads it);
     - ``depth64`` [C, N] = ``depths`` in float64 (:func:`bin_gaussians` sorts their bits);
-    - ``tiles_per_gauss`` [C, N] = the number of ``tile_size`` squares (the API's ``meta``);
-    - ``grads`` [C, N, 6 + D] (the backward pass's gradients, when it has rows): zeros for a Gaussian without a
-      box, the rows :func:`gather_slots` does not write (it writes every other one).
+    - ``tiles_per_gauss`` [C, N] = the number of ``tile_size`` squares (the API's ``meta``).
 
     float64 arithmetic: this is per Gaussian, not per pixel. Returns the number of (``tile_size`` tile,
     Gaussian) intersections and of (compositing tile, Gaussian) entries."""
@@ -922,7 +920,6 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
     while (1 << csh) < ctile:
         csh += 1
     pow2 = (1 << csh) == ctile
-    zero_grads = grads.shape[0] > 0
     for c in range(n_cam):
         for g in numba.prange(n):
             depth64[c, g] = depths[c, g]
@@ -967,9 +964,6 @@ def pack_gaussians(means2d, conics, opacities, colors, radii, depths, tile_size,
                 total += (cx1 - cx0) * (cy1 - cy0)
             else:
                 cbox[c, g] = 0
-                if zero_grads:
-                    for j in range(grads.shape[2]):
-                        grads[c, g, j] = 0.0
     return n_isects, total
 
 
@@ -1362,8 +1356,8 @@ def composite_backward(ent, offsets, width, height, tile_size, tile_w, cst, back
 
 @_pjit
 def gather_slots(order, roff, epos, slots, grads):
-    """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features; :func:`pack_gaussians` zero-fills the rows of
-    Gaussians without entries) = the sums of the list entries' ``slots`` [n_isects, 6 + D] per (camera,
+    """``grads`` [C, N, 6 + D] (2D mean, conic, opacity, features; the caller zero-fills it: Gaussians without
+    entries keep their zeros) = the sums of the list entries' ``slots`` [n_isects, 6 + D] per (camera,
     Gaussian), in float64 over its entries in row-major tile order (:func:`bin_gaussians`' ``order``, ``roff``,
     ``epos``): deterministic for any thread count. Walked in depth order: each tile's entries are then read in
     list order (near-sequential), and the scattered accesses are one row written per Gaussian instead of one
