@@ -32,7 +32,8 @@ with three levers:
    The first ``explore_prefix`` of the clip's frames stay in seen free space, a prefix to fall back on. The clearance
    (r_safe plus the follow error along the path) from every observed surface is G's. With ``explore_ball`` > 0 such a
    frame's clearance ball must have been seen or looked at too (``ExplorerDetector.ball_seen``; with
-   ``explore_ball_up`` only the part of it above the frame). With ``explore_lid`` > 0 the top of the observed
+   ``explore_ball_up`` only the part of it above the frame; with ``explore_ball_open_sky`` false not at all where the
+   input photo shows sky: ``under_open_sky``). With ``explore_lid`` > 0 the top of the observed
    structure is a surface too (``ExplorerDetector.lid_height``): a ceiling no view has shown may cap it there.
 
 The best trajectory that G passes is taken; when none passes, the best few are handed to the collision
@@ -78,6 +79,9 @@ SHAPES = ("arc", "dolly", "orbit")
 # ``plan.explore_lid``: the lid stands at this quantile of the cloud's heights above the ground plane (not the
 # maximum: a generated frame's lifted outlier above the structure would lift the lid out of the way)
 LID_QUANTILE = 0.999
+# ``plan.explore_ball_open_sky``: the share of the input photo's pixels without depth from which it shows sky (the
+# simulated rooms and table-tops have none: closed shells; a street's sky fills a large part of its photo)
+SKY_SHARE = 0.01
 
 
 @dataclass
@@ -313,6 +317,14 @@ class ExplorerDetector(CollisionDetector):
         return bool((near | unseen).any())
 
 
+def under_open_sky(views: list[SeenView]) -> bool:
+    """Whether the observations (views without ``anchored`` pixels: the input photo) show sky, i.e. at least
+    ``SKY_SHARE`` of their pixels have no depth: the geometry found no surface on those rays, and nothing caps the
+    scene (``plan.explore_ball_open_sky``)."""
+    seen = [v.depth for v in views if v.anchored is None]
+    return bool(seen) and float(np.mean(np.concatenate([(d <= 0).ravel() for d in seen]))) >= SKY_SHARE
+
+
 def open_sky(views: list[SeenView]) -> list[SeenView]:
     """The views with every pixel of no depth (0: the geometry found no surface, i.e. sky) of an *observation* (a view
     without ``anchored`` pixels: the input photo) seeing free space without end (depth +inf): its ray met nothing.
@@ -510,7 +522,9 @@ class ExplorerPlanner:
         det = ExplorerDetector(points, cfg.safe_radius, state.views, thin=False, ground=ground,
                                follow_error=cfg.follow_error if cfg.explore_follow_error is None
                                else cfg.explore_follow_error, vmap=vmap, prefix=cfg.explore_prefix,
-                               reach=cfg.explore_reach, visibility_views=free_views, ball=cfg.explore_ball,
+                               reach=cfg.explore_reach, visibility_views=free_views,
+                               ball=cfg.explore_ball if cfg.explore_ball_open_sky or not under_open_sky(state.views)
+                               else 0.0,
                                ball_follow_error=cfg.explore_ball_follow_error, ball_up=cfg.explore_ball_up,
                                lid=cfg.explore_lid)
         t_map = time.perf_counter()
@@ -596,4 +610,4 @@ class ExplorerPlanner:
 
 
 __all__ = ["ExplorerDetector", "ExplorerPlanner", "VoxelMap", "anchored_pixels", "carving_views", "repairable",
-           "shaped_trajectory", "look_at"]
+           "shaped_trajectory", "look_at", "under_open_sky"]

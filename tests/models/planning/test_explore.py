@@ -209,6 +209,38 @@ def test_the_lid_asks_a_rising_clip_for_clearance_below_the_top_of_the_observed_
     assert seen["lid"] == 0.7
 
 
+def test_without_explore_ball_open_sky_the_ball_is_not_asked_where_the_input_photo_shows_sky(monkeypatch):
+    """explore_ball_open_sky (collide14): the planner hands its detector the ball of explore_ball, or none when the
+    setting is false and the input photo shows sky; a photo without sky (a room), or a generated frame's empty
+    pixels (no observation), keep the ball."""
+    state = wall_state()
+    photo = state.views[0]
+    depth = photo.depth.copy()
+    depth[: depth.shape[0] // 4] = 0.0  # a quarter of the photo is sky
+    sky = dataclasses.replace(state, views=[SeenView(photo.c2w, photo.K, depth)])
+    invented = dataclasses.replace(state, views=[photo, SeenView(photo.c2w, photo.K, depth, np.ones_like(depth, bool))])
+    assert explore_mod.under_open_sky(sky.views) and not explore_mod.under_open_sky(state.views)
+    assert not explore_mod.under_open_sky(invented.views)
+    few = depth.copy()
+    few[:] = photo.depth
+    few[0, : int(0.5 * explore_mod.SKY_SHARE * few.size)] = 0.0  # holes, not sky
+    assert not explore_mod.under_open_sky([SeenView(photo.c2w, photo.K, few)])
+    balls = {}
+
+    class Recording(ExplorerDetector):
+        def __init__(self, *args, **kwargs):
+            balls[key] = kwargs.get("ball")
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(explore_mod, "ExplorerDetector", Recording)
+    for key in [(name, flag) for name in ("sky", "room", "invented") for flag in (True, False)]:
+        st = {"sky": sky, "room": state, "invented": invented}[key[0]]
+        cfg = PlanConfig(explore_candidates=6, explore_ball=0.5, explore_ball_up=True, explore_ball_open_sky=key[1])
+        ExplorerPlanner(cfg).plan(st, np.random.default_rng(0))
+    assert balls == {("sky", True): 0.5, ("sky", False): 0.0, ("room", True): 0.5, ("room", False): 0.5,
+                     ("invented", True): 0.5, ("invented", False): 0.5}
+
+
 def test_the_input_photos_sky_is_free_space_a_generated_frames_is_not():
     state = wall_state()
     photo = state.views[0]
