@@ -128,12 +128,6 @@ class PlanConfig(_Section):
         "for. False: every direction (explore11). Why: development room 2 of CRN base seed 1 (collide13): the "
         "default's clip 3 ended 0.53 m below a ceiling no frame had seen, admitted in unknown space; the full ball "
         "costs streets seen.")
-    explore_ball_rise: float = Field(
-        0.0, ge=0, description="explorer: the clearance ball of explore_ball asked only at frames standing at least "
-        "this x r_safe above the clip's first frame (along the ground plane's normal): a clip looks up before it "
-        "rises, not before it moves level or down. 0: at every frame admitted in unknown space (explore11). Why: the "
-        "room collisions the upper ball removed came from a dolly rising 0.8 m into an unseen ceiling (collide13); its "
-        "refusals elsewhere cost rooms seen (collide14, models/planning/README.md).")
     explore_ball_open_sky: bool = Field(
         True, description="explorer: whether the clearance ball of explore_ball is asked in a scene whose input "
         "photo shows sky (at least explore.SKY_SHARE of its pixels without depth: the geometry found no surface on "
@@ -199,7 +193,6 @@ class PlanConfig(_Section):
                                                 "explore_reach": 1.0, "explore_sky": "free", "explore_ball": 0.0,
                                                 "explore_ball_follow_error": None, "explore_ball_up": False,
                                                 "explore_lid": 0.0, "explore_ball_open_sky": True,
-                                                "explore_ball_rise": 0.0,
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")

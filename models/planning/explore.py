@@ -172,14 +172,13 @@ class ExplorerDetector(CollisionDetector):
 
     def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
                  ball: float = 0.0, ball_follow_error: float | None = None, ball_up: bool = False,
-                 ball_rise: float = 0.0, lid: float = 0.0, **kwargs) -> None:
+                 lid: float = 0.0, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.ball = float(ball)  # ``plan.explore_ball``: share of the clearance whose ball must be seen (0: off)
         # ``plan.explore_ball_follow_error``: what the ball grows with along the path (None: G's follow error)
         self.ball_follow_error = self.follow_error if ball_follow_error is None else float(ball_follow_error)
         self.ball_up = bool(ball_up)  # ``plan.explore_ball_up``: the ball's probes only above the frame
-        self.ball_rise = float(ball_rise)  # ``plan.explore_ball_rise``: the ball only where the clip has risen so much
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
         self.lid = float(lid)  # ``plan.explore_lid``: share of G's clearance asked from the lid (0: no lid)
         self.lid_height = self._lid_height() if self.lid > 0 else None
@@ -255,7 +254,8 @@ class ExplorerDetector(CollisionDetector):
         x = trajectory[t, :3, 3]
         dirs = _directions26()
         if self.ball_up:  # only the directions rising from the ground plane (from the clip's first camera without one)
-            dirs = dirs[dirs @ self._up(trajectory) > 0.5]
+            up = self.ground[0] if self.ground is not None else -trajectory[0, :3, 1]
+            dirs = dirs[dirs @ (up / np.linalg.norm(up)) > 0.5]
         probes = (x[None, None] + np.array([0.5, 1.0])[:, None, None] * radius * dirs[None]).reshape(-1, 3)
         free, occluded = self._visibility(probes)
         idx, _ = self.vmap.lookup(probes)
@@ -276,21 +276,6 @@ class ExplorerDetector(CollisionDetector):
                 ok = self._sight_many(np.repeat(earlier[s, None, :3, 3], len(j), 0), probes[j])
                 pending = np.setdiff1d(pending, j[ok], assume_unique=True)
         return len(pending) == 0
-
-    def _up(self, trajectory: np.ndarray) -> np.ndarray:
-        """Unit up: the ground plane's normal, or the clip's first camera's up without one."""
-        up = self.ground[0] if self.ground is not None else -trajectory[0, :3, 1]
-        return up / np.linalg.norm(up)
-
-    def risen(self, trajectory: np.ndarray, t: int) -> bool:
-        """Whether frame ``t`` stands at least ``explore_ball_rise`` x r_safe above the clip's first frame (always with
-        ``explore_ball_rise`` 0): the clearance ball is asked only there. Why: the room collisions the upper ball
-        removed were a dolly rising 0.8 m into an unseen ceiling (collide13); its refusals of clips that do not rise
-        cost rooms seen (collide14)."""
-        if self.ball_rise <= 0:
-            return True
-        rise = float((trajectory[t, :3, 3] - trajectory[0, :3, 3]) @ self._up(trajectory))
-        return rise >= self.ball_rise * self.r_safe
 
     def path_flags(self, trajectory: np.ndarray, first_only: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -320,7 +305,7 @@ class ExplorerDetector(CollisionDetector):
                     if self._line_of_sight(earlier[s, :3, 3], x[t]):
                         unseen[t] = False
                         break
-                if not unseen[t] and self.ball > 0 and self.risen(trajectory, t):  # its clearance ball seen too
+                if not unseen[t] and self.ball > 0:  # its clearance ball must have been seen too
                     unseen[t] = not self.ball_seen(trajectory, t, self.ball * ball_need[t])
             if first_only and unseen[t]:
                 unseen[t + 1:] = False
@@ -541,7 +526,6 @@ class ExplorerPlanner:
                                ball=cfg.explore_ball if cfg.explore_ball_open_sky or not under_open_sky(state.views)
                                else 0.0,
                                ball_follow_error=cfg.explore_ball_follow_error, ball_up=cfg.explore_ball_up,
-                               ball_rise=cfg.explore_ball_rise,
                                lid=cfg.explore_lid)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)

@@ -147,26 +147,6 @@ def test_a_frame_in_unknown_space_needs_its_whole_clearance_ball_seen_not_only_i
             near, unseen, _ = det.path_flags(path)
             assert not near.any()
             assert bool(unseen[8:].any()) == want, (name, up)
-    # explore_ball_rise (collide14): the ball is asked only where the clip has risen by this x r_safe. The level clip
-    # looking down, refused by the upper ball, is admitted with it; a clip looking level and rising 0.5 over its move
-    # has the ball asked at exactly the frames 0.25 or more above its start
-    for rise, want in ((0.0, True), (1.0, False)):
-        det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25, reach=2.0,
-                               ball=1.0, ball_up=True, ball_rise=rise)
-        near, unseen, _ = det.path_flags(looking_down)
-        assert not near.any() and bool(unseen[8:].any()) == want, rise
-    rising = looking_level.copy()
-    rising[8:, 1, 3] -= np.linspace(0.0, 0.5, 12)  # OpenCV: -y is up
-    for rise in (0.0, 1.0):
-        det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.25, reach=2.0,
-                               ball=1.0, ball_up=True, ball_rise=rise)
-        asked = []
-        det.ball_seen = lambda trajectory, t, radius, asked=asked: asked.append(t) or True  # records
-        near, unseen, _ = det.path_flags(rising)
-        assert not near.any() and not unseen.any()
-        high = [t for t in range(len(rising)) if rising[0, 1, 3] - rising[t, 1, 3] >= 0.25]
-        assert asked and (set(asked) <= set(high) if rise else not set(asked) <= set(high))
-
     # the ball's radius: explore_ball x (r_safe + its follow error x the distance travelled), G's follow error by
     # default (explore11), explore_ball_follow_error when set (explore12); G's clearance keeps its own
     travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(looking_level[:, :3, 3], axis=0), axis=1))])
