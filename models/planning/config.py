@@ -135,14 +135,6 @@ class PlanConfig(_Section):
         "level is in no view though nothing caps it, and the ball refused street clips for it: collide13, streets "
         "seen -0.066 +- 0.023 with explore_ball 0.5 + explore_ball_up; the rooms' collisions it removed were under "
         "ceilings). True: everywhere (explore11).")
-    explore_lid: float = Field(
-        0.0, ge=0, le=1, description="explorer: the top of the observed structure (the explore.LID_QUANTILE "
-        "quantile of the cloud's heights above the ground plane) is a surface too, a lid where an unseen ceiling may "
-        "cap it: every frame must stand below it by this x the clearance G demands there (r_safe + the follow error "
-        "x the distance travelled), like below an observed surface; no lid without a ground plane or where an "
-        "earlier camera stood above that top. 0: off. Why: development room 2 of CRN base seed 1 (collide13): the "
-        "default's clip 3 rose 0.8 m to 0.53 m below a ceiling no view had shown, while the cloud held the walls up "
-        "to it (collide14: it removes that collision, not room 8's, and costs rooms seen; models/planning/README.md).")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
         "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
@@ -192,7 +184,7 @@ class PlanConfig(_Section):
                                                 "explore_invented_share": 0.0, "explore_follow_error": None,
                                                 "explore_reach": 1.0, "explore_sky": "free", "explore_ball": 0.0,
                                                 "explore_ball_follow_error": None, "explore_ball_up": False,
-                                                "explore_lid": 0.0, "explore_ball_open_sky": True,
+                                                "explore_ball_open_sky": True,
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")

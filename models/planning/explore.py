@@ -33,8 +33,7 @@ with three levers:
    (r_safe plus the follow error along the path) from every observed surface is G's. With ``explore_ball`` > 0 such a
    frame's clearance ball must have been seen or looked at too (``ExplorerDetector.ball_seen``; with
    ``explore_ball_up`` only the part of it above the frame; with ``explore_ball_open_sky`` false not at all where the
-   input photo shows sky: ``under_open_sky``). With ``explore_lid`` > 0 the top of the observed
-   structure is a surface too (``ExplorerDetector.lid_height``): a ceiling no view has shown may cap it there.
+   input photo shows sky: ``under_open_sky``).
 
 The best trajectory that G passes is taken; when none passes, the best few are handed to the collision
 optimisation (with their end poses), then the next ones; with no safe path the camera stays put.
@@ -76,9 +75,6 @@ from navcrafter.models.planning.voxel_kernels import FREE, OCCUPIED, UNKNOWN, ca
 from navcrafter.models.reconstruction.pointrender import render_points
 
 SHAPES = ("arc", "dolly", "orbit")
-# ``plan.explore_lid``: the lid stands at this quantile of the cloud's heights above the ground plane (not the
-# maximum: a generated frame's lifted outlier above the structure would lift the lid out of the way)
-LID_QUANTILE = 0.999
 # ``plan.explore_ball_open_sky``: the share of the input photo's pixels without depth from which it shows sky (the
 # simulated rooms and table-tops have none: closed shells; a street's sky fills a large part of its photo)
 SKY_SHARE = 0.01
@@ -172,7 +168,7 @@ class ExplorerDetector(CollisionDetector):
 
     def __init__(self, *args, vmap: VoxelMap, prefix: float = 0.1, lag: int = 2, reach: float = 1.0,
                  ball: float = 0.0, ball_follow_error: float | None = None, ball_up: bool = False,
-                 lid: float = 0.0, **kwargs) -> None:
+                 **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.vmap, self.prefix, self.lag = vmap, float(prefix), int(lag)
         self.ball = float(ball)  # ``plan.explore_ball``: share of the clearance whose ball must be seen (0: off)
@@ -180,33 +176,6 @@ class ExplorerDetector(CollisionDetector):
         self.ball_follow_error = self.follow_error if ball_follow_error is None else float(ball_follow_error)
         self.ball_up = bool(ball_up)  # ``plan.explore_ball_up``: the ball's probes only above the frame
         self.max_reach = float(reach) * vmap.voxel  # unknown space is entered at most this far from free space
-        self.lid = float(lid)  # ``plan.explore_lid``: share of G's clearance asked from the lid (0: no lid)
-        self.lid_height = self._lid_height() if self.lid > 0 else None
-
-    def _lid_height(self) -> float | None:
-        """The height above the ground plane of the top of the observed structure (the ``LID_QUANTILE`` of the
-        cloud's heights), where an unseen ceiling may cap it; None without a ground plane, or where an earlier camera
-        stood above that top (the structure was seen from above: nothing says a ceiling caps it). Why: development
-        room 2 of CRN base seed 1 (collide13): a dolly rose 0.8 m to 0.53 m below a ceiling no view had shown, while
-        the cloud held the walls up to it (its top 3.03 m, the ceiling at 2.96 m); a street's facades rise far above
-        any camera, so its lid stands above every candidate."""
-        if self.ground is None or len(self.points) == 0:
-            return None
-        n, c = self.ground
-        top = float(np.quantile(self.points @ n + c, LID_QUANTILE))
-        if len(self.centres) and float((self.centres @ n + c).max()) >= top:
-            return None
-        return top
-
-    def clearance(self, x: np.ndarray) -> np.ndarray:
-        """G's clearance (``CollisionDetector.clearance``), and with ``explore_lid`` the distance below the lid over
-        its share (so the lid asks ``explore_lid`` x the clearance G demands from an observed surface)."""
-        d = super().clearance(x)
-        if self.lid_height is None:
-            return d
-        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
-        n, c = self.ground
-        return np.minimum(d, np.maximum(self.lid_height - (x @ n + c), 0.0) / self.lid)
 
     def start_radius(self) -> float:
         """How far from the clip's start its first frames may stand outside the seen free space: 2 r_safe, or one
@@ -525,8 +494,7 @@ class ExplorerPlanner:
                                reach=cfg.explore_reach, visibility_views=free_views,
                                ball=cfg.explore_ball if cfg.explore_ball_open_sky or not under_open_sky(state.views)
                                else 0.0,
-                               ball_follow_error=cfg.explore_ball_follow_error, ball_up=cfg.explore_ball_up,
-                               lid=cfg.explore_lid)
+                               ball_follow_error=cfg.explore_ball_follow_error, ball_up=cfg.explore_ball_up)
         t_map = time.perf_counter()
         scorer = _Scorer(vmap, state, cfg)
         # end positions: a grid over S

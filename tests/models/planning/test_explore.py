@@ -162,53 +162,6 @@ def test_a_frame_in_unknown_space_needs_its_whole_clearance_ball_seen_not_only_i
         assert np.allclose(det.path_clearance(looking_level[:, :3, 3]), 0.25 + 0.26 * travelled)
 
 
-def test_the_lid_asks_a_rising_clip_for_clearance_below_the_top_of_the_observed_structure(monkeypatch):
-    """explore_lid (collide14): a wall observed from the floor (1.5 below the camera; OpenCV: -y is up) up to 4.5
-    above it, no ceiling seen. A clip moving 2 ahead and then rising 2.5 straight up, 2 in front of the wall, keeps
-    G's clearance from every observed surface; it ends 0.5 below the wall's top, where G demands r_safe + 0.26 x 4.5
-    = 1.42: the full lid refuses its last frames, a lid asking 0.3 of it admits them, no lid admits them, and a camera
-    that stood above the structure (it was seen from above) removes the lid."""
-    state = wall_state()
-    g = np.arange(-3.0, 3.0, 0.05)
-    wall = np.stack(np.meshgrid(g, np.arange(-3.0, 1.5, 0.05), [4.0], indexing="ij"), -1).reshape(-1, 3)
-    floor = np.stack(np.meshgrid(g, [1.5], np.arange(0.0, 4.0, 0.05), indexing="ij"), -1).reshape(-1, 3)
-    cloud = np.concatenate([wall, floor])
-    vmap = VoxelMap.build(state, cloud, 48)
-    ground = (np.array([0.0, -1.0, 0.0]), 1.5)  # height above the floor = 1.5 - y
-    path = np.repeat(np.eye(4)[None], 21, 0)
-    path[:5, 2, 3] = np.linspace(0.0, 2.0, 5)
-    path[5:, 2, 3] = 2.0
-    path[5:, 1, 3] = -np.linspace(0.0, 2.5, 16)
-
-    def detector(lid, views=state.views):
-        return ExplorerDetector(cloud, 0.25, views, thin=False, ground=ground, follow_error=0.26, vmap=vmap,
-                                prefix=0.1, reach=1.0, lid=lid)
-
-    flags = {}
-    for lid in (0.0, 0.3, 1.0):
-        det = detector(lid)
-        assert (det.lid_height is None) == (lid == 0.0)
-        assert lid == 0.0 or 4.4 < det.lid_height <= 4.5
-        flags[lid], _, _ = det.path_flags(path)
-    assert not flags[0.0].any() and not flags[0.3].any()
-    assert flags[1.0][-1] and not flags[1.0][:5].any()  # the rise is refused near its top, not at its start
-    high = dataclasses.replace(state.views[0], c2w=state.views[0].c2w.copy())
-    high.c2w[:3, 3] = [0.0, -3.2, 0.0]  # 4.7 above the floor: above the wall's top
-    assert detector(1.0, [*state.views, high]).lid_height is None
-    # the planner hands plan.explore_lid to its detector
-    seen = {}
-
-    class Recording(ExplorerDetector):
-        def __init__(self, *args, **kwargs):
-            seen["lid"] = kwargs.get("lid")
-            super().__init__(*args, **kwargs)
-
-    monkeypatch.setattr(explore_mod, "ExplorerDetector", Recording)
-    _, room = room_state()
-    ExplorerPlanner(PlanConfig(explore_candidates=6, explore_lid=0.7)).plan(room, np.random.default_rng(0))
-    assert seen["lid"] == 0.7
-
-
 def test_without_explore_ball_open_sky_the_ball_is_not_asked_where_the_input_photo_shows_sky(monkeypatch):
     """explore_ball_open_sky (collide14): the planner hands its detector the ball of explore_ball, or none when the
     setting is false and the input photo shows sky; a photo without sky (a room), or a generated frame's empty
