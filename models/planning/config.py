@@ -128,6 +128,18 @@ class PlanConfig(_Section):
         "for. False: every direction (explore11). Why: development room 2 of CRN base seed 1 (collide13): the "
         "default's clip 3 ended 0.53 m below a ceiling no frame had seen, admitted in unknown space; the full ball "
         "costs streets seen.")
+    explore_ball_seen_free: bool = Field(
+        False, description="explorer: the clearance ball of explore_ball asked at every frame past the prefix, those "
+        "in seen free space too; False: only at frames admitted in unknown space (explore11). Why: development room 7 "
+        "of CRN base seed 4 (collide14): the default's dolly met a ceiling no view had shown at frames seen free (the "
+        "position in view, the space above it not).")
+    explore_ball_open_sky: bool = Field(
+        True, description="explorer: whether the clearance ball of explore_ball is asked in a scene whose input "
+        "photo shows sky (at least explore.SKY_SHARE of its pixels without depth: the geometry found no surface on "
+        "their rays). False: not there (the ball is a ceiling's test: under open sky the space above a camera looking "
+        "level is in no view though nothing caps it, and the ball refused street clips for it: collide13, streets "
+        "seen -0.066 +- 0.023 with explore_ball 0.5 + explore_ball_up; the rooms' collisions it removed were under "
+        "ceilings). True: everywhere (explore11).")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
         "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
@@ -177,6 +189,8 @@ class PlanConfig(_Section):
                                                 "explore_invented_share": 0.0, "explore_follow_error": None,
                                                 "explore_reach": 1.0, "explore_sky": "free", "explore_ball": 0.0,
                                                 "explore_ball_follow_error": None, "explore_ball_up": False,
+                                                "explore_ball_open_sky": True,
+                                                "explore_ball_seen_free": False,
                                                 "explore_anchor_falloff": 0.0, "explore_revisit": 0.0}
 
     @field_validator("trajectory")

@@ -162,6 +162,59 @@ def test_a_frame_in_unknown_space_needs_its_whole_clearance_ball_seen_not_only_i
         assert np.allclose(det.path_clearance(looking_level[:, :3, 3]), 0.25 + 0.26 * travelled)
 
 
+def test_with_explore_ball_seen_free_the_ball_is_asked_in_seen_free_space_too():
+    """explore_ball_seen_free (collide14): a clip rising ahead to (0, -1.2, 1.5) (OpenCV: -y is up) looking ahead
+    stays in the photo's view, so every frame is seen free and explore_ball never asks its ball; the space above its
+    last frames was in no view (the photo's half field of view is 40 deg, the clip's frames look level), so with the
+    setting the ball refuses them. The same clip moving level is admitted either way (the space above it in view)."""
+    state = wall_state()
+    vmap = VoxelMap.build(state, state.cloud_points, 48)
+    path = np.repeat(np.eye(4)[None], 21, 0)
+    rising, level = path.copy(), path.copy()
+    rising[:, 1, 3], rising[:, 2, 3] = -np.linspace(0.0, 1.2, 21), np.linspace(0.0, 1.5, 21)
+    level[:, 2, 3] = np.linspace(0.0, 1.5, 21)
+    for seen_free in (False, True):
+        det = ExplorerDetector(state.cloud_points, 0.25, state.views, thin=False, vmap=vmap, prefix=0.1, reach=1.0,
+                               follow_error=0.26, ball=0.5, ball_up=True, ball_seen_free=seen_free)
+        assert det._visibility(rising[:, :3, 3])[0][3:].all()  # every frame past the start is seen free
+        near, unseen, _ = det.path_flags(rising)
+        assert not near.any() and bool(unseen[-3:].all()) == seen_free and bool(unseen.any()) == seen_free
+        near, unseen, _ = det.path_flags(level)
+        assert not near.any() and not unseen.any()
+
+
+def test_without_explore_ball_open_sky_the_ball_is_not_asked_where_the_input_photo_shows_sky(monkeypatch):
+    """explore_ball_open_sky (collide14): the planner hands its detector the ball of explore_ball, or none when the
+    setting is false and the input photo shows sky; a photo without sky (a room), or a generated frame's empty
+    pixels (no observation), keep the ball."""
+    state = wall_state()
+    photo = state.views[0]
+    depth = photo.depth.copy()
+    depth[: depth.shape[0] // 4] = 0.0  # a quarter of the photo is sky
+    sky = dataclasses.replace(state, views=[SeenView(photo.c2w, photo.K, depth)])
+    invented = dataclasses.replace(state, views=[photo, SeenView(photo.c2w, photo.K, depth, np.ones_like(depth, bool))])
+    assert explore_mod.under_open_sky(sky.views) and not explore_mod.under_open_sky(state.views)
+    assert not explore_mod.under_open_sky(invented.views)
+    few = depth.copy()
+    few[:] = photo.depth
+    few[0, : int(0.5 * explore_mod.SKY_SHARE * few.size)] = 0.0  # holes, not sky
+    assert not explore_mod.under_open_sky([SeenView(photo.c2w, photo.K, few)])
+    balls = {}
+
+    class Recording(ExplorerDetector):
+        def __init__(self, *args, **kwargs):
+            balls[key] = kwargs.get("ball")
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(explore_mod, "ExplorerDetector", Recording)
+    for key in [(name, flag) for name in ("sky", "room", "invented") for flag in (True, False)]:
+        st = {"sky": sky, "room": state, "invented": invented}[key[0]]
+        cfg = PlanConfig(explore_candidates=6, explore_ball=0.5, explore_ball_up=True, explore_ball_open_sky=key[1])
+        ExplorerPlanner(cfg).plan(st, np.random.default_rng(0))
+    assert balls == {("sky", True): 0.5, ("sky", False): 0.0, ("room", True): 0.5, ("room", False): 0.5,
+                     ("invented", True): 0.5, ("invented", False): 0.5}
+
+
 def test_the_input_photos_sky_is_free_space_a_generated_frames_is_not():
     state = wall_state()
     photo = state.views[0]
