@@ -1476,6 +1476,56 @@ def _set_coef(v_dc, v_rest, g, k, x, y, z):
         v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = x, y, z
 
 
+@_ifjit
+def _sh3_basis(x, y, z):
+    """The 16 degree-3 basis values at the unit direction (x, y, z) as a tuple: :func:`_sh_basis`' values, the same
+    expressions, held in registers (no [16] array, no degree tests)."""
+    xx, yy, zz = x * x, y * y, z * z
+    return (_C0, -_C1 * y, _C1 * z, -_C1 * x,
+            _C2[0] * x * y, _C2[1] * y * z, _C2[2] * (2.0 * zz - xx - yy), _C2[3] * x * z, _C2[4] * (xx - yy),
+            _C3[0] * y * (3.0 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (4.0 * zz - xx - yy),
+            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), _C3[4] * x * (4.0 * zz - xx - yy), _C3[5] * z * (xx - yy),
+            _C3[6] * x * (xx - 3.0 * yy))
+
+
+@_ifjit
+def _sh3_sum(b, dc, rest, g, j):
+    """Channel j's ``sum_k b[k] c_k`` of Gaussian g over the 16 coefficients, from zero in k's order (the float64
+    sum of :func:`sh_forward`'s generic loop, unrolled: literal indices, no ``k == 0`` test)."""
+    return (0.0 + b[0] * dc[g, j] + b[1] * rest[g, 0, j] + b[2] * rest[g, 1, j] + b[3] * rest[g, 2, j]
+            + b[4] * rest[g, 3, j] + b[5] * rest[g, 4, j] + b[6] * rest[g, 5, j] + b[7] * rest[g, 6, j]
+            + b[8] * rest[g, 7, j] + b[9] * rest[g, 8, j] + b[10] * rest[g, 9, j] + b[11] * rest[g, 10, j]
+            + b[12] * rest[g, 11, j] + b[13] * rest[g, 12, j] + b[14] * rest[g, 13, j] + b[15] * rest[g, 14, j])
+
+
+@_ifjit
+def _sh3_w(rest, g, k, v0, v1, v2):
+    """Coefficient k's (k >= 1) gradient weight ``c_k . v`` of Gaussian g (:func:`sh_backward`'s ``w[k]``)."""
+    return rest[g, k - 1, 0] * v0 + rest[g, k - 1, 1] * v1 + rest[g, k - 1, 2] * v2
+
+
+@_ifjit
+def _sh3_weights(rest, g, v0, v1, v2):
+    """``w`` [16] of :func:`sh_backward` for degree 3 as a tuple (``w[0]``, which no derivative reads, is 0)."""
+    return (0.0, _sh3_w(rest, g, 1, v0, v1, v2), _sh3_w(rest, g, 2, v0, v1, v2), _sh3_w(rest, g, 3, v0, v1, v2),
+            _sh3_w(rest, g, 4, v0, v1, v2), _sh3_w(rest, g, 5, v0, v1, v2), _sh3_w(rest, g, 6, v0, v1, v2),
+            _sh3_w(rest, g, 7, v0, v1, v2), _sh3_w(rest, g, 8, v0, v1, v2), _sh3_w(rest, g, 9, v0, v1, v2),
+            _sh3_w(rest, g, 10, v0, v1, v2), _sh3_w(rest, g, 11, v0, v1, v2), _sh3_w(rest, g, 12, v0, v1, v2),
+            _sh3_w(rest, g, 13, v0, v1, v2), _sh3_w(rest, g, 14, v0, v1, v2), _sh3_w(rest, g, 15, v0, v1, v2))
+
+
+@_ifjit
+def _sh3_set(v_rest, g, k, bk, v0, v1, v2):
+    v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2
+
+
+@_ifjit
+def _sh3_add(vco, k, bk, v0, v1, v2):
+    vco[k, 0] += bk * v0
+    vco[k, 1] += bk * v1
+    vco[k, 2] += bk * v2
+
+
 @_pfjit
 def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, ``dc`` [N, 3] (k = 0)
@@ -1490,6 +1540,7 @@ def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
     nb = (degree + 1) * (degree + 1)
     culls = radii.shape[0] > 0
     with_depth = rgb.shape[2] == 4
+    deg3 = degree == 3
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db = np.empty(16), np.empty((0, 3))
         for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
@@ -1501,13 +1552,17 @@ def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
                     cut[c, g] = 0
                     continue
                 x, y, z, _ = _unit_dir(means, campos, c, g)
-                _sh_basis(degree, x, y, z, b, db)
-                a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
-                for k in range(nb):
-                    bk = b[k]
-                    a0 += bk * _coef(dc, rest, g, k, 0)
-                    a1 += bk * _coef(dc, rest, g, k, 1)
-                    a2 += bk * _coef(dc, rest, g, k, 2)
+                if deg3:  # straight-line code: the basis in registers, the 16 terms unrolled (same sums)
+                    b3 = _sh3_basis(x, y, z)
+                    a0, a1, a2 = _sh3_sum(b3, dc, rest, g, 0), _sh3_sum(b3, dc, rest, g, 1), _sh3_sum(b3, dc, rest, g, 2)
+                else:
+                    _sh_basis(degree, x, y, z, b, db)
+                    a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
+                    for k in range(nb):
+                        bk = b[k]
+                        a0 += bk * _coef(dc, rest, g, k, 0)
+                        a1 += bk * _coef(dc, rest, g, k, 1)
+                        a2 += bk * _coef(dc, rest, g, k, 2)
                 rgb[c, g, 0] = max(a0 + 0.5, 0.0)
                 rgb[c, g, 1] = max(a1 + 0.5, 0.0)
                 rgb[c, g, 2] = max(a2 + 0.5, 0.0)
@@ -1555,6 +1610,7 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
     n_k = v_rest.shape[1] + 1
     culls = radii.shape[0] > 0
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
+    deg3 = degree == 3
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
         vco = np.empty((n_k, 3))
@@ -1570,12 +1626,51 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                             _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
                     continue
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
-                _sh_basis(degree, x, y, z, b, db)
+                if not deg3:
+                    _sh_basis(degree, x, y, z, b, db)
                 cg = cut[c, g]
                 v0 = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
                 v1 = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
                 v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
-                if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
+                if deg3:  # straight-line code (the same expressions and sums as the loops below)
+                    b3 = _sh3_basis(x, y, z)
+                    w3 = _sh3_weights(rest, g, v0, v1, v2)
+                    if one_cam:
+                        v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = 0.0 + b3[0] * v0, 0.0 + b3[0] * v1, 0.0 + b3[0] * v2
+                        _sh3_set(v_rest, g, 1, b3[1], v0, v1, v2)
+                        _sh3_set(v_rest, g, 2, b3[2], v0, v1, v2)
+                        _sh3_set(v_rest, g, 3, b3[3], v0, v1, v2)
+                        _sh3_set(v_rest, g, 4, b3[4], v0, v1, v2)
+                        _sh3_set(v_rest, g, 5, b3[5], v0, v1, v2)
+                        _sh3_set(v_rest, g, 6, b3[6], v0, v1, v2)
+                        _sh3_set(v_rest, g, 7, b3[7], v0, v1, v2)
+                        _sh3_set(v_rest, g, 8, b3[8], v0, v1, v2)
+                        _sh3_set(v_rest, g, 9, b3[9], v0, v1, v2)
+                        _sh3_set(v_rest, g, 10, b3[10], v0, v1, v2)
+                        _sh3_set(v_rest, g, 11, b3[11], v0, v1, v2)
+                        _sh3_set(v_rest, g, 12, b3[12], v0, v1, v2)
+                        _sh3_set(v_rest, g, 13, b3[13], v0, v1, v2)
+                        _sh3_set(v_rest, g, 14, b3[14], v0, v1, v2)
+                        _sh3_set(v_rest, g, 15, b3[15], v0, v1, v2)
+                    else:
+                        _sh3_add(vco, 0, b3[0], v0, v1, v2)
+                        _sh3_add(vco, 1, b3[1], v0, v1, v2)
+                        _sh3_add(vco, 2, b3[2], v0, v1, v2)
+                        _sh3_add(vco, 3, b3[3], v0, v1, v2)
+                        _sh3_add(vco, 4, b3[4], v0, v1, v2)
+                        _sh3_add(vco, 5, b3[5], v0, v1, v2)
+                        _sh3_add(vco, 6, b3[6], v0, v1, v2)
+                        _sh3_add(vco, 7, b3[7], v0, v1, v2)
+                        _sh3_add(vco, 8, b3[8], v0, v1, v2)
+                        _sh3_add(vco, 9, b3[9], v0, v1, v2)
+                        _sh3_add(vco, 10, b3[10], v0, v1, v2)
+                        _sh3_add(vco, 11, b3[11], v0, v1, v2)
+                        _sh3_add(vco, 12, b3[12], v0, v1, v2)
+                        _sh3_add(vco, 13, b3[13], v0, v1, v2)
+                        _sh3_add(vco, 14, b3[14], v0, v1, v2)
+                        _sh3_add(vco, 15, b3[15], v0, v1, v2)
+                    vd0, vd1, vd2 = _sh_dir_grad(3, x, y, z, w3)
+                elif one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
                     for k in range(nb):
                         bk = b[k]
                         _set_coef(v_dc, v_rest, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
@@ -1588,7 +1683,8 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                         vco[k, 2] += b[k] * v2
                         w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
                                 + _coef(dc, rest, g, k, 2) * v2)
-                vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
+                if not deg3:
+                    vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
                 vm0 += (vd0 - x * dot) / nrm
