@@ -1460,20 +1460,26 @@ def _unit_dir(means, campos, c, g):
     return dx / nrm, dy / nrm, dz / nrm, nrm
 
 
+# The SH kernels read the coefficients as rows: ``dc`` [N, >= 3] holds coefficient 0 in its first three columns,
+# ``rest`` [N, r0 + 3 (K - 1)] coefficient k >= 1's channel j in column ``r0 + 3 (k - 1) + j`` -- a fit's
+# ``sh_dc`` / ``sh_rest`` reshaped (r0 = 0), or one [N, K, 3] array reshaped to [N, 3 K] and passed as both (r0 = 3).
+# Contiguous rows and an unsigned column: a coefficient's address is the row's plus a constant (strided 3D views
+# cost an address computation per coefficient: the unrolled degree-3 code spilled them, 5.1 -> 9.1 ms backward).
 @_ifjit
-def _coef(dc, rest, g, k, j):
-    """Coefficient ``k`` of channel ``j`` of Gaussian g: ``dc`` [N, 3] is coefficient 0, ``rest`` [N, K - 1, 3]
-    the others (a fit's ``sh_dc`` / ``sh_rest``, or two views of one [N, K, 3] array)."""
-    return dc[g, j] if k == 0 else rest[g, k - 1, j]
+def _coef(dc, rest, r0, g, k, j):
+    """Coefficient ``k`` of channel ``j`` of Gaussian g (``r0``: uintp, see above)."""
+    return dc[g, j] if k == 0 else rest[g, r0 + np.uintp(3 * (k - 1) + j)]
 
 
 @_ifjit
-def _set_coef(v_dc, v_rest, g, k, x, y, z):
-    """Writes coefficient ``k``'s gradient (x, y, z) of Gaussian g into ``v_dc`` (k = 0) or ``v_rest``."""
+def _set_coef(v_dc, v_rest, r0, g, k, x, y, z):
+    """Writes coefficient ``k``'s gradient (x, y, z) of Gaussian g into ``v_dc`` (k = 0) or ``v_rest`` (rows as
+    the coefficients')."""
     if k == 0:
         v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = x, y, z
     else:
-        v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = x, y, z
+        col = r0 + np.uintp(3 * (k - 1))
+        v_rest[g, col], v_rest[g, col + _U1], v_rest[g, col + _U2] = x, y, z
 
 
 @_ifjit
@@ -1489,34 +1495,42 @@ def _sh3_basis(x, y, z):
 
 
 @_ifjit
-def _sh3_sum(b, dc, rest, g, j):
+def _sh3_sum(b, dc, rest, r0, g, j):
     """Channel j's ``sum_k b[k] c_k`` of Gaussian g over the 16 coefficients, from zero in k's order (the float64
     sum of :func:`sh_forward`'s generic loop, unrolled: literal indices, no ``k == 0`` test)."""
-    return (0.0 + b[0] * dc[g, j] + b[1] * rest[g, 0, j] + b[2] * rest[g, 1, j] + b[3] * rest[g, 2, j]
-            + b[4] * rest[g, 3, j] + b[5] * rest[g, 4, j] + b[6] * rest[g, 5, j] + b[7] * rest[g, 6, j]
-            + b[8] * rest[g, 7, j] + b[9] * rest[g, 8, j] + b[10] * rest[g, 9, j] + b[11] * rest[g, 10, j]
-            + b[12] * rest[g, 11, j] + b[13] * rest[g, 12, j] + b[14] * rest[g, 13, j] + b[15] * rest[g, 14, j])
+    r = r0 + np.uintp(j)
+    return (0.0 + b[0] * dc[g, j] + b[1] * rest[g, r] + b[2] * rest[g, r + np.uintp(3)]
+            + b[3] * rest[g, r + np.uintp(6)] + b[4] * rest[g, r + np.uintp(9)] + b[5] * rest[g, r + np.uintp(12)]
+            + b[6] * rest[g, r + np.uintp(15)] + b[7] * rest[g, r + np.uintp(18)] + b[8] * rest[g, r + np.uintp(21)]
+            + b[9] * rest[g, r + np.uintp(24)] + b[10] * rest[g, r + np.uintp(27)]
+            + b[11] * rest[g, r + np.uintp(30)] + b[12] * rest[g, r + np.uintp(33)]
+            + b[13] * rest[g, r + np.uintp(36)] + b[14] * rest[g, r + np.uintp(39)]
+            + b[15] * rest[g, r + np.uintp(42)])
 
 
 @_ifjit
-def _sh3_w(rest, g, k, v0, v1, v2):
+def _sh3_w(rest, r0, g, k, v0, v1, v2):
     """Coefficient k's (k >= 1) gradient weight ``c_k . v`` of Gaussian g (:func:`sh_backward`'s ``w[k]``)."""
-    return rest[g, k - 1, 0] * v0 + rest[g, k - 1, 1] * v1 + rest[g, k - 1, 2] * v2
+    col = r0 + np.uintp(3 * (k - 1))
+    return rest[g, col] * v0 + rest[g, col + _U1] * v1 + rest[g, col + _U2] * v2
 
 
 @_ifjit
-def _sh3_weights(rest, g, v0, v1, v2):
+def _sh3_weights(rest, r0, g, v0, v1, v2):
     """``w`` [16] of :func:`sh_backward` for degree 3 as a tuple (``w[0]``, which no derivative reads, is 0)."""
-    return (0.0, _sh3_w(rest, g, 1, v0, v1, v2), _sh3_w(rest, g, 2, v0, v1, v2), _sh3_w(rest, g, 3, v0, v1, v2),
-            _sh3_w(rest, g, 4, v0, v1, v2), _sh3_w(rest, g, 5, v0, v1, v2), _sh3_w(rest, g, 6, v0, v1, v2),
-            _sh3_w(rest, g, 7, v0, v1, v2), _sh3_w(rest, g, 8, v0, v1, v2), _sh3_w(rest, g, 9, v0, v1, v2),
-            _sh3_w(rest, g, 10, v0, v1, v2), _sh3_w(rest, g, 11, v0, v1, v2), _sh3_w(rest, g, 12, v0, v1, v2),
-            _sh3_w(rest, g, 13, v0, v1, v2), _sh3_w(rest, g, 14, v0, v1, v2), _sh3_w(rest, g, 15, v0, v1, v2))
+    return (0.0, _sh3_w(rest, r0, g, 1, v0, v1, v2), _sh3_w(rest, r0, g, 2, v0, v1, v2),
+            _sh3_w(rest, r0, g, 3, v0, v1, v2), _sh3_w(rest, r0, g, 4, v0, v1, v2), _sh3_w(rest, r0, g, 5, v0, v1, v2),
+            _sh3_w(rest, r0, g, 6, v0, v1, v2), _sh3_w(rest, r0, g, 7, v0, v1, v2), _sh3_w(rest, r0, g, 8, v0, v1, v2),
+            _sh3_w(rest, r0, g, 9, v0, v1, v2), _sh3_w(rest, r0, g, 10, v0, v1, v2),
+            _sh3_w(rest, r0, g, 11, v0, v1, v2), _sh3_w(rest, r0, g, 12, v0, v1, v2),
+            _sh3_w(rest, r0, g, 13, v0, v1, v2), _sh3_w(rest, r0, g, 14, v0, v1, v2),
+            _sh3_w(rest, r0, g, 15, v0, v1, v2))
 
 
 @_ifjit
-def _sh3_set(v_rest, g, k, bk, v0, v1, v2):
-    v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2
+def _sh3_set(v_rest, r0, g, k, bk, v0, v1, v2):
+    col = r0 + np.uintp(3 * (k - 1))
+    v_rest[g, col], v_rest[g, col + _U1], v_rest[g, col + _U2] = 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2
 
 
 @_ifjit
@@ -1527,15 +1541,16 @@ def _sh3_add(vco, k, bk, v0, v1, v2):
 
 
 @_pfjit
-def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
-    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, ``dc`` [N, 3] (k = 0)
-    and ``rest`` [N, K - 1, 3] (float32 or float64, read as they are; float64 arithmetic)
-    along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``);
+def sh_forward(degree, means, campos, dc, rest, r0, radii, depths, rgb, cut):
+    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, rows ``dc`` (k = 0)
+    and ``rest`` from column ``r0`` (uintp; the layout above :func:`_coef`; float32 or float64, read as they are;
+    float64 arithmetic) along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``);
     ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient).
 
     The compositing's features, when ``radii`` [C, N] has rows (the projection's): a Gaussian culled in a camera
     (radius 0, never composited) gets zeros there, without its SH; with ``rgb`` [C, N, 4] its last column is
-    ``depths`` [C, N] (the "RGB+D" modes' features in one array). ``radii`` [0, 0]: every colour evaluated."""
+    ``depths`` [C, N] (the "RGB+D" modes' features in one array). ``radii`` [0, 0]: every colour evaluated.
+    Degree 3 runs straight-line code (:func:`_sh3_basis`, :func:`_sh3_sum`: the loop's expressions and sums)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     culls = radii.shape[0] > 0
@@ -1554,15 +1569,16 @@ def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
                 x, y, z, _ = _unit_dir(means, campos, c, g)
                 if deg3:  # straight-line code: the basis in registers, the 16 terms unrolled (same sums)
                     b3 = _sh3_basis(x, y, z)
-                    a0, a1, a2 = _sh3_sum(b3, dc, rest, g, 0), _sh3_sum(b3, dc, rest, g, 1), _sh3_sum(b3, dc, rest, g, 2)
+                    a0, a1, a2 = (_sh3_sum(b3, dc, rest, r0, g, 0), _sh3_sum(b3, dc, rest, r0, g, 1),
+                                  _sh3_sum(b3, dc, rest, r0, g, 2))
                 else:
                     _sh_basis(degree, x, y, z, b, db)
                     a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
                     for k in range(nb):
                         bk = b[k]
-                        a0 += bk * _coef(dc, rest, g, k, 0)
-                        a1 += bk * _coef(dc, rest, g, k, 1)
-                        a2 += bk * _coef(dc, rest, g, k, 2)
+                        a0 += bk * _coef(dc, rest, r0, g, k, 0)
+                        a1 += bk * _coef(dc, rest, r0, g, k, 1)
+                        a2 += bk * _coef(dc, rest, r0, g, k, 2)
                 rgb[c, g, 0] = max(a0 + 0.5, 0.0)
                 rgb[c, g, 1] = max(a1 + 0.5, 0.0)
                 rgb[c, g, 2] = max(a2 + 0.5, 0.0)
@@ -1596,18 +1612,19 @@ def _sh_dir_grad(degree, x, y, z, w):
 
 
 @_pfjit
-def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_dc, v_rest):
-    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' ``v_dc`` [N, 3] and
-    ``v_rest`` [N, K - 1, 3] (cameras summed in order, in float64, whatever the dtype of the coefficients and
+def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means, v_dc, v_rest):
+    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' rows ``v_dc`` and ``v_rest``
+    (laid out as ``dc`` and ``rest``, the same ``r0``; every coefficient written) (cameras summed in order, in float64, whatever the dtype of the coefficients and
     their gradients; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``: where
     :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again). The direction's gradient
     contracts the basis derivatives with each basis function's coefficient gradient (:func:`_sh_dir_grad`) instead
     of a [16, 3] table per pair. ``v_rgb``'s first three columns are read (any strides). With ``radii`` rows
     (:func:`sh_forward`'s): a camera where the Gaussian was culled adds nothing (its colour was never composited:
-    the compositing gives it a zero gradient, which would add zeros), so a Gaussian culled everywhere gets zeros."""
+    the compositing gives it a zero gradient, which would add zeros), so a Gaussian culled everywhere gets zeros.
+    Degree 3 runs straight-line code (the loops' expressions and sums, unrolled)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
-    n_k = v_rest.shape[1] + 1
+    n_k = (v_rest.shape[1] - r0) // 3 + 1
     culls = radii.shape[0] > 0
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
     deg3 = degree == 3
@@ -1623,7 +1640,7 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                 if culls and radii[c, g] == 0:
                     if one_cam:
                         for k in range(nb):
-                            _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
+                            _set_coef(v_dc, v_rest, r0, g, k, 0.0, 0.0, 0.0)
                     continue
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
                 if not deg3:
@@ -1634,24 +1651,24 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                 v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
                 if deg3:  # straight-line code (the same expressions and sums as the loops below)
                     b3 = _sh3_basis(x, y, z)
-                    w3 = _sh3_weights(rest, g, v0, v1, v2)
+                    w3 = _sh3_weights(rest, r0, g, v0, v1, v2)
                     if one_cam:
                         v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = 0.0 + b3[0] * v0, 0.0 + b3[0] * v1, 0.0 + b3[0] * v2
-                        _sh3_set(v_rest, g, 1, b3[1], v0, v1, v2)
-                        _sh3_set(v_rest, g, 2, b3[2], v0, v1, v2)
-                        _sh3_set(v_rest, g, 3, b3[3], v0, v1, v2)
-                        _sh3_set(v_rest, g, 4, b3[4], v0, v1, v2)
-                        _sh3_set(v_rest, g, 5, b3[5], v0, v1, v2)
-                        _sh3_set(v_rest, g, 6, b3[6], v0, v1, v2)
-                        _sh3_set(v_rest, g, 7, b3[7], v0, v1, v2)
-                        _sh3_set(v_rest, g, 8, b3[8], v0, v1, v2)
-                        _sh3_set(v_rest, g, 9, b3[9], v0, v1, v2)
-                        _sh3_set(v_rest, g, 10, b3[10], v0, v1, v2)
-                        _sh3_set(v_rest, g, 11, b3[11], v0, v1, v2)
-                        _sh3_set(v_rest, g, 12, b3[12], v0, v1, v2)
-                        _sh3_set(v_rest, g, 13, b3[13], v0, v1, v2)
-                        _sh3_set(v_rest, g, 14, b3[14], v0, v1, v2)
-                        _sh3_set(v_rest, g, 15, b3[15], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 1, b3[1], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 2, b3[2], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 3, b3[3], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 4, b3[4], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 5, b3[5], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 6, b3[6], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 7, b3[7], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 8, b3[8], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 9, b3[9], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 10, b3[10], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 11, b3[11], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 12, b3[12], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 13, b3[13], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 14, b3[14], v0, v1, v2)
+                        _sh3_set(v_rest, r0, g, 15, b3[15], v0, v1, v2)
                     else:
                         _sh3_add(vco, 0, b3[0], v0, v1, v2)
                         _sh3_add(vco, 1, b3[1], v0, v1, v2)
@@ -1673,16 +1690,16 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                 elif one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
                     for k in range(nb):
                         bk = b[k]
-                        _set_coef(v_dc, v_rest, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
-                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
-                                + _coef(dc, rest, g, k, 2) * v2)
+                        _set_coef(v_dc, v_rest, r0, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
+                        w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
+                                + _coef(dc, rest, r0, g, k, 2) * v2)
                 else:
                     for k in range(nb):
                         vco[k, 0] += b[k] * v0
                         vco[k, 1] += b[k] * v1
                         vco[k, 2] += b[k] * v2
-                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
-                                + _coef(dc, rest, g, k, 2) * v2)
+                        w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
+                                + _coef(dc, rest, r0, g, k, 2) * v2)
                 if not deg3:
                     vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
@@ -1693,7 +1710,7 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
             if one_cam:
                 for k in range(nb, n_k):  # coefficients above the degree: zero gradient
-                    _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
+                    _set_coef(v_dc, v_rest, r0, g, k, 0.0, 0.0, 0.0)
             else:
                 for k in range(n_k):
-                    _set_coef(v_dc, v_rest, g, k, vco[k, 0], vco[k, 1], vco[k, 2])
+                    _set_coef(v_dc, v_rest, r0, g, k, vco[k, 0], vco[k, 1], vco[k, 2])

@@ -216,10 +216,19 @@ def _coef_array(t) -> np.ndarray:
     return t.numpy() if t.dtype in (torch.float32, torch.float64) else _np(t)
 
 
-def _coef_arrays(co) -> tuple[np.ndarray, np.ndarray]:
-    """The SH kernels' (dc [N, 3], rest [N, K - 1, 3]): two views of one [N, K, 3] array, or the two given."""
-    arrs = [_coef_array(t) for t in co]
-    return (arrs[0][:, 0, :], arrs[0][:, 1:, :]) if len(arrs) == 1 else (arrs[0], arrs[1])
+def _rows(a: np.ndarray) -> np.ndarray:
+    """[N, ...] contiguous as [N, M] rows (a view)."""
+    return a.reshape(a.shape[0], math.prod(a.shape[1:]))
+
+
+def _coef_arrays(co) -> tuple[np.ndarray, np.ndarray, np.uintp]:
+    """The SH kernels' coefficient rows (dc, rest, r0): one [N, K, 3] array as [N, 3 K] rows passed twice (r0 =
+    3), or the two given ([N, 3] and [N, K - 1, 3], as [N, 3] and [N, 3 (K - 1)] rows; r0 = 0). Contiguous."""
+    arrs = [np.ascontiguousarray(_coef_array(t)) for t in co]
+    if len(arrs) == 1:
+        rows = _rows(arrs[0])
+        return rows, rows, np.uintp(3)
+    return _rows(arrs[0]), _rows(arrs[1]), np.uintp(0)
 
 
 def _campos(viewmats: Tensor) -> np.ndarray:
