@@ -1463,8 +1463,8 @@ def _unit_dir(means, campos, c, g):
 # The SH kernels read the coefficients as rows: ``dc`` [N, >= 3] holds coefficient 0 in its first three columns,
 # ``rest`` [N, r0 + 3 (K - 1)] coefficient k >= 1's channel j in column ``r0 + 3 (k - 1) + j`` -- a fit's
 # ``sh_dc`` / ``sh_rest`` reshaped (r0 = 0), or one [N, K, 3] array reshaped to [N, 3 K] and passed as both (r0 = 3).
-# Contiguous rows and an unsigned column: a coefficient's address is the row's plus a constant (strided 3D views
-# cost an address computation per coefficient: the unrolled degree-3 code spilled them, 5.1 -> 9.1 ms backward).
+# Contiguous rows and an unsigned column: a coefficient's address is the row's plus a constant (the unrolled
+# degree-3 forward on [N, K, 3] strided views computed each address from the strides: 3.55 ms, not 3.26, at 100k).
 @_ifjit
 def _coef(dc, rest, r0, g, k, j):
     """Coefficient ``k`` of channel ``j`` of Gaussian g (``r0``: uintp, see above)."""
@@ -1508,43 +1508,12 @@ def _sh3_sum(b, dc, rest, r0, g, j):
             + b[15] * rest[g, r + np.uintp(42)])
 
 
-@_ifjit
-def _sh3_w(rest, r0, g, k, v0, v1, v2):
-    """Coefficient k's (k >= 1) gradient weight ``c_k . v`` of Gaussian g (:func:`sh_backward`'s ``w[k]``)."""
-    col = r0 + np.uintp(3 * (k - 1))
-    return rest[g, col] * v0 + rest[g, col + _U1] * v1 + rest[g, col + _U2] * v2
-
-
-@_ifjit
-def _sh3_weights(rest, r0, g, v0, v1, v2):
-    """``w`` [16] of :func:`sh_backward` for degree 3 as a tuple (``w[0]``, which no derivative reads, is 0)."""
-    return (0.0, _sh3_w(rest, r0, g, 1, v0, v1, v2), _sh3_w(rest, r0, g, 2, v0, v1, v2),
-            _sh3_w(rest, r0, g, 3, v0, v1, v2), _sh3_w(rest, r0, g, 4, v0, v1, v2), _sh3_w(rest, r0, g, 5, v0, v1, v2),
-            _sh3_w(rest, r0, g, 6, v0, v1, v2), _sh3_w(rest, r0, g, 7, v0, v1, v2), _sh3_w(rest, r0, g, 8, v0, v1, v2),
-            _sh3_w(rest, r0, g, 9, v0, v1, v2), _sh3_w(rest, r0, g, 10, v0, v1, v2),
-            _sh3_w(rest, r0, g, 11, v0, v1, v2), _sh3_w(rest, r0, g, 12, v0, v1, v2),
-            _sh3_w(rest, r0, g, 13, v0, v1, v2), _sh3_w(rest, r0, g, 14, v0, v1, v2),
-            _sh3_w(rest, r0, g, 15, v0, v1, v2))
-
-
-@_ifjit
-def _sh3_set(v_rest, r0, g, k, bk, v0, v1, v2):
-    col = r0 + np.uintp(3 * (k - 1))
-    v_rest[g, col], v_rest[g, col + _U1], v_rest[g, col + _U2] = 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2
-
-
-@_ifjit
-def _sh3_add(vco, k, bk, v0, v1, v2):
-    vco[k, 0] += bk * v0
-    vco[k, 1] += bk * v1
-    vco[k, 2] += bk * v2
-
-
 @_pfjit
 def sh_forward(degree, means, campos, dc, rest, r0, radii, depths, rgb, cut):
     """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, rows ``dc`` (k = 0)
     and ``rest`` from column ``r0`` (uintp; the layout above :func:`_coef`; float32 or float64, read as they are;
-    float64 arithmetic) along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``);
+    float64 arithmetic) along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's
+    ``sh_to_rgb``);
     ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient).
 
     The compositing's features, when ``radii`` [C, N] has rows (the projection's): a Gaussian culled in a camera
@@ -1614,20 +1583,20 @@ def _sh_dir_grad(degree, x, y, z, w):
 @_pfjit
 def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means, v_dc, v_rest):
     """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' rows ``v_dc`` and ``v_rest``
-    (laid out as ``dc`` and ``rest``, the same ``r0``; every coefficient written) (cameras summed in order, in float64, whatever the dtype of the coefficients and
-    their gradients; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``: where
-    :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again). The direction's gradient
-    contracts the basis derivatives with each basis function's coefficient gradient (:func:`_sh_dir_grad`) instead
-    of a [16, 3] table per pair. ``v_rgb``'s first three columns are read (any strides). With ``radii`` rows
-    (:func:`sh_forward`'s): a camera where the Gaussian was culled adds nothing (its colour was never composited:
-    the compositing gives it a zero gradient, which would add zeros), so a Gaussian culled everywhere gets zeros.
-    Degree 3 runs straight-line code (the loops' expressions and sums, unrolled)."""
+    (laid out as ``dc`` and ``rest``, the same ``r0``; every coefficient written) (cameras summed in order, in
+    float64, whatever the dtype of the coefficients and their gradients; the clamp passes the gradient where its
+    input is >= 0, as ``torch.clamp_min``: where :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not
+    made again). The direction's gradient contracts the basis derivatives with each basis function's coefficient
+    gradient (:func:`_sh_dir_grad`) instead of a [16, 3] table per pair. ``v_rgb``'s first three columns are read
+    (any strides). With ``radii`` rows (:func:`sh_forward`'s): a camera where the Gaussian was culled adds nothing
+    (its colour was never composited: the compositing gives it a zero gradient, which would add zeros), so a
+    Gaussian culled everywhere gets zeros. (Unrolled like :func:`sh_forward`'s degree 3 it ran slower: 5.1 -> 5.5
+    ms at 100k, one thread.)"""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     n_k = (v_rest.shape[1] - r0) // 3 + 1
     culls = radii.shape[0] > 0
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
-    deg3 = degree == 3
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
         b, db, w = np.empty(16), np.empty((0, 3)), np.zeros(16)
         vco = np.empty((n_k, 3))
@@ -1643,51 +1612,12 @@ def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means,
                             _set_coef(v_dc, v_rest, r0, g, k, 0.0, 0.0, 0.0)
                     continue
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
-                if not deg3:
-                    _sh_basis(degree, x, y, z, b, db)
+                _sh_basis(degree, x, y, z, b, db)
                 cg = cut[c, g]
                 v0 = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
                 v1 = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
                 v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
-                if deg3:  # straight-line code (the same expressions and sums as the loops below)
-                    b3 = _sh3_basis(x, y, z)
-                    w3 = _sh3_weights(rest, r0, g, v0, v1, v2)
-                    if one_cam:
-                        v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = 0.0 + b3[0] * v0, 0.0 + b3[0] * v1, 0.0 + b3[0] * v2
-                        _sh3_set(v_rest, r0, g, 1, b3[1], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 2, b3[2], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 3, b3[3], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 4, b3[4], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 5, b3[5], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 6, b3[6], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 7, b3[7], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 8, b3[8], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 9, b3[9], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 10, b3[10], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 11, b3[11], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 12, b3[12], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 13, b3[13], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 14, b3[14], v0, v1, v2)
-                        _sh3_set(v_rest, r0, g, 15, b3[15], v0, v1, v2)
-                    else:
-                        _sh3_add(vco, 0, b3[0], v0, v1, v2)
-                        _sh3_add(vco, 1, b3[1], v0, v1, v2)
-                        _sh3_add(vco, 2, b3[2], v0, v1, v2)
-                        _sh3_add(vco, 3, b3[3], v0, v1, v2)
-                        _sh3_add(vco, 4, b3[4], v0, v1, v2)
-                        _sh3_add(vco, 5, b3[5], v0, v1, v2)
-                        _sh3_add(vco, 6, b3[6], v0, v1, v2)
-                        _sh3_add(vco, 7, b3[7], v0, v1, v2)
-                        _sh3_add(vco, 8, b3[8], v0, v1, v2)
-                        _sh3_add(vco, 9, b3[9], v0, v1, v2)
-                        _sh3_add(vco, 10, b3[10], v0, v1, v2)
-                        _sh3_add(vco, 11, b3[11], v0, v1, v2)
-                        _sh3_add(vco, 12, b3[12], v0, v1, v2)
-                        _sh3_add(vco, 13, b3[13], v0, v1, v2)
-                        _sh3_add(vco, 14, b3[14], v0, v1, v2)
-                        _sh3_add(vco, 15, b3[15], v0, v1, v2)
-                    vd0, vd1, vd2 = _sh_dir_grad(3, x, y, z, w3)
-                elif one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
+                if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
                     for k in range(nb):
                         bk = b[k]
                         _set_coef(v_dc, v_rest, r0, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
@@ -1700,8 +1630,7 @@ def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means,
                         vco[k, 2] += b[k] * v2
                         w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
                                 + _coef(dc, rest, r0, g, k, 2) * v2)
-                if not deg3:
-                    vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
+                vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
                 vm0 += (vd0 - x * dot) / nrm
