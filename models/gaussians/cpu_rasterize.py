@@ -203,7 +203,7 @@ class _SH(torch.autograd.Function):
         v_cos = [_SCRATCH.get(f"sh_v_coef{i}", c.shape, c.dtype) for i, c in enumerate(cos)]
         with _LOCK:  # v_rgb read in place (a view of the compositing's gradients: any strides)
             K.sh_backward(ctx.degree, m, cp, *_coef_arrays(cos), rad, cut, _as_kernel_dtype(v_rgb, m.dtype), v_m,
-                          *_coef_arrays(v_cos))
+                          *_coef_arrays(v_cos)[:2])  # the gradients' rows: the coefficients' layout (r0)
         v_co = [_out(v, like) for v, like in zip(v_cos, ctx.likes[1:])]
         v_depths = v_rgb[..., 3] if ctx.with_depth else None
         return None, _out(v_m, ctx.likes[0]), None, v_co[0], v_co[1] if len(v_co) > 1 else None, None, v_depths
