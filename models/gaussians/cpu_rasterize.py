@@ -217,14 +217,16 @@ def _coef_array(t) -> np.ndarray:
 
 
 def _rows(a: np.ndarray) -> np.ndarray:
-    """[N, ...] contiguous as [N, M] rows (a view)."""
+    """[N, ...] contiguous as [N, M] rows: a view (a copy would lose a kernel's writes into it)."""
+    if not a.flags.c_contiguous:
+        raise ValueError("SH coefficient arrays must be C-contiguous")
     return a.reshape(a.shape[0], math.prod(a.shape[1:]))
 
 
 def _coef_arrays(co) -> tuple[np.ndarray, np.ndarray, np.uintp]:
     """The SH kernels' coefficient rows (dc, rest, r0): one [N, K, 3] array as [N, 3 K] rows passed twice (r0 =
     3), or the two given ([N, 3] and [N, K - 1, 3], as [N, 3] and [N, 3 (K - 1)] rows; r0 = 0). Contiguous."""
-    arrs = [np.ascontiguousarray(_coef_array(t)) for t in co]
+    arrs = [_coef_array(t) for t in co]
     if len(arrs) == 1:
         rows = _rows(arrs[0])
         return rows, rows, np.uintp(3)
