@@ -798,10 +798,19 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
         n_bins = 1 << width
         mask = np.uint64(n_bins - 1)
         hist[:passes, :n_bins] = 0
-        for i in range(m):  # every digit's histogram in one pass over the keys
-            k = okey[i] >> np.uint64(lo)
-            for p in range(passes):
-                hist[p, (k >> np.uint64(p * width)) & mask] += 1
+        # every digit's histogram in one pass over the keys (up to three digits without the loop over them: its
+        # shifts and signed indices cost ~2 ns an increment)
+        h0, h1, h2 = hist[0], hist[1], hist[2]
+        ulo, w1, w2 = np.uint64(lo), np.uint64(width), np.uint64(2 * width)
+        for i in range(m):
+            k = okey[i] >> ulo
+            h0[np.uintp(k & mask)] += 1
+            if passes > 1:
+                h1[np.uintp((k >> w1) & mask)] += 1
+                if passes > 2:
+                    h2[np.uintp((k >> w2) & mask)] += 1
+                    for p in range(3, passes):
+                        hist[p, (k >> np.uint64(p * width)) & mask] += 1
         for p in range(passes):
             sh = np.uint64(lo + p * width)
             if hist[p, (okey[0] >> sh) & mask] == m:
