@@ -820,13 +820,14 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
                 h = hist[p, b]
                 hist[p, b] = acc
                 acc += h
-            for i in range(m):
-                b = (okey[i] >> sh) & mask
-                d = hist[p, b]
+            hp = hist[p]
+            for i in range(m):  # unsigned indices: no wraparound test per access
+                b = np.uintp((okey[i] >> sh) & mask)
+                d = np.uintp(hp[b])
                 tmp[d] = order[i]
                 tkey[d] = okey[i]
                 tbox[d] = obox[i]
-                hist[p, b] = d + 1
+                hp[b] = d + _U1
             order, tmp = tmp, order
             okey, tkey = tkey, okey
             obox, tbox = tbox, obox
@@ -838,10 +839,11 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
             roff[c * n + i] = j
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
-                    t = ty * tile_w + tx
-                    gids[fill[t]] = g
-                    epos[j] = fill[t]
-                    fill[t] += 1
+                    t = np.uintp(ty * tile_w + tx)
+                    f = fill[t]
+                    gids[np.uintp(f)] = g
+                    epos[np.uintp(j)] = f
+                    fill[t] = f + 1
                     j += 1
         for i in range(m, n):
             order_out[c, i] = -1
