@@ -784,13 +784,14 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
                 if m == 0:
                     key0 = key
                 diff |= key ^ key0
-                order[m] = g
-                okey[m] = key
-                obox[m] = box
+                mu = np.uintp(m)
+                order[mu] = g
+                okey[mu] = key
+                obox[mu] = box
                 m += 1
                 for ty in range((box >> 32) & 0xFFFF, box >> 48):
                     for tx in range(box & 0xFFFF, (box >> 16) & 0xFFFF):
-                        counts[ty * tile_w + tx] += 1
+                        counts[np.uintp(ty * tile_w + tx)] += 1
         for t in range(n_tiles):
             fill[t] = offsets[c * n_tiles + t]
             offsets[c * n_tiles + t + 1] = offsets[c * n_tiles + t] + counts[t]
