@@ -1646,19 +1646,24 @@ def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means,
                 v0 = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
                 v1 = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
                 v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
+                # each coefficient's weight first, the gradients after: reading the coefficients in a loop of its
+                # own, not between the gradients' stores (which may alias them for all LLVM knows), ran 5.06 -> 4.7
+                # ms at 100k, one thread
                 if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
+                    for k in range(nb):
+                        w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
+                                + _coef(dc, rest, r0, g, k, 2) * v2)
                     for k in range(nb):
                         bk = b[k]
                         _set_coef(v_dc, v_rest, r0, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
+                else:
+                    for k in range(nb):
                         w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
                                 + _coef(dc, rest, r0, g, k, 2) * v2)
-                else:
                     for k in range(nb):
                         vco[k, 0] += b[k] * v0
                         vco[k, 1] += b[k] * v1
                         vco[k, 2] += b[k] * v2
-                        w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
-                                + _coef(dc, rest, r0, g, k, 2) * v2)
                 vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
