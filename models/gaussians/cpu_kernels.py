@@ -784,13 +784,14 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
                 if m == 0:
                     key0 = key
                 diff |= key ^ key0
-                order[m] = g
-                okey[m] = key
-                obox[m] = box
+                mu = np.uintp(m)
+                order[mu] = g
+                okey[mu] = key
+                obox[mu] = box
                 m += 1
                 for ty in range((box >> 32) & 0xFFFF, box >> 48):
                     for tx in range(box & 0xFFFF, (box >> 16) & 0xFFFF):
-                        counts[ty * tile_w + tx] += 1
+                        counts[np.uintp(ty * tile_w + tx)] += 1
         for t in range(n_tiles):
             fill[t] = offsets[c * n_tiles + t]
             offsets[c * n_tiles + t + 1] = offsets[c * n_tiles + t] + counts[t]
@@ -798,10 +799,19 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
         n_bins = 1 << width
         mask = np.uint64(n_bins - 1)
         hist[:passes, :n_bins] = 0
-        for i in range(m):  # every digit's histogram in one pass over the keys
-            k = okey[i] >> np.uint64(lo)
-            for p in range(passes):
-                hist[p, (k >> np.uint64(p * width)) & mask] += 1
+        # every digit's histogram in one pass over the keys (up to three digits without the loop over them: its
+        # shifts and signed indices cost ~2 ns an increment)
+        h0, h1, h2 = hist[0], hist[1], hist[2]
+        ulo, w1, w2 = np.uint64(lo), np.uint64(width), np.uint64(2 * width)
+        for i in range(m):
+            k = okey[i] >> ulo
+            h0[np.uintp(k & mask)] += 1
+            if passes > 1:
+                h1[np.uintp((k >> w1) & mask)] += 1
+                if passes > 2:
+                    h2[np.uintp((k >> w2) & mask)] += 1
+                    for p in range(3, passes):
+                        hist[p, (k >> np.uint64(p * width)) & mask] += 1
         for p in range(passes):
             sh = np.uint64(lo + p * width)
             if hist[p, (okey[0] >> sh) & mask] == m:
@@ -811,13 +821,14 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
                 h = hist[p, b]
                 hist[p, b] = acc
                 acc += h
-            for i in range(m):
-                b = (okey[i] >> sh) & mask
-                d = hist[p, b]
+            hp = hist[p]
+            for i in range(m):  # unsigned indices: no wraparound test per access
+                b = np.uintp((okey[i] >> sh) & mask)
+                d = np.uintp(hp[b])
                 tmp[d] = order[i]
                 tkey[d] = okey[i]
                 tbox[d] = obox[i]
-                hist[p, b] = d + 1
+                hp[b] = d + _U1
             order, tmp = tmp, order
             okey, tkey = tkey, okey
             obox, tbox = tbox, obox
@@ -829,10 +840,11 @@ def bin_gaussians(cbox, depth_bits, tile_w, tile_h, offsets, gids, order_out, ro
             roff[c * n + i] = j
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
-                    t = ty * tile_w + tx
-                    gids[fill[t]] = g
-                    epos[j] = fill[t]
-                    fill[t] += 1
+                    t = np.uintp(ty * tile_w + tx)
+                    f = fill[t]
+                    gids[np.uintp(f)] = g
+                    epos[np.uintp(j)] = f
+                    fill[t] = f + 1
                     j += 1
         for i in range(m, n):
             order_out[c, i] = -1
@@ -1460,54 +1472,111 @@ def _unit_dir(means, campos, c, g):
     return dx / nrm, dy / nrm, dz / nrm, nrm
 
 
+# The SH kernels read the coefficients as rows: ``dc`` [N, >= 3] holds coefficient 0 in its first three columns,
+# ``rest`` [N, r0 + 3 (K - 1)] coefficient k >= 1's channel j in column ``r0 + 3 (k - 1) + j`` -- a fit's
+# ``sh_dc`` / ``sh_rest`` reshaped (r0 = 0), or one [N, K, 3] array reshaped to [N, 3 K] and passed as both (r0 = 3).
+# Contiguous rows and an unsigned column: a coefficient's address is the row's plus a constant (the unrolled
+# degree-3 forward on [N, K, 3] strided views computed each address from the strides: 3.55 ms, not 3.26, at 100k).
 @_ifjit
-def _coef(dc, rest, g, k, j):
-    """Coefficient ``k`` of channel ``j`` of Gaussian g: ``dc`` [N, 3] is coefficient 0, ``rest`` [N, K - 1, 3]
-    the others (a fit's ``sh_dc`` / ``sh_rest``, or two views of one [N, K, 3] array)."""
-    return dc[g, j] if k == 0 else rest[g, k - 1, j]
+def _unit_dirs(means, campos, c, g0, m, D):
+    """:func:`_unit_dir` of Gaussians ``g0 .. g0 + m - 1`` from camera c into ``D`` [4, >= m] (rows x, y, z, norm):
+    one loop of the same expressions that LLVM vectorises (the square root and the division, ~10 ns a Gaussian
+    one at a time, in SIMD registers; correctly rounded either way: the same bits)."""
+    cx, cy, cz = campos[c, 0], campos[c, 1], campos[c, 2]
+    for i in range(m):
+        iu = np.uintp(i)
+        g = np.uintp(g0) + iu
+        dx, dy, dz = float(means[g, 0]) - cx, float(means[g, 1]) - cy, float(means[g, 2]) - cz
+        nrm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        D[0, iu], D[1, iu], D[2, iu], D[3, iu] = dx / nrm, dy / nrm, dz / nrm, nrm
 
 
 @_ifjit
-def _set_coef(v_dc, v_rest, g, k, x, y, z):
-    """Writes coefficient ``k``'s gradient (x, y, z) of Gaussian g into ``v_dc`` (k = 0) or ``v_rest``."""
+def _coef(dc, rest, r0, g, k, j):
+    """Coefficient ``k`` of channel ``j`` of Gaussian g (``r0``: uintp, see above)."""
+    return dc[g, j] if k == 0 else rest[g, r0 + np.uintp(3 * (k - 1) + j)]
+
+
+@_ifjit
+def _set_coef(v_dc, v_rest, r0, g, k, x, y, z):
+    """Writes coefficient ``k``'s gradient (x, y, z) of Gaussian g into ``v_dc`` (k = 0) or ``v_rest`` (rows as
+    the coefficients')."""
     if k == 0:
         v_dc[g, 0], v_dc[g, 1], v_dc[g, 2] = x, y, z
     else:
-        v_rest[g, k - 1, 0], v_rest[g, k - 1, 1], v_rest[g, k - 1, 2] = x, y, z
+        col = r0 + np.uintp(3 * (k - 1))
+        v_rest[g, col], v_rest[g, col + _U1], v_rest[g, col + _U2] = x, y, z
+
+
+@_ifjit
+def _sh3_basis(x, y, z):
+    """The 16 degree-3 basis values at the unit direction (x, y, z) as a tuple: :func:`_sh_basis`' values, the same
+    expressions, held in registers (no [16] array, no degree tests)."""
+    xx, yy, zz = x * x, y * y, z * z
+    return (_C0, -_C1 * y, _C1 * z, -_C1 * x,
+            _C2[0] * x * y, _C2[1] * y * z, _C2[2] * (2.0 * zz - xx - yy), _C2[3] * x * z, _C2[4] * (xx - yy),
+            _C3[0] * y * (3.0 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (4.0 * zz - xx - yy),
+            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), _C3[4] * x * (4.0 * zz - xx - yy), _C3[5] * z * (xx - yy),
+            _C3[6] * x * (xx - 3.0 * yy))
+
+
+@_ifjit
+def _sh3_sum(b, dc, rest, r0, g, j):
+    """Channel j's ``sum_k b[k] c_k`` of Gaussian g over the 16 coefficients, from zero in k's order (the float64
+    sum of :func:`sh_forward`'s generic loop, unrolled: literal indices, no ``k == 0`` test)."""
+    r = r0 + np.uintp(j)
+    return (0.0 + b[0] * dc[g, j] + b[1] * rest[g, r] + b[2] * rest[g, r + np.uintp(3)]
+            + b[3] * rest[g, r + np.uintp(6)] + b[4] * rest[g, r + np.uintp(9)] + b[5] * rest[g, r + np.uintp(12)]
+            + b[6] * rest[g, r + np.uintp(15)] + b[7] * rest[g, r + np.uintp(18)] + b[8] * rest[g, r + np.uintp(21)]
+            + b[9] * rest[g, r + np.uintp(24)] + b[10] * rest[g, r + np.uintp(27)]
+            + b[11] * rest[g, r + np.uintp(30)] + b[12] * rest[g, r + np.uintp(33)]
+            + b[13] * rest[g, r + np.uintp(36)] + b[14] * rest[g, r + np.uintp(39)]
+            + b[15] * rest[g, r + np.uintp(42)])
 
 
 @_pfjit
-def sh_forward(degree, means, campos, dc, rest, radii, depths, rgb, cut):
-    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, ``dc`` [N, 3] (k = 0)
-    and ``rest`` [N, K - 1, 3] (float32 or float64, read as they are; float64 arithmetic)
-    along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's ``sh_to_rgb``);
+def sh_forward(degree, means, campos, dc, rest, r0, radii, depths, rgb, cut):
+    """``rgb`` [C, N, 3] = ``max(sum_k Y_k(d) c_k + 0.5, 0)`` of the shared coefficients, rows ``dc`` (k = 0)
+    and ``rest`` from column ``r0`` (uintp; the layout above :func:`_coef`; float32 or float64, read as they are;
+    float64 arithmetic) along the unit direction ``d`` from camera centre ``campos`` [C, 3] to each mean (sh.py's
+    ``sh_to_rgb``);
     ``cut`` [C, N] (uint8) gets bit j set where channel j's sum + 0.5 < 0 (the clamp stops its gradient).
 
     The compositing's features, when ``radii`` [C, N] has rows (the projection's): a Gaussian culled in a camera
     (radius 0, never composited) gets zeros there, without its SH; with ``rgb`` [C, N, 4] its last column is
-    ``depths`` [C, N] (the "RGB+D" modes' features in one array). ``radii`` [0, 0]: every colour evaluated."""
+    ``depths`` [C, N] (the "RGB+D" modes' features in one array). ``radii`` [0, 0]: every colour evaluated.
+    Degree 3 runs straight-line code (:func:`_sh3_basis`, :func:`_sh3_sum`: the loop's expressions and sums)."""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
     culls = radii.shape[0] > 0
     with_depth = rgb.shape[2] == 4
+    deg3 = degree == 3
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
-        b, db = np.empty(16), np.empty((0, 3))
-        for g in range(ch * CHUNK, min((ch + 1) * CHUNK, n)):
-            for c in range(n_cam):
+        b, db, D = np.empty(16), np.empty((0, 3)), np.empty((4, CHUNK))
+        g0, g1 = ch * CHUNK, min((ch + 1) * CHUNK, n)
+        for c in range(n_cam):  # each (camera, Gaussian) on its own: cameras first, the chunk's directions at once
+            _unit_dirs(means, campos, c, g0, g1 - g0, D)
+            for g in range(g0, g1):
                 if with_depth:
                     rgb[c, g, 3] = depths[c, g]
                 if culls and radii[c, g] == 0:
                     rgb[c, g, 0] = rgb[c, g, 1] = rgb[c, g, 2] = 0.0
                     cut[c, g] = 0
                     continue
-                x, y, z, _ = _unit_dir(means, campos, c, g)
-                _sh_basis(degree, x, y, z, b, db)
-                a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
-                for k in range(nb):
-                    bk = b[k]
-                    a0 += bk * _coef(dc, rest, g, k, 0)
-                    a1 += bk * _coef(dc, rest, g, k, 1)
-                    a2 += bk * _coef(dc, rest, g, k, 2)
+                iu = np.uintp(g - g0)
+                x, y, z = D[0, iu], D[1, iu], D[2, iu]
+                if deg3:  # straight-line code: the basis in registers, the 16 terms unrolled (same sums)
+                    b3 = _sh3_basis(x, y, z)
+                    a0, a1, a2 = (_sh3_sum(b3, dc, rest, r0, g, 0), _sh3_sum(b3, dc, rest, r0, g, 1),
+                                  _sh3_sum(b3, dc, rest, r0, g, 2))
+                else:
+                    _sh_basis(degree, x, y, z, b, db)
+                    a0 = a1 = a2 = 0.0  # one pass over the coefficients (each channel's sum in the same order)
+                    for k in range(nb):
+                        bk = b[k]
+                        a0 += bk * _coef(dc, rest, r0, g, k, 0)
+                        a1 += bk * _coef(dc, rest, r0, g, k, 1)
+                        a2 += bk * _coef(dc, rest, r0, g, k, 2)
                 rgb[c, g, 0] = max(a0 + 0.5, 0.0)
                 rgb[c, g, 1] = max(a1 + 0.5, 0.0)
                 rgb[c, g, 2] = max(a2 + 0.5, 0.0)
@@ -1541,18 +1610,20 @@ def _sh_dir_grad(degree, x, y, z, w):
 
 
 @_pfjit
-def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_dc, v_rest):
-    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' ``v_dc`` [N, 3] and
-    ``v_rest`` [N, K - 1, 3] (cameras summed in order, in float64, whatever the dtype of the coefficients and
-    their gradients; the clamp passes the gradient where its input is >= 0, as ``torch.clamp_min``: where
-    :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not made again). The direction's gradient
-    contracts the basis derivatives with each basis function's coefficient gradient (:func:`_sh_dir_grad`) instead
-    of a [16, 3] table per pair. ``v_rgb``'s first three columns are read (any strides). With ``radii`` rows
-    (:func:`sh_forward`'s): a camera where the Gaussian was culled adds nothing (its colour was never composited:
-    the compositing gives it a zero gradient, which would add zeros), so a Gaussian culled everywhere gets zeros."""
+def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means, v_dc, v_rest):
+    """Gradients of :func:`sh_forward` into ``v_means`` [N, 3] and the coefficients' rows ``v_dc`` and ``v_rest``
+    (laid out as ``dc`` and ``rest``, the same ``r0``; every coefficient written) (cameras summed in order, in
+    float64, whatever the dtype of the coefficients and their gradients; the clamp passes the gradient where its
+    input is >= 0, as ``torch.clamp_min``: where :func:`sh_forward`'s ``cut`` bit is not set, so the sums are not
+    made again). The direction's gradient contracts the basis derivatives with each basis function's coefficient
+    gradient (:func:`_sh_dir_grad`) instead of a [16, 3] table per pair. ``v_rgb``'s first three columns are read
+    (any strides). With ``radii`` rows (:func:`sh_forward`'s): a camera where the Gaussian was culled adds nothing
+    (its colour was never composited: the compositing gives it a zero gradient, which would add zeros), so a
+    Gaussian culled everywhere gets zeros. (Unrolled like :func:`sh_forward`'s degree 3 it ran slower: 5.1 -> 5.5
+    ms at 100k, one thread.)"""
     n_cam, n = campos.shape[0], means.shape[0]
     nb = (degree + 1) * (degree + 1)
-    n_k = v_rest.shape[1] + 1
+    n_k = (v_rest.shape[1] - r0) // 3 + 1
     culls = radii.shape[0] > 0
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
     for ch in numba.prange((n + CHUNK - 1) // CHUNK):
@@ -1567,7 +1638,7 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                 if culls and radii[c, g] == 0:
                     if one_cam:
                         for k in range(nb):
-                            _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
+                            _set_coef(v_dc, v_rest, r0, g, k, 0.0, 0.0, 0.0)
                     continue
                 x, y, z, nrm = _unit_dir(means, campos, c, g)
                 _sh_basis(degree, x, y, z, b, db)
@@ -1575,19 +1646,24 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
                 v0 = float(v_rgb[c, g, 0]) if not cg & 1 else 0.0
                 v1 = float(v_rgb[c, g, 1]) if not cg & 2 else 0.0
                 v2 = float(v_rgb[c, g, 2]) if not cg & 4 else 0.0
+                # each coefficient's weight first, the gradients after: reading the coefficients in a loop of its
+                # own, not between the gradients' stores (which may alias them for all LLVM knows), ran 5.06 -> 4.7
+                # ms at 100k, one thread
                 if one_cam:  # the coefficients' gradient written as it is made (the float64 sum from zero's value)
                     for k in range(nb):
+                        w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
+                                + _coef(dc, rest, r0, g, k, 2) * v2)
+                    for k in range(nb):
                         bk = b[k]
-                        _set_coef(v_dc, v_rest, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
-                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
-                                + _coef(dc, rest, g, k, 2) * v2)
+                        _set_coef(v_dc, v_rest, r0, g, k, 0.0 + bk * v0, 0.0 + bk * v1, 0.0 + bk * v2)
                 else:
+                    for k in range(nb):
+                        w[k] = (_coef(dc, rest, r0, g, k, 0) * v0 + _coef(dc, rest, r0, g, k, 1) * v1
+                                + _coef(dc, rest, r0, g, k, 2) * v2)
                     for k in range(nb):
                         vco[k, 0] += b[k] * v0
                         vco[k, 1] += b[k] * v1
                         vco[k, 2] += b[k] * v2
-                        w[k] = (_coef(dc, rest, g, k, 0) * v0 + _coef(dc, rest, g, k, 1) * v1
-                                + _coef(dc, rest, g, k, 2) * v2)
                 vd0, vd1, vd2 = _sh_dir_grad(degree, x, y, z, w)
                 # through the normalisation d = r / |r|: (v - d (d . v)) / |r|
                 dot = x * vd0 + y * vd1 + z * vd2
@@ -1597,7 +1673,7 @@ def sh_backward(degree, means, campos, dc, rest, radii, cut, v_rgb, v_means, v_d
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
             if one_cam:
                 for k in range(nb, n_k):  # coefficients above the degree: zero gradient
-                    _set_coef(v_dc, v_rest, g, k, 0.0, 0.0, 0.0)
+                    _set_coef(v_dc, v_rest, r0, g, k, 0.0, 0.0, 0.0)
             else:
                 for k in range(n_k):
-                    _set_coef(v_dc, v_rest, g, k, vco[k, 0], vco[k, 1], vco[k, 2])
+                    _set_coef(v_dc, v_rest, r0, g, k, vco[k, 0], vco[k, 1], vco[k, 2])

@@ -203,7 +203,7 @@ class _SH(torch.autograd.Function):
         v_cos = [_SCRATCH.get(f"sh_v_coef{i}", c.shape, c.dtype) for i, c in enumerate(cos)]
         with _LOCK:  # v_rgb read in place (a view of the compositing's gradients: any strides)
             K.sh_backward(ctx.degree, m, cp, *_coef_arrays(cos), rad, cut, _as_kernel_dtype(v_rgb, m.dtype), v_m,
-                          *_coef_arrays(v_cos))
+                          *_coef_arrays(v_cos)[:2])  # the gradients' rows: the coefficients' layout (r0)
         v_co = [_out(v, like) for v, like in zip(v_cos, ctx.likes[1:])]
         v_depths = v_rgb[..., 3] if ctx.with_depth else None
         return None, _out(v_m, ctx.likes[0]), None, v_co[0], v_co[1] if len(v_co) > 1 else None, None, v_depths
@@ -216,10 +216,21 @@ def _coef_array(t) -> np.ndarray:
     return t.numpy() if t.dtype in (torch.float32, torch.float64) else _np(t)
 
 
-def _coef_arrays(co) -> tuple[np.ndarray, np.ndarray]:
-    """The SH kernels' (dc [N, 3], rest [N, K - 1, 3]): two views of one [N, K, 3] array, or the two given."""
+def _rows(a: np.ndarray) -> np.ndarray:
+    """[N, ...] contiguous as [N, M] rows: a view (a copy would lose a kernel's writes into it)."""
+    if not a.flags.c_contiguous:
+        raise ValueError("SH coefficient arrays must be C-contiguous")
+    return a.reshape(a.shape[0], math.prod(a.shape[1:]))
+
+
+def _coef_arrays(co) -> tuple[np.ndarray, np.ndarray, np.uintp]:
+    """The SH kernels' coefficient rows (dc, rest, r0): one [N, K, 3] array as [N, 3 K] rows passed twice (r0 =
+    3), or the two given ([N, 3] and [N, K - 1, 3], as [N, 3] and [N, 3 (K - 1)] rows; r0 = 0). Contiguous."""
     arrs = [_coef_array(t) for t in co]
-    return (arrs[0][:, 0, :], arrs[0][:, 1:, :]) if len(arrs) == 1 else (arrs[0], arrs[1])
+    if len(arrs) == 1:
+        rows = _rows(arrs[0])
+        return rows, rows, np.uintp(3)
+    return _rows(arrs[0]), _rows(arrs[1]), np.uintp(0)
 
 
 def _campos(viewmats: Tensor) -> np.ndarray:

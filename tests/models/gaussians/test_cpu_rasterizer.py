@@ -12,6 +12,7 @@ import concurrent.futures
 import math
 
 import numba
+import numpy as np
 import pytest
 import torch
 from test_gaussians import H, W, cameras, one_gaussian, random_scene  # the module pytest imported
@@ -24,6 +25,7 @@ from navcrafter.models.gaussians.rasterize import rasterization as torch_rasteri
 from navcrafter.models.gaussians.rasterize import rasterize_to_pixels as torch_rasterize_to_pixels
 from navcrafter.models.gaussians.reference import rasterize_reference
 from navcrafter.models.gaussians.renderer import rasterize, resolve_backend
+from navcrafter.models.gaussians.sh import sh_to_rgb
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -597,7 +599,6 @@ def test_bin_gaussians_sorts_each_tile_by_depth_stably(depths):
     depth order of the visible Gaussians, each tile's list, and the entries' positions for the gradient gather;
     depths with all 64 bits differing, float32 values (low bits zero), ties (index order), one value, both signs,
     and keys differing only in their top bits."""
-    import numpy as np
 
     from navcrafter.models.gaussians import cpu_kernels as K
 
@@ -683,6 +684,52 @@ def test_sh_colors_of_split_coefficients_equal_the_concatenated_bit_for_bit(degr
     for k in split:  # PyTorch's SH does not read the coefficients above the degree (no gradient: None)
         assert rel_err(g[k], torch.zeros_like(g[k]) if g_ref[k] is None else g_ref[k]) < tol, k
     assert (g["dc"][3, 0] != 0) and (g["dc"][3, 1] == 0)  # above the clamp: passes; below it: stopped
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("n_cam", [1, 3])
+@pytest.mark.parametrize("n_coef", ["degree", 16])
+def test_sh_kernels_on_coefficient_rows_match_pytorch_sh(degree, n_cam, n_coef):
+    """The SH kernels on coefficient rows (``_coef_arrays``: one [N, K, 3] array as [N, 3 K] rows from column 3,
+    or a fit's dc / rest pair from column 0; degree 3 runs straight-line code, the others loops): both layouts
+    give the same bits, and sh.py's colours and gradients in float64 (1e-12); a Gaussian culled in a camera
+    (radius 0; one culled in all) gets zeros there and adds no gradient from it, coefficients above the degree
+    get zero gradients, the depth column is copied. Every output starts as NaN: each must be written."""
+    means, _, _, _, coeffs = random_scene(50, seed=12, dtype=torch.float64, sh_degree=3)
+    n, k = len(means), (degree + 1) ** 2 if n_coef == "degree" else 16
+    co = coeffs[:, :k].contiguous()
+    viewmats, _ = cameras(torch.float64, n=n_cam)
+    campos = torch.linalg.inv(viewmats)[:, :3, 3]
+    gen = torch.Generator().manual_seed(3)
+    radii = (torch.rand(n_cam, n, generator=gen) > 0.3).to(torch.int32) * 2
+    radii[:, 0] = 0
+    depths = torch.rand(n_cam, n, generator=gen, dtype=torch.float64)
+    v_rgb = torch.randn(n_cam, n, 4, generator=gen, dtype=torch.float64)
+    outs = []
+    for pair in (False, True):
+        arrs = [co[:, 0].contiguous().numpy(), co[:, 1:].contiguous().numpy()] if pair else [co.numpy()]
+        grads = [np.full_like(a, np.nan) for a in arrs]
+        rgb, cut = np.full((n_cam, n, 4), np.nan), np.empty((n_cam, n), np.uint8)
+        v_means = np.full((n, 3), np.nan)
+        rows = cpu_rasterize._coef_arrays(arrs)
+        m, cp, rad = means.numpy(), campos.numpy(), radii.numpy()
+        cpu_rasterize.K.sh_forward(degree, m, cp, *rows, rad, depths.numpy(), rgb, cut)
+        cpu_rasterize.K.sh_backward(degree, m, cp, *rows, rad, cut, v_rgb.numpy(), v_means,
+                                    *cpu_rasterize._coef_arrays(grads)[:2])
+        v_co = np.concatenate([grads[0][:, None], grads[1]], 1) if pair else grads[0]
+        outs.append((rgb, cut, v_means, v_co))
+    for a, b in zip(*outs):
+        assert np.array_equal(a, b)
+    rgb, _, v_means, v_co = (torch.from_numpy(a) for a in outs[0])
+    vis = (radii > 0)[..., None]
+    m, c = means.clone().requires_grad_(), co.clone().requires_grad_()
+    ref = sh_to_rgb(degree, m[None] - campos[:, None], c[None].expand(n_cam, -1, -1, -1)) * vis
+    (ref * v_rgb[..., :3]).sum().backward()
+    assert torch.equal(rgb[..., 3], depths) and not rgb[:, 0, :3].any()
+    assert rel_err(rgb[..., :3], ref.detach()) < 1e-12
+    v_m_ref = torch.zeros_like(means) if m.grad is None else m.grad  # degree 0: no direction, no gradient
+    assert rel_err(v_means, v_m_ref) < 1e-12 and rel_err(v_co, c.grad) < 1e-12
+    assert not v_co[0].any() and not v_means[0].any() and not v_co[:, (degree + 1) ** 2:].any()
 
 
 def test_sh_colors_refuses_mismatched_coefficients():
