@@ -268,7 +268,8 @@ class ExplorerDetector(CollisionDetector):
         ball_need = self.path_clearance(x, self.ball_follow_error) if self.ball > 0 else needed
         # ``explore_ball_seen_free``: the ball of a frame past the prefix in seen free space is asked too (seen free
         # vouches for the position, not for the space about it: collide14, room 7 of CRN base seed 4)
-        ball_free = (np.arange(len(x)) >= fixed) & ~unseen if self.ball > 0 and self.ball_seen_free else unseen & False
+        ball_free = ((np.arange(len(x)) >= fixed) & ~unseen if self.ball > 0 and self.ball_seen_free
+                     else np.zeros_like(unseen))
         for t in np.flatnonzero(unseen | ball_free):
             if ball_free[t]:
                 unseen[t] = not self.ball_seen(trajectory, t, self.ball * ball_need[t])
