@@ -23,11 +23,24 @@ import numpy as np
 from numba.core import types
 from numba.extending import intrinsic
 
-# numba's own thread pool, unless the user chose a layer: its OpenMP layer pays ~8 ms per parallel call when
-# torch's OpenMP threads spin beside it (OMP_WAIT_POLICY unset); callers serialise calls (cpu_rasterize's lock),
-# which this layer requires. Takes effect at the first parallel call.
+# The threading layer, unless the user chose one (NUMBA_THREADING_LAYER). Where OpenMP threads sleep between
+# parallel regions (OMP_WAIT_POLICY=PASSIVE: the CLI, the tests and the benchmarks set it before torch loads),
+# numba's OpenMP layer, falling back to its own workqueue where no OpenMP runtime loads: the calling thread works
+# in every region (one worker to wake on 2 threads, not two workers and the caller) and on a 2-vCPU VM the wall
+# time of a call stops jumping between levels (issue 31, raster31: SH3 + RGB+ED at 100k x 256², 40 calls per
+# process, three processes: median 26.4 ms / max 29-32 ms against workqueue's 29.0-32.8 / 38.6-44.2 ms, the same
+# CPU time). Elsewhere (OMP_WAIT_POLICY unset: spinning OpenMP threads) the workqueue layer: the OpenMP layer
+# then pays ~8 ms per parallel call beside torch's spinning threads. Both are serialised by cpu_rasterize's lock
+# (workqueue requires it). Takes effect at the first parallel call. With GNU OpenMP, a process forked after a
+# parallel call cannot run these kernels in parallel (numba ends such a child: GNU OpenMP is not fork-safe);
+# nothing in navcrafter forks (subprocesses exec).
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"
+    if os.environ.get("OMP_WAIT_POLICY", "").strip().upper() == "PASSIVE":
+        # a permutation of the three (numba's rule); workqueue always loads, so tbb is never reached
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+        numba.config.THREADING_LAYER = "default"
+    else:
+        numba.config.THREADING_LAYER = "workqueue"
 
 CHUNK = 512  # Gaussians per parallel chunk of the per-Gaussian kernels (scratch arrays allocated per chunk)
 ALPHA_THRESHOLD = 1.0 / 255.0

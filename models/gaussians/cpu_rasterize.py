@@ -15,11 +15,12 @@ renderer. ``meta["means2d"]`` is part of the graph (densification's ``retain_gra
 
 Threads: numba's pool, :func:`set_threads` (``fit.threads``; default: every core numba sees, i.e.
 ``NUMBA_NUM_THREADS``). Results do not depend on the thread count (see the kernels' docstring). The threading
-layer is numba's own ``workqueue`` (``cpu_kernels``; ``NUMBA_THREADING_LAYER`` overrides it): its OpenMP layer
-costs ~8 ms per parallel call on a busy 2-core machine unless ``OMP_WAIT_POLICY=PASSIVE`` (which the CLI and the
-tests set, for torch's own threads too). Calls are serialised by a lock: the workqueue layer must not be entered
-by two Python threads at once (the explore flow runs scenes on a thread pool); the kernels release the GIL, so
-other work goes on meanwhile.
+layer (``cpu_kernels``; ``NUMBA_THREADING_LAYER`` overrides it) is numba's OpenMP layer where
+``OMP_WAIT_POLICY=PASSIVE`` (which the CLI, the tests and the benchmarks set, for torch's own threads too; numba's
+``workqueue`` where no OpenMP runtime loads), else ``workqueue``: beside spinning OpenMP threads the OpenMP layer
+costs ~8 ms per parallel call on a busy 2-core machine. Calls are serialised by a lock: the workqueue layer must
+not be entered by two Python threads at once (the explore flow runs scenes on a thread pool); the kernels release
+the GIL, so other work goes on meanwhile.
 """
 
 from __future__ import annotations
