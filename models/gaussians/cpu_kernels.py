@@ -1441,11 +1441,6 @@ class _V4Model(models.PrimitiveModel):
         super().__init__(dmm, fe_type, _V4_IR)
 
 
-def _lane_ptrs(context, builder, aryty, ary, idx):
-    arr = context.make_array(aryty)(context, builder, ary)
-    return [builder.gep(arr.data, [builder.add(idx, ir.Constant(idx.type, j))]) for j in range(3)]
-
-
 def _load_lanes(context, builder, sig, args, n_load):
     aryty = sig.args[0]
     elt = context.get_data_type(aryty.dtype)
@@ -1462,7 +1457,8 @@ def _load_lanes(context, builder, sig, args, n_load):
 
 
 def _is_flat_float(arr):
-    return isinstance(arr, types.Array) and arr.dtype in (types.float32, types.float64) and arr.ndim == 1
+    return (isinstance(arr, types.Array) and arr.dtype in (types.float32, types.float64) and arr.ndim == 1
+            and arr.layout == "C")  # the lanes are consecutive elements
 
 
 @intrinsic
