@@ -1461,29 +1461,30 @@ def _is_flat_float(arr):
             and arr.layout == "C")  # the lanes are consecutive elements
 
 
-@intrinsic
-def _v3_load(typingctx, arr, idx):
-    """Elements ``idx .. idx + 2`` of a 1-D array (float32 or float64) as float64 lanes 0-2 (lane 3 zero)."""
-    if not _is_flat_float(arr):
-        return None
+def _lanes_intrinsic(name, n, store, doc):
+    """A numba intrinsic ``name(arr, idx)`` loading (``store`` False: lanes from elements ``idx ..``) or
+    ``name(arr, idx, v)`` storing ``n`` lanes (3 or 4) of a C-contiguous 1-D float32 / float64 array."""
+    if store:
+        def impl(typingctx, arr, idx, v):
+            if not _is_flat_float(arr):
+                return None
+            return types.none(arr, idx, v), lambda context, builder, sig, args: _store_lanes(context, builder, sig,
+                                                                                            args, n)
+    else:
+        def impl(typingctx, arr, idx):
+            if not _is_flat_float(arr):
+                return None
+            return _V4(arr, idx), lambda context, builder, sig, args: _load_lanes(context, builder, sig, args, n)
+    impl.__name__ = impl.__qualname__ = name
+    impl.__doc__ = doc
+    return intrinsic(impl)
 
-    def codegen(context, builder, sig, args):
-        return _load_lanes(context, builder, sig, args, 3)
 
-    return _V4(arr, idx), codegen
-
-
-@intrinsic
-def _v4_load(typingctx, arr, idx):
-    """Elements ``idx .. idx + 3`` of a 1-D array as float64 lanes, in one load: lanes 0-2 as :func:`_v3_load`'s,
-    lane 3 whatever follows (the caller knows ``idx + 3`` is in the array and ignores that lane)."""
-    if not _is_flat_float(arr):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _load_lanes(context, builder, sig, args, 4)
-
-    return _V4(arr, idx), codegen
+_v3_load = _lanes_intrinsic("_v3_load", 3, False, "Elements ``idx .. idx + 2`` of a 1-D array (float32 or float64) "
+                            "as float64 lanes 0-2 (lane 3 zero).")
+_v4_load = _lanes_intrinsic("_v4_load", 4, False, "Elements ``idx .. idx + 3`` of a 1-D array as float64 lanes, in "
+                            "one load: lanes 0-2 as _v3_load's, lane 3 whatever follows (the caller knows ``idx + 3`` "
+                            "is in the array and ignores that lane).")
 
 
 def _store_lanes(context, builder, sig, args, n_store):
@@ -1502,29 +1503,10 @@ def _store_lanes(context, builder, sig, args, n_store):
     return context.get_dummy_value()
 
 
-@intrinsic
-def _v3_store(typingctx, arr, idx, v):
-    """Lanes 0-2 of ``v`` into elements ``idx .. idx + 2`` of a 1-D array (rounded to its dtype)."""
-    if not _is_flat_float(arr):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _store_lanes(context, builder, sig, args, 3)
-
-    return types.none(arr, idx, v), codegen
-
-
-@intrinsic
-def _v4_store(typingctx, arr, idx, v):
-    """The four lanes into elements ``idx .. idx + 3`` in one store (lane 3 lands on ``idx + 3``, which the caller
-    writes again after)."""
-    if not _is_flat_float(arr):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _store_lanes(context, builder, sig, args, 4)
-
-    return types.none(arr, idx, v), codegen
+_v3_store = _lanes_intrinsic("_v3_store", 3, True, "Lanes 0-2 of ``v`` into elements ``idx .. idx + 2`` of a "
+                             "1-D array (rounded to its dtype).")
+_v4_store = _lanes_intrinsic("_v4_store", 4, True, "The four lanes into elements ``idx .. idx + 3`` in one store "
+                             "(lane 3 lands on ``idx + 3``, which the caller writes again after).")
 
 
 @intrinsic
