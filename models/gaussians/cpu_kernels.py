@@ -1509,13 +1509,18 @@ _v4_store = _lanes_intrinsic("_v4_store", 4, True, "The four lanes into elements
                              "(lane 3 lands on ``idx + 3``, which the caller writes again after).")
 
 
+def _fma_v4(builder):
+    """LLVM's lane-wise fused multiply-add on <4 x double> (``llvm.fma.v4f64``), declared in the builder's module."""
+    return cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4_IR, [_V4_IR] * 3), "llvm.fma.v4f64")
+
+
 @intrinsic
 def _v4_dot4(typingctx, ca, cb, cc, cd, v):
     """The four coefficients' weights ``c . v`` (lanes 0-2 of ``ca`` .. ``cd`` with those of ``v``) as lanes:
     lane i ``fma(c_2, v_2, fma(c_1, v_1, c_0 v_0))`` of the i-th coefficient (a 4 x 4 transpose, three vector ops)."""
     def codegen(context, builder, sig, args):
         i32 = ir.IntType(32)
-        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4_IR, [_V4_IR] * 3), "llvm.fma.v4f64")
+        fma = _fma_v4(builder)
         rows = []
         for j in range(3):
             lo = builder.shuffle_vector(args[0], args[1], ir.Constant(ir.VectorType(i32, 4), [j, 4 + j, j, 4 + j]))
@@ -1590,8 +1595,7 @@ def _v4_mul(typingctx, a, b):
 def _v4_fma(typingctx, a, b, c):
     """``a * b + c`` lane by lane, rounded once (llvm.fma)."""
     def codegen(context, builder, sig, args):
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4_IR, [_V4_IR] * 3), "llvm.fma.v4f64")
-        return builder.call(fn, args)
+        return builder.call(_fma_v4(builder), args)
 
     return _V4(_V4, _V4, _V4), codegen
 
@@ -1790,7 +1794,8 @@ def sh_forward(degree, means, campos, dc, rest, r0, radii, depths, rgb, cut):
             for g in range(g0, g1):
                 iu, gu = np.uintp(g - g0), np.uintp(g)
                 od, r = gu * sd, gu * sr + r0
-                if culls and radii[c, g] == 0:
+                culled = culls and radii[c, g] == 0
+                if culled:
                     acc = _v4_splat(-0.5)  # colour max(-0.5 + 0.5, 0) = 0, no cut bits
                 elif deg3:  # straight-line code: the basis in registers, the 16 terms unrolled (same sums)
                     acc = _sh3_rgb(_sh3_basis(D[0, iu], D[1, iu], D[2, iu]), fd, fr, od, r)
@@ -1799,8 +1804,7 @@ def sh_forward(degree, means, campos, dc, rest, r0, radii, depths, rgb, cut):
                     acc = _v4_mul(_v4_splat(b[0]), _v3_load(fd, od))  # each channel's sum in k's order
                     for k in range(1, nb):
                         acc = _v4_fma(_v4_splat(b[k]), _v3_load(fr, r + np.uintp(3 * (k - 1))), acc)
-                _sh_store(frgb, cut, depths, culls and radii[c, g] == 0, with_depth, c, g,
-                          (np.uintp(c * n) + gu) * n_f, acc)
+                _sh_store(frgb, cut, depths, culled, with_depth, c, g, (np.uintp(c * n) + gu) * n_f, acc)
 
 
 @_ifjit
@@ -1903,10 +1907,10 @@ def sh_backward(degree, means, campos, dc, rest, r0, radii, cut, v_rgb, v_means,
     n_k = (v_rest.shape[1] - r0) // 3 + 1
     culls = radii.shape[0] > 0
     one_cam = n_cam == 1  # one camera (a fit's renders): no float64 sums over cameras to keep
-    fd, fr = dc.reshape(-1), rest.reshape(-1)
-    fvd, fvr = v_dc.reshape(-1), v_rest.reshape(-1)
-    sd, sr = np.uintp(dc.shape[1]), np.uintp(rest.shape[1])
     if degree == 3 and one_cam and n_k == 16:
+        fd, fr = dc.reshape(-1), rest.reshape(-1)
+        fvd, fvr = v_dc.reshape(-1), v_rest.reshape(-1)
+        sd, sr = np.uintp(dc.shape[1]), np.uintp(rest.shape[1])
         for ch in numba.prange((n + CHUNK - 1) // CHUNK):
             D = np.empty((4, CHUNK))
             g0, g1 = ch * CHUNK, min((ch + 1) * CHUNK, n)
