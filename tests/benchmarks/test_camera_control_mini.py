@@ -284,11 +284,25 @@ def test_batched_step_is_the_products_accumulated_step(mini, held, stage):
     ref.lr_at = tr.lr_at  # the same schedule: only the step differs
     a, b = tr.train_step(), ref.train_step()
     assert a.loss == pytest.approx(b.loss, rel=1e-5)
-    moved = 0  # Adam's first step is ≈ lr·sign(grad): float noise in near-zero gradients moves a weight by up to
-    for (k, p), q, p0 in zip(ours.named_parameters(), product.parameters(), model.parameters()):  # a few % of lr
-        assert torch.allclose(p, q, atol=5e-5, rtol=0), k  # 5 % of the step (lr 1e-3)
+    # The gradients (kept after the step: the trainers zero them at the start of a step) agree; the weights agree
+    # wherever the gradient's sign is decided. Adam's first step is ≈ lr·sign(grad), so where a gradient is zero
+    # in exact arithmetic (e.g. a cross-attention key bias: softmax ignores a per-query constant) its float noise
+    # has a random sign and moves the weight by up to ±lr in either trainer: bounded there, not compared.
+    scale = max(float(q.grad.abs().max()) for q in product.parameters() if q.grad is not None)
+    lr = tr.lr_at(0)
+    moved = decided = 0
+    for (k, p), q, p0 in zip(ours.named_parameters(), product.parameters(), model.parameters()):
+        assert (p.grad is None) == (q.grad is None), k
+        if q.grad is None:
+            assert torch.equal(p, q), k
+            continue
+        assert torch.allclose(p.grad, q.grad, rtol=1e-3, atol=1e-6 * scale), k
+        sure = q.grad.abs() > 1e-4 * scale
+        decided += int(sure.sum())
+        assert torch.allclose(p[sure], q[sure], atol=5e-5, rtol=0), k  # 5 % of the step
+        assert float((p - q).abs().max()) <= 2.05 * lr, k
         moved += int(not torch.equal(p, p0))
-    assert moved > 0
+    assert moved > 0 and decided > 0
     # per clip: the batched loss is the mean of the product's flow_loss of each clip
     product.train()
     from navcrafter.models.synthesis.training import clip_conditions
