@@ -526,3 +526,52 @@ def rasterization(
                             eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, covars=covars,
                             alpha_clamp=alpha_clamp, features_fn=composite_features, project_qs=project_gaussians_qs)
+
+
+class _L1InverseDepth(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rgb, depth, image, ref, alpha, alpha_min, d_min, info):
+        arrays = tuple(t.detach().numpy() for t in (rgb, image, depth, ref, alpha))
+        s, sd, n = K.l1_inverse_depth_forward(arrays[0], arrays[1], arrays[2], arrays[3], arrays[4],
+                                              np.float32(alpha_min), np.float32(d_min))
+        ctx.arrays, ctx.consts = arrays, (np.float32(alpha_min), np.float32(d_min))
+        info["pixels"] = n
+        return torch.tensor(s / rgb.numel(), dtype=rgb.dtype), torch.tensor(sd / max(n, 1), dtype=rgb.dtype)
+
+    @staticmethod
+    def backward(ctx, g_l1, g_depth):
+        rgb, image, depth, ref, alpha = ctx.arrays
+        v_rgb, v_depth = np.empty(rgb.shape, np.float32), np.empty(depth.shape, np.float32)
+        K.l1_inverse_depth_backward(rgb, image, depth, ref, alpha, *ctx.consts, np.float32(g_l1),
+                                    np.float32(g_depth), v_rgb, v_depth)
+        return torch.from_numpy(v_rgb), torch.from_numpy(v_depth), None, None, None, None, None, None
+
+
+def l1_inverse_depth(rgb: Tensor, depth: Tensor, image: Tensor, ref_depth: Tensor | None, alpha: Tensor | None,
+                     alpha_min: float = 0.5, d_min: float = 1e-6) -> tuple[Tensor, Tensor | None]:
+    """The fit's two loss terms in one compiled pass each way (CPU float32): ``(rgb - image).abs().mean()`` and,
+    over the pixels where ``ref_depth > 0`` and ``alpha > alpha_min`` (None where there are none, or no
+    ``ref_depth``), ``(1 / depth.clamp(min=d_min) - 1 / ref_depth).abs().mean()``. The gradients are those of
+    these torch expressions (with boolean-mask indexing), bit for bit; the values are their sums in float64
+    (torch's float32 reductions differ in the last bits). Replaces ~25 small torch ops forward and backward,
+    each of which wakes torch's threads (~1.4 ms per iteration of the demo's fit on 2 cores; issue 31, fit33)."""
+    if ref_depth is not None and alpha is None:
+        raise ValueError("l1_inverse_depth: the depth term needs the rendered alpha (its mask)")
+    if ref_depth is None:
+        ref_depth = alpha = torch.zeros((0, 0))
+    if not fused_loss_applies(rgb, depth, image, ref_depth, alpha):
+        raise ValueError("l1_inverse_depth needs float32 CPU tensors; use the torch expressions elsewhere")
+    if rgb.dim() != 3 or rgb.shape[-1] != 3 or rgb.shape != image.shape or rgb.shape[:2] != depth.shape or (
+            ref_depth.numel() and not depth.shape == alpha.shape == ref_depth.shape):
+        raise ValueError(f"rgb / image [H, W, 3] and depth / alpha / ref_depth [H, W] must agree, got "
+                         f"{tuple(rgb.shape)}, {tuple(image.shape)}, {tuple(depth.shape)}, {tuple(alpha.shape)}, "
+                         f"{tuple(ref_depth.shape)}")
+    info: dict = {}
+    l1, term = _L1InverseDepth.apply(rgb, depth, image.detach(), ref_depth.detach(), alpha.detach(),
+                                     float(alpha_min), float(d_min), info)
+    return l1, (term if info["pixels"] > 0 else None)
+
+
+def fused_loss_applies(*tensors: Tensor | None) -> bool:
+    """Whether :func:`l1_inverse_depth` takes these tensors (float32, on the CPU; None is skipped)."""
+    return all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors if t is not None)

@@ -13,7 +13,8 @@ divided by the view's median ``D_cal`` instead; ``"relative"`` compares ``|ED - 
 (scale-free and bounded in [0, 1): its gradient in ED, 2 D_cal / (ED + D_cal)^2, vanishes where the target is far
 nearer than the render, so a near-field outlier cannot drive the fit; same mask as inverse depth). A term with
 ``lambda = 0`` is neither computed nor added; the LPIPS term needs a perceptual model (the official LPIPS weights)
-and is skipped otherwise.
+and is skipped otherwise. With the compiled CPU renderer the L1 and inverse-depth terms are computed in one compiled
+pass each way (``cpu_rasterize.l1_inverse_depth``: the gradients of the torch expressions, bit for bit).
 
 Optimisation is 3DGS's: one Adam (eps 1e-15) per parameter with its own learning rate; the position rate is
 multiplied by the scene scale and decays exponentially from ``lr_means`` to ``lr_means_final`` over the
@@ -199,11 +200,24 @@ class GaussianTrainer:
         """The loss terms of one rendered view (``alpha``: its rendered opacity, for the inverse-depth mask)."""
         c = self.config
         view = self._on_device(view)
-        terms = {"l1": (rgb - view.image).abs().mean()}
+        with_depth = c.lambda_depth > 0 and view.depth is not None
+        fused = self.renderer == "cpu" and (not with_depth or (c.depth_space == "inverse" and alpha is not None))
+        if fused:
+            # deferred: numba and the compiled CPU kernels load only when the CPU renderer is chosen
+            from navcrafter.models.gaussians.cpu_rasterize import fused_loss_applies, l1_inverse_depth
+
+            fused = fused_loss_applies(rgb, depth, view.image, view.depth, alpha)
+        terms = {}
+        if fused:  # the L1 and inverse-depth terms below in one compiled pass (the same gradients, bit for bit)
+            terms["l1"], term = l1_inverse_depth(rgb, depth, view.image, view.depth if with_depth else None, alpha)
+            if term is not None:
+                terms["depth"] = term
+        else:
+            terms["l1"] = (rgb - view.image).abs().mean()
         if self.lambda_lpips > 0:
             terms["lpips"] = self.perceptual(rgb.permute(2, 0, 1)[None] * 2 - 1,
                                              view.image.permute(2, 0, 1)[None] * 2 - 1).reshape(())
-        if c.lambda_depth > 0 and view.depth is not None:
+        if with_depth and not fused:
             mask = view.depth > 0  # calibrated depth: 0 = sky or invalid
             if c.depth_space in ("inverse", "relative") and alpha is not None:
                 mask = mask & (alpha.detach() > 0.5)  # ED is meaningless where the render does not cover the pixel

@@ -156,6 +156,46 @@ def test_cpu_trainer_renders_its_split_sh_as_the_concatenated_coefficients():
         assert v.grad is not None and torch.equal(v.grad, p[k].grad), k
 
 
+@pytest.mark.parametrize("weight, lam_d, masked", [(1.0, 1.0, True), (0.5, 0.3, True), (1.0, 0.0, False),
+                                                   (1.0, 1.0, False)])
+def test_cpu_fused_loss_terms_have_the_torch_expressions_gradients(weight, lam_d, masked):
+    """On the compiled renderer the L1 and inverse-depth terms are one compiled pass (``l1_inverse_depth``): every
+    parameter's gradient equals, bit for bit, that of the torch expressions (boolean-mask indexing), with view
+    weights, depth weights, depth targets with holes and render pixels outside the alpha mask; the values agree."""
+    import navcrafter.models.gaussians.cpu_rasterize as cr
+
+    _, init, views = synthetic_views(n_views=1)
+    v = views[0]
+    ref = v.depth.clone()
+    if masked:
+        ref[:, : S // 3] = 0.0  # no target (sky, invalid)
+    view = TrainView(v.image, v.c2w, v.K, ref, weight)
+    trainer = GaussianTrainer(init, [view], quick_config(lambda_depth=lam_d), scene_scale=3.0)
+    rgb, depth, alpha, _ = trainer.render(view, 25, training=True)
+    grads, values = [], []
+    for renderer in ("cpu", "torch"):  # the renderer's name decides the loss code only (the render is done)
+        trainer.renderer = renderer
+        terms = trainer.losses(view, rgb, depth, alpha)
+        assert (type(terms["l1"].grad_fn).__name__ == "_L1InverseDepthBackward") == (renderer == "cpu")
+        terms["loss"].backward(retain_graph=True)
+        grads.append({k: p.grad.clone() for k, p in trainer.params.items()})
+        values.append({k: float(t.detach()) for k, t in terms.items()})
+        for p in trainer.params.values():
+            p.grad = None
+    assert values[0].keys() == values[1].keys() and ("depth" in values[0]) == (lam_d > 0)
+    assert (values[0]["depth"] if lam_d else 1.0) > 0
+    for k in values[0]:
+        assert values[0][k] == pytest.approx(values[1][k], rel=1e-6), k
+    for k in grads[0]:
+        assert torch.equal(grads[0][k], grads[1][k]), k
+    if lam_d:  # pixels outside the alpha mask exist, and the mask matters
+        assert 0 < int((alpha > 0.5).sum()) < alpha.numel()
+    with pytest.raises(ValueError, match="float32 CPU"):
+        cr.l1_inverse_depth(rgb.double(), depth, view.image, None, None)
+    with pytest.raises(ValueError, match="alpha"):
+        cr.l1_inverse_depth(rgb, depth, view.image, ref, None)
+
+
 def test_depth_term_improves_geometry():
     _, init, views = synthetic_views()
     errs = {}
@@ -234,6 +274,33 @@ def test_densification_grows_prunes_and_stays_bounded():
 
 
 # --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n_cam", [1, 3])
+def test_density_statistics_on_the_cpu_are_the_torch_ops_bits(n_cam):
+    """The strategy's compiled pass on CPU float32 (``cpu_kernels.accumulate_grad2d``) accumulates what its torch
+    ops do (the path of other devices and dtypes), bit for bit, over several steps, with culled Gaussians."""
+    from navcrafter.models.gaussians.train import strategy_for
+
+    strategy = strategy_for(quick_config(densify=True), seed=0)
+    g = torch.Generator().manual_seed(n_cam)
+    n, steps = 5000, 3
+    state, want_g, want_c = strategy.initialize_state(1.0), torch.zeros(n, dtype=torch.float64), torch.zeros(n)
+    for _ in range(steps):
+        m2d = torch.zeros(n_cam, n, 2, requires_grad=True)
+        m2d.grad = torch.randn(n_cam, n, 2, generator=g) * torch.rand(n_cam, n, 1, generator=g) ** 4
+        radii = torch.randint(0, 3, (n_cam, n), generator=g, dtype=torch.int32)
+        strategy._update_state({"means": torch.zeros(n, 3)}, state, {"means2d": m2d, "radii": radii, "width": 127,
+                                                                     "height": 96})
+        grads = m2d.grad.clone()
+        grads[..., 0] *= 127 / 2.0
+        grads[..., 1] *= 96 / 2.0
+        visible = radii > 0
+        want_g += (grads.norm(dim=-1) * visible).sum(0).double()
+        want_c += visible.sum(0).double()
+    assert torch.equal(state["grad2d"], want_g) and torch.equal(state["count"], want_c.double())
+    assert float(state["count"].max()) == steps * n_cam and float(state["count"].min()) < steps * n_cam
+    assert torch.equal(state["grad2d"] == 0, state["count"] == 0)  # a Gaussian culled in every view gets nothing
 # The fit step and its exports, on a tiny demo scene
 # --------------------------------------------------------------------------------------------------
 def test_fit_step_on_a_tiny_scene(demo_photos, tmp_path):
