@@ -290,19 +290,22 @@ def test_batched_step_is_the_products_accumulated_step(mini, held, stage):
     # has a random sign and moves the weight by up to ±lr in either trainer: bounded there, not compared.
     scale = max(float(q.grad.abs().max()) for q in product.parameters() if q.grad is not None)
     lr = tr.lr_at(0)
-    moved = decided = 0
+    moved = decided = total = 0
     for (k, p), q, p0 in zip(ours.named_parameters(), product.parameters(), model.parameters()):
         assert (p.grad is None) == (q.grad is None), k
         if q.grad is None:
             assert torch.equal(p, q), k
             continue
-        assert torch.allclose(p.grad, q.grad, rtol=1e-3, atol=1e-6 * scale), k
-        sure = q.grad.abs() > 1e-4 * scale
+        # float32 noise measured here: up to 3.4e-7 x the largest gradient (patch_embedding); CI's CPU sums in
+        # another order, so 30x that
+        assert torch.allclose(p.grad, q.grad, rtol=1e-3, atol=1e-5 * scale), k
+        sure = q.grad.abs() > 1e-3 * scale  # 100x the tolerated noise: the sign is decided
         decided += int(sure.sum())
+        total += sure.numel()
         assert torch.allclose(p[sure], q[sure], atol=5e-5, rtol=0), k  # 5 % of the step
         assert float((p - q).abs().max()) <= 2.05 * lr, k
         moved += int(not torch.equal(p, p0))
-    assert moved > 0 and decided > 0
+    assert moved > 0 and decided > total // 10  # control stage: 17 % of the entries, base more
     # per clip: the batched loss is the mean of the product's flow_loss of each clip
     product.train()
     from navcrafter.models.synthesis.training import clip_conditions
