@@ -525,7 +525,7 @@ def model_configs(args, latent_channels: int):
 
 
 def training_config(*, stage: str, steps: int, lr: float, seed: int, frames: int, resolution: int,
-                    warmup: int = 50, batch: int = 1):
+                    warmup: int = 50, batch: int = 1, flow_shift: float | None = None):
     from navcrafter.schemas.training import CameraTrainingConfig, OptimConfig, TrainingDataConfig
 
     data = TrainingDataConfig(sources=(), num_frames=frames, resolution=resolution, frame_stride=1,
@@ -534,7 +534,7 @@ def training_config(*, stage: str, steps: int, lr: float, seed: int, frames: int
     return CameraTrainingConfig(data=data, optim=OptimConfig(learning_rate=lr, batch_size=batch, warmup_steps=warmup),
                                 steps=steps, seed=seed, text_dropout=0.0, trainable=stage,
                                 camera_dropout=1.0 if stage == "base" else 0.0, gradient_checkpointing=False,
-                                random_base=None)
+                                random_base=None, **({} if flow_shift is None else {"flow_shift": flow_shift}))
 
 
 def cosine_trainer(model, clips, config, **kw):
@@ -769,7 +769,8 @@ def training_signature(args, size: dict) -> dict:
     keys = ("seed", "resolution", "frames", "heads", "head_dim", "layers", "ffn", "adapter_channels", "lr",
             "warmup", "batch", "control_batch", "reference_frames", "condition", "flip", "texture_scale", "autoencoder",
             "latent_channels")
-    return {**{k: getattr(args, k) for k in keys}, "train_scenes": size["train_scenes"],
+    extra = {} if getattr(args, "base_flow_shift", None) is None else {"base_flow_shift": args.base_flow_shift}
+    return {**{k: getattr(args, k) for k in keys}, **extra, "train_scenes": size["train_scenes"],
             "base_steps": size["base_steps"], "control_steps": size["control_steps"]}
 
 
@@ -842,6 +843,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--adapter-channels", type=int, default=32)
     ap.add_argument("--base-steps", type=int)
     ap.add_argument("--control-steps", type=int)
+    ap.add_argument("--base-flow-shift", type=float, help="development: the base stage's training timestep shift "
+                    "(default: the product's training flow_shift; below it more weight on low noise, where the "
+                    "video starts from frame 0)")
     ap.add_argument("--train-scenes", type=int)
     ap.add_argument("--eval-scenes", type=int)
     ap.add_argument("--lr", type=float, default=1e-3, help="peak lr of both stages (from-scratch tiny model; "
@@ -970,7 +974,8 @@ def main(argv: list[str] | None = None) -> int:
     base_config, control_config = model_configs(args, enc.latent_channels)
     model = build_camera_wan(base_config, control_config, seed=args.seed).to(args.device)
     cfg = dict(frames=T, resolution=R, lr=args.lr, warmup=args.warmup)
-    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, batch=args.batch, **cfg)
+    base_cfg = training_config(stage="base", steps=size["base_steps"], seed=args.seed, batch=args.batch,
+                               flow_shift=args.base_flow_shift, **cfg)
     t0 = time.perf_counter()
 
     def progress(name, every=100):
@@ -1099,6 +1104,7 @@ def main(argv: list[str] | None = None) -> int:
             "estimator_grid": {"per_direction": GRID, "range": GRID_RANGE},
             "width": {"heads": args.heads, "head_dim": args.head_dim, "layers": args.layers, "ffn": args.ffn},
             "base_steps": size["base_steps"], "control_steps": size["control_steps"], "lr": args.lr,
+            "training_flow_shift": {"base": base_cfg.flow_shift, "control": control_cfg.flow_shift},
             "batch": args.batch, "control_batch": args.control_batch,
             "lr_schedule": f"linear warmup {args.warmup} steps, cosine decay to 0 (benchmark-local)",
             "reference_frames_in_training": args.reference_frames,

@@ -148,6 +148,7 @@ class DefaultStrategy:
         if grads.device.type == "cpu" and grads.dtype == torch.float32:
             # one compiled pass, the same bits as the ops below (which cost ~1 ms per iteration at 50k on 2 cores:
             # ten small ops, each waking torch's threads; issue 31, round fit33)
+            # deferred: numba and the compiled CPU kernels load only where density control runs on the CPU
             from navcrafter.models.gaussians.cpu_kernels import accumulate_grad2d
 
             accumulate_grad2d(grads.contiguous().numpy(), radii.contiguous().numpy(), np.float32(info["width"] / 2.0),
