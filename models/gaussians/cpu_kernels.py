@@ -2045,10 +2045,11 @@ def l1_inverse_depth_forward(rgb, image, depth, ref, alpha, alpha_min, d_min):
 
 
 @_jit
-def l1_inverse_depth_backward(rgb, image, depth, ref, alpha, alpha_min, d_min, g_rgb, g_depth, v_rgb, v_depth):
+def l1_inverse_depth_backward(rgb, image, depth, ref, alpha, alpha_min, d_min, n, g_rgb, g_depth, v_rgb, v_depth):
     """The gradients of :func:`l1_inverse_depth_forward`'s terms as means (``g_rgb`` / ``g_depth``: the upstream
-    gradients of the two means, float32), as torch's autograd makes them op by op, bit for bit: mean ``g / n``,
-    abs ``* sgn``, reciprocal ``-g * (r * r)``, clamp ``d >= d_min``, the masked pixels' scatter ``0 + g``."""
+    gradients of the two means, float32; ``n``: the forward's mask count), as torch's autograd makes them op by op,
+    bit for bit: mean ``g / n``, abs ``* sgn``, reciprocal ``-g * (r * r)``, clamp ``d >= d_min``, the masked
+    pixels' scatter ``0 + g``."""
     h, w = rgb.shape[0], rgb.shape[1]
     gm = g_rgb / np.float32(h * w * 3)
     for y in range(h):
@@ -2056,14 +2057,7 @@ def l1_inverse_depth_backward(rgb, image, depth, ref, alpha, alpha_min, d_min, g
             for k in range(3):
                 v_rgb[y, x, k] = gm * _sgn32(rgb[y, x, k] - image[y, x, k])
     v_depth[:] = 0.0
-    if ref.shape[0] == 0:
-        return
-    n = 0
-    for y in range(h):
-        for x in range(w):
-            if ref[y, x] > 0 and alpha[y, x] > alpha_min:
-                n += 1
-    if n == 0:
+    if ref.shape[0] == 0 or n == 0:
         return
     gd = g_depth / np.float32(n)
     one = np.float32(1.0)
