@@ -255,6 +255,14 @@ def test_saved_models_load_bit_for_bit_and_only_with_the_same_training_settings(
     assert any(not torch.equal(va, vb) for va, vb in zip(model.state_dict().values(), base.state_dict().values()))
     with pytest.raises(ValueError, match="base_steps"):
         mini.load_models(path, m2, b2, mini.training_signature(args, {**size, "base_steps": 4}))
+    # the development option --base-flow-shift: in the base stage's config and, when set, in the signature
+    assert mini.training_config(stage="base", steps=1, lr=1e-3, seed=0, frames=5, resolution=16,
+                                flow_shift=1.5).flow_shift == 1.5
+    assert "base_flow_shift" not in sig
+    shifted = argparse.Namespace(**vars(args), base_flow_shift=1.5)
+    assert mini.training_signature(shifted, size) == {**sig, "base_flow_shift": 1.5}
+    with pytest.raises(ValueError, match="base_flow_shift"):
+        mini.load_models(path, m2, b2, mini.training_signature(shifted, size))
 
 
 @pytest.mark.parametrize("stage", ["base", "control"])
