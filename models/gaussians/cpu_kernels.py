@@ -1509,9 +1509,14 @@ _v4_store = _lanes_intrinsic("_v4_store", 4, True, "The four lanes into elements
                              "(lane 3 lands on ``idx + 3``, which the caller writes again after).")
 
 
+def _llvm_fma(builder, ty, suffix):
+    """LLVM's fused multiply-add on ``ty`` (``llvm.fma.<suffix>``, rounded once), declared in the builder's module."""
+    return cgutils.get_or_insert_function(builder.module, ir.FunctionType(ty, [ty] * 3), f"llvm.fma.{suffix}")
+
+
 def _fma_v4(builder):
-    """LLVM's lane-wise fused multiply-add on <4 x double> (``llvm.fma.v4f64``), declared in the builder's module."""
-    return cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V4_IR, [_V4_IR] * 3), "llvm.fma.v4f64")
+    """LLVM's lane-wise fused multiply-add on <4 x double> (``llvm.fma.v4f64``)."""
+    return _llvm_fma(builder, _V4_IR, "v4f64")
 
 
 @intrinsic
@@ -1980,9 +1985,7 @@ def _fma_f32(typingctx, a, b, c):
         return None
 
     def codegen(context, builder, sig, args):
-        f32 = ir.FloatType()
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(f32, [f32] * 3), "llvm.fma.f32")
-        return builder.call(fn, args)
+        return builder.call(_llvm_fma(builder, ir.FloatType(), "f32"), args)
 
     return types.float32(types.float32, types.float32, types.float32), codegen
 

@@ -532,8 +532,7 @@ class _L1InverseDepth(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rgb, depth, image, ref, alpha, alpha_min, d_min, info):
         arrays = tuple(t.detach().numpy() for t in (rgb, image, depth, ref, alpha))
-        s, sd, n = K.l1_inverse_depth_forward(arrays[0], arrays[1], arrays[2], arrays[3], arrays[4],
-                                              np.float32(alpha_min), np.float32(d_min))
+        s, sd, n = K.l1_inverse_depth_forward(*arrays, np.float32(alpha_min), np.float32(d_min))
         ctx.arrays, ctx.consts = arrays, (np.float32(alpha_min), np.float32(d_min), n)
         info["pixels"] = n
         return torch.tensor(s / rgb.numel(), dtype=rgb.dtype), torch.tensor(sd / max(n, 1), dtype=rgb.dtype)
