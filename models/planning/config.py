@@ -109,13 +109,15 @@ class PlanConfig(_Section):
         1.0, ge=0, description="explorer: how far (voxel-map cells) a frame may stand beyond the seen free space, in "
         "unknown space an earlier frame of its clip looked at (0: only seen free space).")
     explore_ball: float = Field(
-        0.0, ge=0, le=1, description="explorer: a frame admitted in unknown space (looked at by an earlier frame of "
+        0.5, ge=0, le=1, description="explorer: a frame admitted in unknown space (looked at by an earlier frame of "
         "its clip, not seen free) must also have its clearance ball seen: probes at 0.5 and 1 x this x the clearance "
         "G demands there (r_safe + the follow error along the path), in 26 directions, each seen free by an earlier "
         "view or looked at by an earlier frame of the clip with nothing observed in the way; otherwise the frame is "
         "refused (the path is then shortened or another taken). 0: off, the explorer before it (development room 0 "
         "with explore_accuracy 0.03 met a ceiling 0.30 m above a dolly's end that no frame looked at; "
-        "benchmarks/results/planning-explore10-dev).")
+        "benchmarks/results/planning-explore10-dev). 0.5 with explore_ball_up, explore_ball_seen_free and without "
+        "explore_ball_open_sky: the default since collide15 (the one setting with 0 collisions on every development "
+        "draw, collide14; models/planning/README.md).")
     explore_ball_follow_error: float | None = Field(
         None, ge=0, description="explorer: the follow error the clearance ball of explore_ball grows with along the "
         "path: its radius is explore_ball x (r_safe + this x the distance travelled). None: G's follow error "
@@ -123,20 +125,20 @@ class PlanConfig(_Section):
         "drift's median (a half-normal of mean drift_trans 0.08 has median 0.068), a ball that never shrinks "
         "below r_safe and grows a quarter as fast (explore12).")
     explore_ball_up: bool = Field(
-        False, description="explorer: the clearance ball of explore_ball probed only above the frame (the 9 of its 26 "
+        True, description="explorer: the clearance ball of explore_ball probed only above the frame (the 9 of its 26 "
         "directions that rise from the ground plane by more than 30 deg); the space beside and below it is not asked "
-        "for. False: every direction (explore11). Why: development room 2 of CRN base seed 1 (collide13): the "
+        "for (the default since collide15). False: every direction (explore11). Why: development room 2 of CRN base seed 1 (collide13): the "
         "default's clip 3 ended 0.53 m below a ceiling no frame had seen, admitted in unknown space; the full ball "
         "costs streets seen.")
     explore_ball_seen_free: bool = Field(
-        False, description="explorer: the clearance ball of explore_ball asked at every frame past the prefix, those "
-        "in seen free space too; False: only at frames admitted in unknown space (explore11). Why: development room 7 "
+        True, description="explorer: the clearance ball of explore_ball asked at every frame past the prefix, those "
+        "in seen free space too (the default since collide15); False: only at frames admitted in unknown space (explore11). Why: development room 7 "
         "of CRN base seed 4 (collide14): the default's dolly met a ceiling no view had shown at frames seen free (the "
         "position in view, the space above it not).")
     explore_ball_open_sky: bool = Field(
-        True, description="explorer: whether the clearance ball of explore_ball is asked in a scene whose input "
+        False, description="explorer: whether the clearance ball of explore_ball is asked in a scene whose input "
         "photo shows sky (at least explore.SKY_SHARE of its pixels without depth: the geometry found no surface on "
-        "their rays). False: not there (the ball is a ceiling's test: under open sky the space above a camera looking "
+        "their rays). False (the default since collide15): not there (the ball is a ceiling's test: under open sky the space above a camera looking "
         "level is in no view though nothing caps it, and the ball refused street clips for it: collide13, streets "
         "seen -0.066 +- 0.023 with explore_ball 0.5 + explore_ball_up; the rooms' collisions it removed were under "
         "ceilings). True: everywhere (explore11).")
