@@ -188,6 +188,7 @@ CAMERA_GUIDANCE = 7.0  # sampling: classifier-free guidance weight on the camera
 # DPM-solver steps when sampling (the product's SynthesisConfig has 40): 20 kept the development direction accuracy
 # and R_err of 40 at half the time (results README, "Fewer sampling steps"), which pays for the longer stages
 SAMPLING_STEPS = 20
+PATCH = 2  # the DiT's spatial patch on the latents (Wan's (1, 2, 2))
 BATCH = 1  # training clips per step (cosine_trainer)
 # held-out scenes start here: 7000 since the frozen settings of 2026-12-03 evening (6000-6002 measured the earlier
 # defaults and were seen when these were chosen; results README)
@@ -512,7 +513,8 @@ def load_scenes(path: Path, key: dict, encoders) -> tuple[list[dict], list[dict]
 def model_configs(args, latent_channels: int):
     from navcrafter.models.synthesis.camcontrol import CameraControlConfig
 
-    base = {"patch_size": (1, 2, 2), "num_attention_heads": args.heads, "attention_head_dim": args.head_dim,
+    patch = getattr(args, "patch", PATCH)
+    base = {"patch_size": (1, patch, patch), "num_attention_heads": args.heads, "attention_head_dim": args.head_dim,
             "in_channels": 2 * latent_channels + TEMPORAL, "out_channels": latent_channels, "text_dim": TEXT_DIM,
             "freq_dim": 64 if args.heads * args.head_dim < 1024 else 256, "ffn_dim": args.ffn,
             "num_layers": args.layers, "cross_attn_norm": True, "qk_norm": "rms_norm_across_heads", "eps": 1e-6,
@@ -770,6 +772,8 @@ def training_signature(args, size: dict) -> dict:
             "warmup", "batch", "control_batch", "reference_frames", "condition", "flip", "texture_scale", "autoencoder",
             "latent_channels")
     extra = {} if getattr(args, "base_flow_shift", None) is None else {"base_flow_shift": args.base_flow_shift}
+    if getattr(args, "patch", PATCH) != PATCH:
+        extra["patch"] = args.patch
     return {**{k: getattr(args, k) for k in keys}, **extra, "train_scenes": size["train_scenes"],
             "base_steps": size["base_steps"], "control_steps": size["control_steps"]}
 
@@ -840,6 +844,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--head-dim", type=int, default=32)
     ap.add_argument("--layers", type=int, default=4)
     ap.add_argument("--ffn", type=int, default=256)
+    ap.add_argument("--patch", type=int, default=PATCH, choices=(1, 2),
+                    help="the DiT's spatial patch on the latents (Wan's: 2; 1: a token per 4x4 pixels, 4x the tokens)")
     ap.add_argument("--adapter-channels", type=int, default=32)
     ap.add_argument("--base-steps", type=int)
     ap.add_argument("--control-steps", type=int)
