@@ -127,21 +127,21 @@ class PlanConfig(_Section):
     explore_ball_up: bool = Field(
         True, description="explorer: the clearance ball of explore_ball probed only above the frame (the 9 of its 26 "
         "directions that rise from the ground plane by more than 30 deg); the space beside and below it is not asked "
-        "for (the default since collide15). False: every direction (explore11). Why: development room 2 of CRN base seed 1 (collide13): the "
-        "default's clip 3 ended 0.53 m below a ceiling no frame had seen, admitted in unknown space; the full ball "
-        "costs streets seen.")
+        "for (the default since collide15). False: every direction (explore11). Why: development room 2 of CRN base "
+        "seed 1 (collide13): the default's clip 3 ended 0.53 m below a ceiling no frame had seen, admitted in unknown "
+        "space; the full ball costs streets seen.")
     explore_ball_seen_free: bool = Field(
-        True, description="explorer: the clearance ball of explore_ball asked at every frame past the prefix, those "
-        "in seen free space too (the default since collide15); False: only at frames admitted in unknown space (explore11). Why: development room 7 "
-        "of CRN base seed 4 (collide14): the default's dolly met a ceiling no view had shown at frames seen free (the "
-        "position in view, the space above it not).")
+        True, description="explorer: the clearance ball of explore_ball asked at every frame past the prefix, those in "
+        "seen free space too (the default since collide15); False: only at frames admitted in unknown space "
+        "(explore11). Why: development room 7 of CRN base seed 4 (collide14): the default's dolly met a ceiling no "
+        "view had shown at frames seen free (the position in view, the space above it not).")
     explore_ball_open_sky: bool = Field(
-        False, description="explorer: whether the clearance ball of explore_ball is asked in a scene whose input "
-        "photo shows sky (at least explore.SKY_SHARE of its pixels without depth: the geometry found no surface on "
-        "their rays). False (the default since collide15): not there (the ball is a ceiling's test: under open sky the space above a camera looking "
-        "level is in no view though nothing caps it, and the ball refused street clips for it: collide13, streets "
-        "seen -0.066 +- 0.023 with explore_ball 0.5 + explore_ball_up; the rooms' collisions it removed were under "
-        "ceilings). True: everywhere (explore11).")
+        False, description="explorer: whether the clearance ball of explore_ball is asked in a scene whose input photo "
+        "shows sky (at least explore.SKY_SHARE of its pixels without depth: the geometry found no surface on their "
+        "rays). False (the default since collide15): not there (the ball is a ceiling's test: under open sky the space "
+        "above a camera looking level is in no view though nothing caps it, and the ball refused street clips for it: "
+        "collide13, streets seen -0.066 +- 0.023 with explore_ball 0.5 + explore_ball_up; the rooms' collisions it "
+        "removed were under ceilings). True: everywhere (explore11).")
     explore_free_space: Literal["anchored", "all", "share"] = Field(
         "share", description="explorer: which pixels of a generated (lifted) frame carve free space: 'anchored' "
         "(only those whose depth agrees with the cloud the clip was conditioned on: copied content; what the video "
