@@ -188,7 +188,9 @@ CAMERA_GUIDANCE = 7.0  # sampling: classifier-free guidance weight on the camera
 # DPM-solver steps when sampling (the product's SynthesisConfig has 40): 20 kept the development direction accuracy
 # and R_err of 40 at half the time (results README, "Fewer sampling steps"), which pays for the longer stages
 SAMPLING_STEPS = 20
-PATCH = 2  # the DiT's spatial patch on the latents (Wan's (1, 2, 2))
+# the DiT's spatial patch on the latents: 1 (a token per 4x4 pixels, 4x Wan's tokens) since 2026-12-05, Wan's (1, 2, 2)
+# before; measured on development scenes 0-7 (module docstring, "A token per latent position")
+PATCH = 1
 BATCH = 1  # training clips per step (cosine_trainer)
 # held-out scenes start here: 7000 since the frozen settings of 2026-12-03 evening (6000-6002 measured the earlier
 # defaults and were seen when these were chosen; results README)
@@ -772,8 +774,7 @@ def training_signature(args, size: dict) -> dict:
             "warmup", "batch", "control_batch", "reference_frames", "condition", "flip", "texture_scale", "autoencoder",
             "latent_channels")
     extra = {} if getattr(args, "base_flow_shift", None) is None else {"base_flow_shift": args.base_flow_shift}
-    if getattr(args, "patch", PATCH) != PATCH:
-        extra["patch"] = args.patch
+    extra["patch"] = getattr(args, "patch", PATCH)
     return {**{k: getattr(args, k) for k in keys}, **extra, "train_scenes": size["train_scenes"],
             "base_steps": size["base_steps"], "control_steps": size["control_steps"]}
 
@@ -801,6 +802,7 @@ def load_models(path: Path, model: torch.nn.Module, base: torch.nn.Module, signa
     stored = json.loads(meta.get("signature", "{}"))
     stored.setdefault("batch", 1)  # files saved before --batch existed trained at batch 1
     stored.setdefault("control_batch", stored["batch"])
+    stored.setdefault("patch", 2)  # files saved before --patch existed: Wan's 2x2 patch
     want = json.loads(json.dumps(signature, sort_keys=True))
     if stored != want:
         diff = sorted(k for k in set(stored) | set(want) if stored.get(k) != want.get(k))
@@ -845,7 +847,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--layers", type=int, default=4)
     ap.add_argument("--ffn", type=int, default=256)
     ap.add_argument("--patch", type=int, default=PATCH, choices=(1, 2),
-                    help="the DiT's spatial patch on the latents (Wan's: 2; 1: a token per 4x4 pixels, 4x the tokens)")
+                    help="the DiT's spatial patch on the latents (1: a token per 4x4 pixels, the miniature's; "
+                         "2: Wan's, 4x fewer tokens)")
     ap.add_argument("--adapter-channels", type=int, default=32)
     ap.add_argument("--base-steps", type=int)
     ap.add_argument("--control-steps", type=int)

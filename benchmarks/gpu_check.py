@@ -97,7 +97,8 @@ OPT_IN: dict[str, tuple[int, int]] = {"dit-onnx": (300, 240), "fun-camera-onnx":
 CAMERA_SCENES = HERE.parent / "deploy" / "gpu" / "scenes"
 CAMERA_MINI_DATA = ["--resolution", "64", "--frames", "17", "--autoencoder", "exact", "--train-scenes", "6",
                     "--eval-scenes", "3"]
-CAMERA_MINI_WIDTH = ["--heads", "12", "--head-dim", "128", "--layers", "30", "--ffn", "8960",
+# Wan2.1-1.3B as it is: its (1, 2, 2) patch too (the CPU miniature uses patch 1)
+CAMERA_MINI_WIDTH = ["--patch", "2", "--heads", "12", "--head-dim", "128", "--layers", "30", "--ffn", "8960",
                      "--adapter-channels", "64"]
 CAMERA_MINI_STEPS = {"full": (400, 200), "quick": (150, 50)}  # steps per stage, warmup
 # held-out clips per sampling call. 2026-12-04 (second lease): one clip at a time, the trained, untrained, mirrored

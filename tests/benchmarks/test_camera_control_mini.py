@@ -263,6 +263,17 @@ def test_saved_models_load_bit_for_bit_and_only_with_the_same_training_settings(
     assert mini.training_signature(shifted, size) == {**sig, "base_flow_shift": 1.5}
     with pytest.raises(ValueError, match="base_flow_shift"):
         mini.load_models(path, m2, b2, mini.training_signature(shifted, size))
+    # --patch: in the model's config and always in the signature; a file saved before the option (no "patch" in its
+    # signature) was trained with Wan's 2x2 patch and loads only at --patch 2
+    assert sig["patch"] == mini.PATCH == 1 and base_cfg["patch_size"] == (1, 1, 1)
+    wan = argparse.Namespace(**vars(args), patch=2)
+    assert mini.model_configs(wan, 4)[0]["patch_size"] == (1, 2, 2)
+    old = {k: v for k, v in mini.training_signature(wan, size).items() if k != "patch"}
+    mw, bw = (build_camera_wan(*mini.model_configs(wan, 4), seed=s) for s in (4, 5))
+    mini.save_models(path, mw, bw, old, {})
+    mini.load_models(path, mw, bw, mini.training_signature(wan, size))
+    with pytest.raises(ValueError, match="patch"):
+        mini.load_models(path, m2, b2, sig)
 
 
 @pytest.mark.parametrize("stage", ["base", "control"])
