@@ -5,7 +5,7 @@ measured as the paper measures camera control (direction, camera-following error
 clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64², long mixed trajectories):
 
 * **A high-ceiling autoencoder at 32², 9 frames.** Frames of 32² and 9 frames (``--frames``), Wan's latent
-  layout (4×4 pixels × 4 frames per latent position, frame 0 alone: 3 latent frames, 48 tokens):
+  layout (4×4 pixels × 4 frames per latent position, frame 0 alone: 3 latent frames of 8×8 positions):
   ``PixelShuffleEncoders`` (exactly invertible) projected onto the top ``--latent-channels`` (24) principal
   components of the training clips (``PCAEncoders``); its PSNR on the held-out truth is the ceiling (≈ 26 dB).
   ``--autoencoder exact`` keeps all 192 pixel-shuffle channels (ceiling: the truth itself), but then each token
@@ -15,6 +15,16 @@ clips decode to coloured blocks: a PCA autoencoder with a 24 dB ceiling at 64²,
   0–2 held out, training seeds 10–33, 3000 + 2000 steps each, measured 2026-12-03): a step costs ≈ 35 % less
   (0.049 vs 0.076 s on an idle core), the base's flow loss falls faster, and the same amplitudes are reached
   in fewer frames; the numbers of that comparison are in ``benchmarks/results/camera-control-mini/README.md``.
+* **A token per latent position** (``--patch``, default ``PATCH`` = 1 since 2026-12-05; Wan's own 2×2 patch
+  before). With Wan's patch a token covers 8×8 pixels of a 32² frame (4×4 tokens per latent frame), so a pan
+  that moves the picture by a few pixels per frame moves content *within* tokens, which the tiny DiT renders as
+  coloured blocks. With patch 1 a token covers 4×4 pixels (8×8 tokens per latent frame, 192 in all; 24 values per
+  token) at 1.6× the cost of a step (60 against 37 ms on one idle core). Measured on development scenes 0–7 (64
+  clips, the ``--quick`` preset otherwise unchanged, 2026-12-05, one run each): R_err 7.09 → **5.13** °/frame
+  (pan 9.5 → 8.7, tilt 5.7 → 3.0, orbit 10.5 → 7.8, dolly 2.7 → 0.9), SSIM frames 1.. 0.195 → **0.279**, direction
+  accuracy 0.922 → 0.938, PSNR 15.48 → 15.19 dB, the base's mean video 17.61 → 18.34 dB (copying frame 0: 17.22);
+  untrained control 0.61 / 12.7° → 0.58 / 10.7°, mirrored cameras 0.125 → 0.078. The GPU check keeps Wan's
+  patch 2 (its item is Wan2.1-1.3B as it is).
 * **The benchmark's optimiser schedule** (``cosine_trainer``; the product's trainer and defaults untouched):
   peak lr 1e-3 (a from-scratch model; the product's default 1e-4 fine-tunes a pretrained one), a 200-step
   warmup and a cosine decay to zero in each stage, batch 1, so that the batch-1 weights settle at the end of

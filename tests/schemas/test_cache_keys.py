@@ -21,6 +21,9 @@ from navcrafter.schemas.keys import scene_keys
 SCENE = "ab" * 32
 PINNED = Path(__file__).with_name("cache_keys.json")
 BOTH = {"fit.enabled": True, "refine.enabled": True}
+# the explorer's clearance-ball settings before collide15 made the ball a default
+NO_BALL = {"plan.explore_ball": 0.0, "plan.explore_ball_up": False, "plan.explore_ball_open_sky": True,
+           "plan.explore_ball_seen_free": False}
 
 
 def all_keys(config: RunConfig) -> dict[str, str]:
@@ -42,9 +45,11 @@ def configs(model_dir: Path) -> dict[str, RunConfig]:
         "paper-collision-aware": RunConfig.load(overrides={"plan.strategy": "collision_aware"}),
         # the explorer's free-space rule before `share` became its default: stores made then keep their keys
         "paper-explorer-anchored": RunConfig.load(overrides={"plan.explore_free_space": "anchored",
-                                                             "plan.explore_follow_error": None}),
+                                                             "plan.explore_follow_error": None, **NO_BALL}),
         # the explorer's follow error before the drift's 99 % quantile (0.26) became its default: stores keep their keys
-        "paper-explorer-share-fe15": RunConfig.load(overrides={"plan.explore_follow_error": 0.15}),
+        "paper-explorer-share-fe15": RunConfig.load(overrides={"plan.explore_follow_error": 0.15, **NO_BALL}),
+        # the explorer before its clearance ball became the default (collide15): stores keep their keys
+        "paper-explorer-no-ball": RunConfig.load(overrides=NO_BALL),
         "tiny": RunConfig.load(preset="tiny"),
         "tiny+fit": RunConfig.load(preset="tiny", overrides={"fit.enabled": True}),
         "tiny-orbit-seed7": RunConfig.load(preset="tiny", overrides={"plan.strategy": "orbit", "seed": 7}),
