@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 import urllib.request
 import uuid
 from collections import Counter
@@ -193,6 +194,43 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def start_prefect_server(home: Path, log: Path, port: int | None = None, *, timeout: float = 120,
+                         tries: int = 5) -> tuple[subprocess.Popen, int]:
+    """``prefect server start`` on SQLite in ``home`` (output to ``log``) on a free port (or ``port``), once it
+    answers. The answer must come from *this* server (its ``/admin/settings`` name ``home``): ``free_port``'s port
+    can be taken by another process before the server binds it, and then the health check reached that process's
+    server (CI, 2026-12-05: test_worker's fixture found its work pool already there). A server that lost its port
+    is stopped and started again on another free port, up to ``tries`` times; a fixed ``port`` is not retried."""
+    for _ in range(1 if port is not None else tries):
+        p = free_port() if port is None else port
+        with open(log, "ab") as out:
+            proc = subprocess.Popen([f"{VENV_BIN}/prefect", "server", "start", "--host", "127.0.0.1", "--port", str(p)],
+                                    env=prefect_env(home, None), stdout=out, stderr=subprocess.STDOUT,
+                                    start_new_session=True)
+        api, deadline = f"http://127.0.0.1:{p}/api", time.time() + timeout
+        while True:
+            try:
+                answered = api_get(f"{api}/health") is not None
+            except OSError:
+                answered = False
+            if answered:
+                try:
+                    theirs = api_get(f"{api}/admin/settings").get("home")
+                except OSError:
+                    theirs = None
+                if theirs is not None and Path(theirs).resolve() == Path(home).resolve():
+                    return proc, p
+                if proc.poll() is not None or theirs is not None:  # another server holds the port
+                    kill_tree(proc, signal.SIGTERM)
+                    break
+            if (not answered and proc.poll() is not None) or time.time() > deadline:
+                kill_tree(proc, signal.SIGTERM)
+                raise RuntimeError(f"the Prefect server did not start:\n{tail(log)}")
+            time.sleep(0.3)
+    raise RuntimeError(f"the Prefect server found its port taken by another server {tries if port is None else 1} "
+                       f"time(s):\n{tail(log)}")
 
 
 def prefect_env(home: Path, api_url: str | None) -> dict[str, str]:

@@ -23,9 +23,9 @@ from helpers import (
     api_get,
     assert_same_outputs,
     completed_counts,
-    free_port,
     kill_tree,
     prefect_env,
+    start_prefect_server,
     step_state,
     submit,
     tail,
@@ -42,23 +42,9 @@ SCENE_DEPLOYMENT = "explore-scene/test"
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     home = tmp_path_factory.mktemp("prefect-home")
-    port = free_port()
+    proc, port = start_prefect_server(home, home / "server.log")
     api = f"http://127.0.0.1:{port}/api"
-    log = home / "server.log"
-    with open(log, "wb") as out:
-        proc = subprocess.Popen([f"{VENV_BIN}/prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
-                                env=prefect_env(home, None), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
     try:
-        deadline = time.time() + 120
-        while True:
-            try:
-                api_get(f"{api}/health")
-                break
-            except OSError:
-                if proc.poll() is not None or time.time() > deadline:
-                    raise RuntimeError(f"the Prefect server did not start:\n{tail(log)}") from None
-                time.sleep(0.5)
         for pool in (POOL, GPU_POOL):
             res = subprocess.run([f"{VENV_BIN}/prefect", "work-pool", "create", "--type", "process", pool],
                                  env=prefect_env(home, api), capture_output=True, text=True, timeout=120)
@@ -147,6 +133,28 @@ def test_submitted_collection_is_explored_by_a_worker(server, uninterrupted, two
         assert child["parameters"]["run_id"] == run["id"] and child["parameters"]["store"] == str(store)
         assert child["name"] == f"scene-{child['parameters']['scene_id'][:12]}" and "test" in child["tags"]
     assert {r["run_id"] for r in manifest.values()} == {run["id"]}
+
+
+@pytest.mark.system
+def test_a_server_that_finds_its_port_taken_starts_on_another(server, tmp_path, monkeypatch):
+    """The port race CI met (2026-12-05): free_port's port was bound by another test's server before ours, whose
+    health check then answered for the other server. start_prefect_server checks that the answer is its own."""
+    import helpers
+
+    taken = int(server["api"].split(":")[-1].split("/")[0])
+    home = tmp_path / "second-home"
+    home.mkdir()
+    with pytest.raises(RuntimeError, match="taken by another server"):
+        start_prefect_server(home, tmp_path / "fixed.log", taken, timeout=60)
+    ports, free = iter([taken]), helpers.free_port
+    monkeypatch.setattr(helpers, "free_port", lambda: next(ports, None) or free())
+    proc, port = start_prefect_server(home, tmp_path / "retry.log")
+    try:
+        assert port != taken
+        assert Path(api_get(f"http://127.0.0.1:{port}/api/admin/settings")["home"]) == home.resolve()
+        assert Path(api_get(f"{server['api']}/admin/settings")["home"]) == Path(server["home"]).resolve()  # untouched
+    finally:
+        kill_tree(proc, signal.SIGTERM)
 
 
 @pytest.mark.system
